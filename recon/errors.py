@@ -1,0 +1,24 @@
+"""The root of lfrig's exception tree.
+
+Every error that a user can cause (a bad path, a broken file, a value out of range) is raised as a
+subclass of :class:`LfrigError` with a message that names the file or value and says what to do.
+The command line prints such errors as one line and exits non-zero; anything else is a bug and
+keeps its traceback.
+
+Each package has its own branch: :class:`ReconError` here, ``rig.errors.RigError`` and
+``calib.errors.CalibError`` in theirs.
+"""
+
+from __future__ import annotations
+
+
+class LfrigError(Exception):
+    """A user-facing error: the message is complete and is shown without a traceback."""
+
+
+class ReconError(LfrigError):
+    """An error in reading, reconstructing or exporting a light field."""
+
+
+class LightFieldFormatError(ReconError):
+    """A light-field folder or file is missing, incomplete or unreadable."""

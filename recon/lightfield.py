@@ -1,0 +1,116 @@
+"""The light field as data: views on a regular grid and what is known about the camera.
+
+Axes (``docs/conventions.md``): ``views[u, v, y, x(, c)]``. ``u`` is the grid row (the camera moves
+down the image, +y, as ``u`` grows), ``v`` the grid column (the camera moves right, +x, as ``v``
+grows); the centre view is ``views[U // 2, V // 2]``. A scene point seen at pixel ``(y, x)`` of the
+centre view with disparity ``d`` (pixels per view step) appears in view ``(u, v)`` at::
+
+    (y - (u - u0) * d,  x - (v - v0) * d)
+
+so that ``d > 0`` for points in front of the plane of zero disparity (the benchmark's sign).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class LightField:
+    """A 4D light field with its metadata.
+
+    Attributes
+    ----------
+    views
+        ``(U, V, H, W)`` or ``(U, V, H, W, 3)`` array in the stored dtype (``uint8``, ``uint16`` or
+        ``float32`` in ``[0, 1]``), colour in RGB order.
+    pitch_mm
+        Distance between neighbouring grid positions in mm (the benchmark's ``baseline_mm``), or
+        ``None`` when unknown.
+    focal_px
+        Focal length in pixels of the (rectified) views, or ``None`` when unknown.
+    disparity_range
+        ``(disp_min, disp_max)`` in pixels per view step that the scene is known to span, or ``None``.
+    disparity_offset
+        ``d0`` in pixels per view step: the views were shifted (refocused) so that a point at depth
+        ``Z`` has disparity ``focal_px * pitch_mm / Z - d0``. 0 for an unshifted capture.
+    metadata
+        Everything else the source recorded (``parameters.cfg`` sections, capture manifest header).
+    source
+        Folder the light field was read from, if any.
+    """
+
+    views: np.ndarray
+    pitch_mm: float | None = None
+    focal_px: float | None = None
+    disparity_range: tuple[float, float] | None = None
+    disparity_offset: float = 0.0
+    metadata: dict[str, Any] = field(default_factory=dict)
+    source: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.views.ndim not in (4, 5) or (self.views.ndim == 5 and self.views.shape[-1] != 3):
+            raise ValueError(
+                f"views must be (U, V, H, W) or (U, V, H, W, 3); got shape {self.views.shape}"
+            )
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """``(U, V)``: number of grid rows and columns."""
+        return int(self.views.shape[0]), int(self.views.shape[1])
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """``(H, W)`` of every view in pixels."""
+        return int(self.views.shape[2]), int(self.views.shape[3])
+
+    @property
+    def centre_index(self) -> tuple[int, int]:
+        """``(u0, v0) = (U // 2, V // 2)``."""
+        return self.grid_shape[0] // 2, self.grid_shape[1] // 2
+
+    @property
+    def is_colour(self) -> bool:
+        return self.views.ndim == 5
+
+    def centre_view(self) -> np.ndarray:
+        """The centre view in the stored dtype, ``(H, W[, 3])``."""
+        u0, v0 = self.centre_index
+        return self.views[u0, v0]
+
+    def float_views(self) -> np.ndarray:
+        """All views as ``float32`` in ``[0, 1]``, same shape as :attr:`views`."""
+        return to_float(self.views)
+
+    def gray(self) -> np.ndarray:
+        """All views as ``(U, V, H, W)`` ``float32`` luminance in ``[0, 1]`` (Rec. 601 weights)."""
+        return to_gray(self.views)
+
+
+def to_float(images: np.ndarray) -> np.ndarray:
+    """Scale integer images to ``float32`` in ``[0, 1]``; float input is returned as ``float32``."""
+    if images.dtype == np.uint8:
+        return images.astype(np.float32) * np.float32(1 / 255)
+    if images.dtype == np.uint16:
+        return images.astype(np.float32) * np.float32(1 / 65535)
+    return images.astype(np.float32, copy=False)
+
+
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def to_gray(images: np.ndarray) -> np.ndarray:
+    """Luminance of RGB images (last axis of length 3) as ``float32`` in ``[0, 1]``.
+
+    Images without a colour axis are only scaled (see :func:`to_float`). Works on any leading shape,
+    e.g. ``(U, V, H, W, 3) -> (U, V, H, W)``.
+    """
+    if images.ndim >= 3 and images.shape[-1] == 3:
+        scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(images.dtype, 1.0)
+        out = np.tensordot(images, _LUMA * np.float32(scale), axes=([-1], [0]))
+        return out.astype(np.float32, copy=False)
+    return to_float(images)
