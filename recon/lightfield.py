@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 
@@ -100,17 +101,19 @@ def to_float(images: np.ndarray) -> np.ndarray:
     return images.astype(np.float32, copy=False)
 
 
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
-
-
 def to_gray(images: np.ndarray) -> np.ndarray:
     """Luminance of RGB images (last axis of length 3) as ``float32`` in ``[0, 1]``.
 
+    Rec. 601 weights (OpenCV's ``RGB2GRAY``) in floating point, so no precision is lost to rounding.
     Images without a colour axis are only scaled (see :func:`to_float`). Works on any leading shape,
     e.g. ``(U, V, H, W, 3) -> (U, V, H, W)``.
     """
-    if images.ndim >= 3 and images.shape[-1] == 3:
-        scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(images.dtype, 1.0)
-        out = np.tensordot(images, _LUMA * np.float32(scale), axes=([-1], [0]))
-        return out.astype(np.float32, copy=False)
-    return to_float(images)
+    if not (images.ndim >= 3 and images.shape[-1] == 3):
+        return to_float(images)
+    scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(images.dtype, 1.0)
+    flat = images.reshape((-1,) + images.shape[-3:])
+    out = np.empty(flat.shape[:3], dtype=np.float32)
+    for i, image in enumerate(flat):  # per image keeps the float32 temporary small
+        out[i] = cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2GRAY)
+    out *= np.float32(scale)
+    return out.reshape(images.shape[:-1])

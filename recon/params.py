@@ -1,0 +1,119 @@
+"""``parameters.cfg``: the 4D Light Field Benchmark's scene description, read and written.
+
+The file is INI-style with the sections ``[intrinsics]`` (``focal_length_mm``, ``sensor_size_mm``,
+``image_resolution_x_px``, ``image_resolution_y_px``, ...), ``[extrinsics]`` (``num_cams_x``,
+``num_cams_y``, ``baseline_mm``, ``focus_distance_m``, ...) and ``[meta]`` (``disp_min``,
+``disp_max``, ...). lfrig writes the same sections for its own captures, so that other tools can
+read them, plus an ``[lfrig]`` section with what the benchmark has no key for (``focal_px``,
+``disparity_offset_px``).
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from recon.errors import LightFieldFormatError
+
+Parameters = dict[str, dict[str, Any]]
+
+
+def _value(text: str) -> Any:
+    text = text.strip()
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def read_parameters(path: str | os.PathLike) -> Parameters:
+    """Read a ``parameters.cfg`` into ``{section: {key: value}}`` with numbers converted.
+
+    Raises
+    ------
+    LightFieldFormatError
+        When the file cannot be parsed, naming the file and the line.
+    """
+    path = Path(path)
+    parser = configparser.ConfigParser(interpolation=None)
+    try:
+        with open(path, encoding="utf-8") as f:
+            parser.read_file(f)
+    except FileNotFoundError:
+        raise LightFieldFormatError(f"{path}: no such file") from None
+    except (configparser.Error, UnicodeDecodeError) as error:
+        detail = str(error).splitlines()[0]
+        raise LightFieldFormatError(f"{path}: not a valid parameters.cfg ({detail})") from None
+    return {section: {k: _value(v) for k, v in parser[section].items()} for section in parser.sections()}
+
+
+def write_parameters(path: str | os.PathLike, parameters: Parameters) -> None:
+    """Write ``{section: {key: value}}`` as a ``parameters.cfg`` (atomically)."""
+    path = Path(path)
+    lines: list[str] = []
+    for section, values in parameters.items():
+        lines.append(f"[{section}]")
+        lines.extend(f"{key} = {value}" for key, value in values.items())
+        lines.append("")
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _number(parameters: Parameters, section: str, key: str, path: Path) -> float | None:
+    value = parameters.get(section, {}).get(key)
+    if value is None:
+        return None
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise LightFieldFormatError(f"{path}: [{section}] {key} = {value!r} is not a finite number")
+    return float(value)
+
+
+def camera_from_parameters(parameters: Parameters, *, path: Path) -> dict[str, Any]:
+    """What lfrig needs from a ``parameters.cfg``: grid, pitch, focal length, disparity range.
+
+    Returns a dict with ``num_cams`` ``(rows, cols)`` or ``None``, ``pitch_mm``, ``focal_px``,
+    ``disparity_offset`` (pixels per view step, 0 when unknown) and ``disparity_range`` (or ``None``).
+    The benchmark's focal length in pixels is ``focal_length_mm / sensor_size_mm * max(res_x, res_y)``
+    and its views are refocused at ``focus_distance_m``, so ``d0 = focal_px * baseline_mm / focus_mm``.
+    """
+    pitch_mm = _number(parameters, "extrinsics", "baseline_mm", path)
+    focal_px = _number(parameters, "lfrig", "focal_px", path)
+    if focal_px is None:
+        focal_mm = _number(parameters, "intrinsics", "focal_length_mm", path)
+        sensor_mm = _number(parameters, "intrinsics", "sensor_size_mm", path)
+        res_x = _number(parameters, "intrinsics", "image_resolution_x_px", path)
+        res_y = _number(parameters, "intrinsics", "image_resolution_y_px", path)
+        if None not in (focal_mm, sensor_mm, res_x, res_y) and sensor_mm > 0:
+            focal_px = focal_mm / sensor_mm * max(res_x, res_y)
+    offset = _number(parameters, "lfrig", "disparity_offset_px", path)
+    if offset is None:
+        focus_m = _number(parameters, "extrinsics", "focus_distance_m", path)
+        offset = 0.0
+        if focus_m and focal_px and pitch_mm and "lfrig" not in parameters:
+            offset = focal_px * pitch_mm / (focus_m * 1000.0)
+    d_min = _number(parameters, "meta", "disp_min", path)
+    d_max = _number(parameters, "meta", "disp_max", path)
+    if d_min is not None and d_max is not None and not d_min < d_max:
+        raise LightFieldFormatError(f"{path}: [meta] disp_min = {d_min} must be less than disp_max = {d_max}")
+    rows = parameters.get("extrinsics", {}).get("num_cams_y")
+    cols = parameters.get("extrinsics", {}).get("num_cams_x")
+    num_cams = None
+    if rows is not None or cols is not None:
+        if not (isinstance(rows, int) and isinstance(cols, int) and rows > 0 and cols > 0):
+            raise LightFieldFormatError(
+                f"{path}: [extrinsics] num_cams_x = {cols!r}, num_cams_y = {rows!r} must be positive integers"
+            )
+        num_cams = (rows, cols)
+    return {
+        "num_cams": num_cams,
+        "pitch_mm": pitch_mm,
+        "focal_px": focal_px,
+        "disparity_offset": offset,
+        "disparity_range": (d_min, d_max) if d_min is not None and d_max is not None else None,
+    }

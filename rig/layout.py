@@ -1,0 +1,338 @@
+"""lfrig's capture layout on disk: write a capture view by view, resume it, read it back.
+
+A capture folder holds::
+
+    manifest.jsonl      append-only journal: a header line, then one line per written view
+    views/uUU_vVV.png   one image per grid position, named by position (never by capture order)
+    parameters.cfg      the scene description in the 4D Light Field Benchmark's format
+    session.log         a human-readable log (written by the capture session)
+
+Each view is written atomically (temporary file, fsync, rename) and only then journalled, so the
+journal never names a view that is not completely on disk. A view file that is on disk but not in
+the journal (the process died between the two steps) is taken again on resume. See
+``docs/capture-format.md`` for the full description.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from recon.imageio import read_images, write_png
+from recon.lightfield import LightField
+from recon.params import camera_from_parameters, read_parameters, write_parameters
+from rig.errors import CaptureLayoutError
+
+FORMAT = "lfrig-capture"
+VERSION = 1
+MANIFEST = "manifest.jsonl"
+VIEWS = "views"
+PARAMETERS = "parameters.cfg"
+_VIEW_NAME = re.compile(r"^u(\d+)_v(\d+)\.png$")
+
+
+def view_name(u: int, v: int) -> str:
+    """File name of the view at grid row ``u``, column ``v`` (relative to the capture folder)."""
+    return f"{VIEWS}/u{u:02d}_v{v:02d}.png"
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+def is_capture(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder in lfrig's capture layout (it has a manifest)."""
+    return (Path(path) / MANIFEST).is_file()
+
+
+def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The header and the remaining records of a manifest. A torn last line (a crash mid-append) is
+    ignored; any other unreadable line is an error."""
+    manifest = path / MANIFEST
+    try:
+        lines = manifest.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise CaptureLayoutError(f"{manifest}: no such file; {path} is not an lfrig capture") from None
+    records: list[dict[str, Any]] = []
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            if number == len(lines):
+                break  # torn final append: the view it named is taken again
+            raise CaptureLayoutError(f"{manifest}: line {number} is not valid JSON; the journal is damaged") from None
+        if not isinstance(record, dict):
+            raise CaptureLayoutError(f"{manifest}: line {number} is not a JSON object")
+        records.append(record)
+    if not records or records[0].get("kind") != "header" or records[0].get("format") != FORMAT:
+        raise CaptureLayoutError(f"{manifest}: the first line is not an {FORMAT} header")
+    header = records[0]
+    if header.get("version") != VERSION:
+        raise CaptureLayoutError(
+            f"{manifest}: capture format version {header.get('version')!r}; this lfrig reads version {VERSION}"
+        )
+    grid = header.get("grid", {})
+    if not (isinstance(grid.get("rows"), int) and isinstance(grid.get("cols"), int) and grid["rows"] > 0 and grid["cols"] > 0):
+        raise CaptureLayoutError(f"{manifest}: header has no valid grid rows/cols")
+    return header, records[1:]
+
+
+class CaptureWriter:
+    """Writes a capture folder view by view; opening an existing one resumes it.
+
+    Parameters
+    ----------
+    path
+        The capture folder (created if missing).
+    header
+        The header record: must contain ``grid`` (``rows``, ``cols``, ``pitch_mm``) and ``settings``,
+        the dict that must be equal for a run to resume this folder (grid, pitch, origin, order,
+        requested camera settings...). ``kind``, ``format``, ``version`` and ``created`` are filled in.
+
+    Raises
+    ------
+    CaptureLayoutError
+        When the folder holds a capture taken with other settings, or is not a capture but not empty.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, header: dict[str, Any]) -> None:
+        self.path = Path(path)
+        if "settings" not in header or "grid" not in header:
+            raise ValueError("the capture header needs 'grid' and 'settings'")
+        self.completed: dict[tuple[int, int], dict[str, Any]] = {}
+        if is_capture(self.path):
+            self.header, records = _read_journal(self.path)
+            self._check_settings(header["settings"])
+            self._load_completed(records)
+        else:
+            if self.path.exists() and any(p.name != "session.log" for p in self.path.iterdir()):
+                raise CaptureLayoutError(
+                    f"{self.path}: folder exists, is not empty and is not an lfrig capture; choose a new folder"
+                )
+            (self.path / VIEWS).mkdir(parents=True, exist_ok=True)
+            self.header = {"kind": "header", "format": FORMAT, "version": VERSION, "created": now_iso(), **header}
+            with open(self.path / MANIFEST, "w", encoding="utf-8") as f:
+                f.write(json.dumps(self.header, sort_keys=True) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        self.rows = int(self.header["grid"]["rows"])
+        self.cols = int(self.header["grid"]["cols"])
+        self._journal = open(self.path / MANIFEST, "a", encoding="utf-8")
+
+    def _check_settings(self, settings: dict[str, Any]) -> None:
+        stored = self.header.get("settings", {})
+        # Compare through JSON so that tuples and lists, ints and floats compare as they are stored.
+        wanted = json.loads(json.dumps(settings))
+        if stored != wanted:
+            keys = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+            diffs = "; ".join(f"{k}: capture has {stored.get(k)!r}, now {wanted.get(k)!r}" for k in keys)
+            raise CaptureLayoutError(
+                f"{self.path} was captured with other settings ({diffs}); "
+                "run with the same settings to resume it, or capture into a new folder"
+            )
+
+    def _load_completed(self, records: list[dict[str, Any]]) -> None:
+        for record in records:
+            if record.get("kind") != "view":
+                continue
+            key = (int(record["u"]), int(record["v"]))
+            file = self.path / record["file"]
+            try:
+                digest = hashlib.sha256(file.read_bytes()).hexdigest()
+            except FileNotFoundError:
+                continue
+            if digest == record.get("sha256"):
+                self.completed[key] = record
+            else:
+                self.completed.pop(key, None)
+
+    def write_view(self, u: int, v: int, image: np.ndarray, record: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write the view at grid position ``(u, v)`` atomically, then journal it. Returns the record."""
+        if not (0 <= u < self.rows and 0 <= v < self.cols):
+            raise ValueError(f"grid position ({u}, {v}) is outside the {self.rows}x{self.cols} grid")
+        name = view_name(u, v)
+        digest = write_png(self.path / name, image)
+        entry = {**(record or {}), "kind": "view", "u": u, "v": v, "file": name, "sha256": digest}
+        entry.setdefault("time", now_iso())
+        self._append(entry)
+        self.completed[(u, v)] = entry
+        return entry
+
+    def _append(self, record: dict[str, Any]) -> None:
+        self._journal.write(json.dumps(record, sort_keys=True) + "\n")
+        self._journal.flush()
+        os.fsync(self._journal.fileno())
+
+    @property
+    def is_complete(self) -> bool:
+        return len(self.completed) == self.rows * self.cols
+
+    def write_parameters(
+        self,
+        *,
+        image_shape: tuple[int, int],
+        pitch_mm: float,
+        focal_px: float | None = None,
+        focal_length_mm: float | None = None,
+        sensor_size_mm: float | None = None,
+        disparity_range: tuple[float, float] | None = None,
+        disparity_offset: float = 0.0,
+    ) -> None:
+        """Write ``parameters.cfg`` in the benchmark's format (plus an ``[lfrig]`` section)."""
+        write_parameters(
+            self.path / PARAMETERS,
+            parameters_for(
+                grid=(self.rows, self.cols),
+                image_shape=image_shape,
+                pitch_mm=pitch_mm,
+                focal_px=focal_px,
+                focal_length_mm=focal_length_mm,
+                sensor_size_mm=sensor_size_mm,
+                disparity_range=disparity_range,
+                disparity_offset=disparity_offset,
+            ),
+        )
+
+    def mark_complete(self) -> None:
+        """Journal that every view is present. Raises when some are missing."""
+        if not self.is_complete:
+            raise CaptureLayoutError(
+                f"{self.path}: {len(self.completed)} of {self.rows * self.cols} views written; cannot mark complete"
+            )
+        self._append({"kind": "complete", "time": now_iso()})
+
+    def close(self) -> None:
+        self._journal.close()
+
+    def __enter__(self) -> "CaptureWriter":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def parameters_for(
+    *,
+    grid: tuple[int, int],
+    image_shape: tuple[int, int],
+    pitch_mm: float,
+    focal_px: float | None = None,
+    focal_length_mm: float | None = None,
+    sensor_size_mm: float | None = None,
+    disparity_range: tuple[float, float] | None = None,
+    disparity_offset: float = 0.0,
+) -> dict[str, dict[str, Any]]:
+    """The ``parameters.cfg`` sections describing a capture (see :mod:`recon.params`)."""
+    height, width = image_shape
+    intrinsics: dict[str, Any] = {"image_resolution_x_px": width, "image_resolution_y_px": height}
+    if focal_px is not None:
+        # The benchmark derives focal_px = focal_length_mm / sensor_size_mm * max(W, H); pick a
+        # consistent pair when only focal_px is known.
+        if focal_length_mm is None or sensor_size_mm is None:
+            focal_length_mm, sensor_size_mm = focal_px / max(width, height), 1.0
+    if focal_length_mm is not None and sensor_size_mm is not None:
+        intrinsics.update(focal_length_mm=focal_length_mm, sensor_size_mm=sensor_size_mm)
+    sections: dict[str, dict[str, Any]] = {
+        "intrinsics": intrinsics,
+        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0], "baseline_mm": pitch_mm},
+    }
+    if disparity_range is not None:
+        sections["meta"] = {"disp_min": disparity_range[0], "disp_max": disparity_range[1]}
+    lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}
+    if focal_px is not None:
+        lfrig["focal_px"] = focal_px
+    sections["lfrig"] = lfrig
+    return sections
+
+
+def read_capture(path: str | os.PathLike) -> LightField:
+    """Read a complete capture folder into a :class:`LightField`.
+
+    Raises
+    ------
+    CaptureLayoutError
+        When views are missing (the capture is incomplete: resume it), a view file lies outside the
+        grid, or a file does not match its journalled checksum.
+    """
+    path = Path(path)
+    header, records = _read_journal(path)
+    rows, cols = header["grid"]["rows"], header["grid"]["cols"]
+    entries: dict[tuple[int, int], dict[str, Any]] = {}
+    for record in records:
+        if record.get("kind") == "view":
+            entries[(int(record["u"]), int(record["v"]))] = record
+    view_dir = path / VIEWS
+    for file in sorted(view_dir.iterdir()) if view_dir.is_dir() else []:
+        if file.name.startswith("."):
+            continue  # a temporary file of an interrupted write
+        match = _VIEW_NAME.match(file.name)
+        if not match or not (int(match[1]) < rows and int(match[2]) < cols):
+            raise CaptureLayoutError(
+                f"{file}: not a view of the {rows}x{cols} grid (expected uUU_vVV.png with UU < {rows}, VV < {cols}); remove it"
+            )
+    missing = [(u, v) for u in range(rows) for v in range(cols) if (u, v) not in entries]
+    if missing:
+        shown = ", ".join(view_name(u, v) for u, v in missing[:3]) + (" ..." if len(missing) > 3 else "")
+        raise CaptureLayoutError(
+            f"{path}: capture is incomplete, {len(missing)} of {rows * cols} views missing ({shown}); "
+            "run the same `lfrig capture` command again to resume it"
+        )
+    paths = [path / entries[(u, v)]["file"] for u in range(rows) for v in range(cols)]
+    for p in paths:
+        if not p.is_file():
+            raise CaptureLayoutError(f"{p}: journalled view is missing on disk; resume the capture to take it again")
+    images = read_images(paths)
+    views = images.reshape((rows, cols) + images.shape[1:])
+    camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm"), "focal_px": None,
+                              "disparity_offset": 0.0, "disparity_range": None}
+    metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
+                                "views": [entries[(u, v)] for u in range(rows) for v in range(cols)]}
+    if (path / PARAMETERS).is_file():
+        parameters = read_parameters(path / PARAMETERS)
+        metadata["parameters"] = parameters
+        found = camera_from_parameters(parameters, path=path / PARAMETERS)
+        camera.update({k: v for k, v in found.items() if k != "num_cams" and v is not None})
+    return LightField(
+        views=views,
+        pitch_mm=camera["pitch_mm"],
+        focal_px=camera["focal_px"],
+        disparity_range=camera["disparity_range"],
+        disparity_offset=camera["disparity_offset"],
+        metadata=metadata,
+        source=path,
+    )
+
+
+def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict[str, Any] | None = None) -> None:
+    """Write a whole light field (e.g. a rectified one) as a complete capture folder.
+
+    ``lf.views`` must be ``uint8`` or ``uint16``. The folder must not exist or be empty.
+    """
+    path = Path(path)
+    if is_capture(path) or (path.exists() and any(path.iterdir())):
+        raise CaptureLayoutError(f"{path}: folder exists and is not empty; choose a new output folder")
+    rows, cols = lf.grid_shape
+    grid = {"rows": rows, "cols": cols, "pitch_mm": lf.pitch_mm}
+    header = {"grid": grid, "settings": {"grid": grid, "source": str(lf.source) if lf.source else None},
+              **(header_extra or {})}
+    with CaptureWriter(path, header=header) as writer:
+        for u in range(rows):
+            for v in range(cols):
+                writer.write_view(u, v, lf.views[u, v])
+        writer.write_parameters(
+            image_shape=lf.image_shape,
+            pitch_mm=lf.pitch_mm if lf.pitch_mm is not None else 0.0,
+            focal_px=lf.focal_px,
+            disparity_range=lf.disparity_range,
+            disparity_offset=lf.disparity_offset,
+        )
+        writer.mark_complete()
