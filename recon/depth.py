@@ -1,0 +1,413 @@
+"""Disparity to metric depth and back, and depth maps on disk.
+
+Frames and signs follow ``docs/conventions.md``. For a rectified light field whose views were taken
+``pitch_mm`` apart by a camera with focal length ``focal_px`` (pixels), a point at depth ``Z`` (mm,
+along the optical axis of the centre view, camera frame ``z``) has disparity::
+
+    d = focal_px * pitch_mm / Z - d0
+
+in pixels per view step, where ``d0`` (``disparity_offset``) is the shift applied when the views were
+refocused (0 for an unshifted capture). Hence::
+
+    Z = focal_px * pitch_mm / (d + d0)
+
+``d + d0`` is the *effective* disparity. Where it is not positive (``<= 0``) the point would lie at
+or behind infinity: no depth exists and the result is ``NaN``. ``NaN`` disparity gives ``NaN`` depth
+and vice versa, so masks survive the conversion.
+
+The 4D Light Field Benchmark (Honauer et al., ACCV 2016) records its camera in ``parameters.cfg``;
+its toolkit converts with::
+
+    depth_m = 1 / (disp * 1000 * sensor_size_mm / (baseline_mm * focal_length_mm * max(W, H))
+                   + 1 / focus_distance_m)
+
+which is the formula above with ``focal_px = focal_length_mm * max(W, H) / sensor_size_mm``,
+``pitch_mm = baseline_mm`` and ``d0 = focal_px * baseline_mm / (1000 * focus_distance_m)``
+(:func:`benchmark_camera`). Depth here is always in millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.errors import ReconError
+
+
+class DepthFormatError(ReconError):
+    """A depth map or camera-parameter file is missing, malformed, or cannot be written."""
+
+
+# --------------------------------------------------------------------------------------------------
+# the inverse pair
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_camera(focal_px: float, pitch_mm: float, disparity_offset: float) -> None:
+    if not (np.isfinite(focal_px) and focal_px > 0):
+        raise ValueError(f"focal_px must be a positive number of pixels; got {focal_px!r}")
+    if not (np.isfinite(pitch_mm) and pitch_mm > 0):
+        raise ValueError(f"pitch_mm must be a positive distance in mm; got {pitch_mm!r}")
+    if not np.isfinite(disparity_offset):
+        raise ValueError(f"disparity_offset must be finite (pixels per view step); got {disparity_offset!r}")
+
+
+def _float_array(values, name: str) -> np.ndarray:
+    array = np.asarray(values)
+    if array.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must be a numeric array; got dtype {array.dtype}")
+    if array.dtype.kind != "f":
+        array = array.astype(np.float64)
+    return array
+
+
+def disparity_to_depth(
+    disparity_px, *, focal_px: float, pitch_mm: float, disparity_offset: float = 0.0
+) -> np.ndarray:
+    """Depth along the optical axis from light-field disparity.
+
+    ``Z_mm = focal_px * pitch_mm / (disparity_px + disparity_offset)``.
+
+    Parameters
+    ----------
+    disparity_px
+        Array of any shape, pixels per view step (sign as in ``docs/conventions.md``). ``NaN`` marks
+        pixels without a value.
+    focal_px
+        Focal length of the rectified views in pixels.
+    pitch_mm
+        Distance between neighbouring grid positions in mm.
+    disparity_offset
+        ``d0`` in pixels per view step: the refocusing shift (0 for an unshifted capture).
+
+    Returns
+    -------
+    depth_mm
+        Same shape as ``disparity_px``, floating point (``float32`` stays ``float32``, anything else
+        becomes ``float64``), mm. ``NaN`` where the effective disparity ``disparity_px +
+        disparity_offset`` is not positive or not finite.
+    """
+    _check_camera(focal_px, pitch_mm, disparity_offset)
+    disparity = _float_array(disparity_px, "disparity_px")
+    effective = disparity + disparity.dtype.type(disparity_offset)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = disparity.dtype.type(focal_px * pitch_mm) / effective
+    return np.where(np.isfinite(effective) & (effective > 0), depth, np.nan).astype(disparity.dtype)
+
+
+def depth_to_disparity(
+    depth_mm, *, focal_px: float, pitch_mm: float, disparity_offset: float = 0.0
+) -> np.ndarray:
+    """Light-field disparity from depth along the optical axis; the inverse of :func:`disparity_to_depth`.
+
+    ``disparity_px = focal_px * pitch_mm / depth_mm - disparity_offset``.
+
+    Parameters
+    ----------
+    depth_mm
+        Array of any shape, mm along the camera ``z`` axis. ``NaN`` marks pixels without a value.
+    focal_px, pitch_mm, disparity_offset
+        As in :func:`disparity_to_depth`.
+
+    Returns
+    -------
+    disparity_px
+        Same shape and float dtype rule as :func:`disparity_to_depth`, pixels per view step. ``NaN``
+        where ``depth_mm`` is not positive or not finite (``+inf`` is not a depth here either: store
+        "at infinity" as disparity ``-disparity_offset`` yourself if you mean it).
+    """
+    _check_camera(focal_px, pitch_mm, disparity_offset)
+    depth = _float_array(depth_mm, "depth_mm")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disparity = depth.dtype.type(focal_px * pitch_mm) / depth - depth.dtype.type(disparity_offset)
+    return np.where(np.isfinite(depth) & (depth > 0), disparity, np.nan).astype(depth.dtype)
+
+
+# --------------------------------------------------------------------------------------------------
+# the benchmark's camera
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BenchmarkCamera:
+    """The camera of a 4D Light Field Benchmark scene as ``parameters.cfg`` records it.
+
+    Attributes are in the file's own units; :attr:`focal_px`, :attr:`pitch_mm` and
+    :attr:`disparity_offset` give lfrig's parameters for :func:`disparity_to_depth`.
+    """
+
+    focal_length_mm: float
+    sensor_size_mm: float
+    width_px: int
+    height_px: int
+    baseline_mm: float
+    focus_distance_m: float
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length in pixels: ``focal_length_mm * max(W, H) / sensor_size_mm``."""
+        return self.focal_length_mm * max(self.width_px, self.height_px) / self.sensor_size_mm
+
+    @property
+    def pitch_mm(self) -> float:
+        """Grid pitch in mm (the benchmark's ``baseline_mm``)."""
+        return self.baseline_mm
+
+    @property
+    def disparity_offset(self) -> float:
+        """``d0``: the disparity (pixels per view step) of the focus plane, which the benchmark maps to 0."""
+        return self.focal_px * self.baseline_mm / (1000.0 * self.focus_distance_m)
+
+    def depth_parameters(self) -> dict[str, float]:
+        """``{"focal_px", "pitch_mm", "disparity_offset"}`` for :func:`disparity_to_depth`."""
+        return {"focal_px": self.focal_px, "pitch_mm": self.pitch_mm, "disparity_offset": self.disparity_offset}
+
+
+def benchmark_camera(parameters) -> BenchmarkCamera:
+    """Read the camera of a benchmark scene.
+
+    Parameters
+    ----------
+    parameters
+        Path of a ``parameters.cfg`` (or of the scene folder holding one), or a mapping of sections
+        such as ``LightField.metadata["parameters"]`` (``{"intrinsics": {...}, "extrinsics": {...}}``).
+    """
+    if isinstance(parameters, (str, Path)):
+        path = Path(parameters)
+        if path.is_dir():
+            path = path / "parameters.cfg"
+        if not path.is_file():
+            raise DepthFormatError(
+                f"{path}: no parameters.cfg; benchmark depth needs the scene's parameters.cfg "
+                "(focal_length_mm, sensor_size_mm, image resolution, baseline_mm, focus_distance_m). "
+                "Copy it next to the views or pass focal_px/pitch_mm/disparity_offset yourself."
+            )
+        from recon.params import read_parameters
+
+        sections = read_parameters(path)
+        where = str(path)
+    else:
+        sections = {str(k): dict(v) for k, v in dict(parameters).items() if isinstance(v, dict)}
+        where = "parameters"
+
+    def get(section: str, key: str) -> float:
+        try:
+            return float(sections[section][key])
+        except KeyError:
+            raise DepthFormatError(
+                f"{where}: [{section}] {key} is missing; it is needed for the benchmark's "
+                "disparity-to-depth conversion"
+            ) from None
+        except ValueError:
+            raise DepthFormatError(
+                f"{where}: [{section}] {key} = {sections[section][key]!r} is not a number"
+            ) from None
+
+    return BenchmarkCamera(
+        focal_length_mm=get("intrinsics", "focal_length_mm"),
+        sensor_size_mm=get("intrinsics", "sensor_size_mm"),
+        width_px=int(get("intrinsics", "image_resolution_x_px")),
+        height_px=int(get("intrinsics", "image_resolution_y_px")),
+        baseline_mm=get("extrinsics", "baseline_mm"),
+        focus_distance_m=get("extrinsics", "focus_distance_m"),
+    )
+
+
+def benchmark_disparity_to_depth(disparity_px, *, camera: BenchmarkCamera) -> np.ndarray:
+    """The benchmark toolkit's conversion, written out as it states it, in mm.
+
+    ``depth_mm = 1000 / (disparity_px * 1000 * sensor_size_mm / (baseline_mm * focal_length_mm *
+    max(W, H)) + 1 / focus_distance_m)``. Agrees with :func:`disparity_to_depth` using
+    ``camera.depth_parameters()`` (a test checks it); non-positive effective disparity gives ``NaN``.
+
+    Parameters
+    ----------
+    disparity_px
+        Array of any shape, pixels per view step.
+    camera
+        From :func:`benchmark_camera`.
+
+    Returns
+    -------
+    depth_mm
+        Same shape, ``float64``, mm.
+    """
+    disparity = np.asarray(disparity_px, dtype=np.float64)
+    q = camera.baseline_mm * camera.focal_length_mm * max(camera.width_px, camera.height_px)
+    inverse_depth_per_m = disparity * 1000.0 * camera.sensor_size_mm / q + 1.0 / camera.focus_distance_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth_mm = 1000.0 / inverse_depth_per_m
+    return np.where(inverse_depth_per_m > 0, depth_mm, np.nan)
+
+
+# --------------------------------------------------------------------------------------------------
+# depth maps on disk
+# --------------------------------------------------------------------------------------------------
+
+#: The key of the PNG text chunk (and the sidecar JSON) that records a 16-bit depth PNG's scale.
+PNG_SCALE_KEY = "lfrig-depth"
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def _insert_text_chunk(png: bytes, key: str, text: str) -> bytes:
+    # The IHDR chunk is always first: 8-byte signature + 4 length + 4 type + 13 data + 4 CRC.
+    end_of_ihdr = 8 + 25
+    chunk = _png_chunk(b"tEXt", key.encode("latin-1") + b"\0" + text.encode("latin-1"))
+    return png[:end_of_ihdr] + chunk + png[end_of_ihdr:]
+
+
+def _read_text_chunks(png: bytes) -> dict[str, str]:
+    texts: dict[str, str] = {}
+    position = 8
+    while position + 8 <= len(png):
+        (length,) = struct.unpack(">I", png[position : position + 4])
+        kind = png[position + 4 : position + 8]
+        data = png[position + 8 : position + 8 + length]
+        if kind == b"tEXt" and b"\0" in data:
+            key, _, value = data.partition(b"\0")
+            texts[key.decode("latin-1")] = value.decode("latin-1")
+        if kind == b"IEND":
+            break
+        position += 12 + length
+    return texts
+
+
+def png_sidecar_path(path) -> Path:
+    """Where the scale of a 16-bit depth PNG is also written: ``depth.png`` -> ``depth.png.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def encode_depth_png(depth_mm: np.ndarray, *, scale_mm: float | None = None, offset_mm: float | None = None):
+    """Quantise depth to 16 bit: ``stored = 1 + round((depth_mm - offset_mm) / scale_mm)``, 0 = no value.
+
+    Parameters
+    ----------
+    depth_mm
+        ``(H, W)`` mm; ``NaN``/``inf``/non-positive pixels are stored as 0.
+    scale_mm, offset_mm
+        mm per count and the depth of count 1. By default the finite range is spread over
+        1..65535 (``offset_mm`` = minimum depth, ``scale_mm = (max - min) / 65534``), so the
+        quantisation error is at most ``scale_mm / 2``. Give ``scale_mm=0.1, offset_mm=0`` for a
+        fixed 0.1 mm step.
+
+    Returns
+    -------
+    (stored, metadata)
+        ``(H, W)`` ``uint16`` and the dict written next to it (``unit``, ``scale_mm``,
+        ``offset_mm``, ``invalid``, ``formula``).
+    """
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_mm must be (H, W); got shape {depth.shape}")
+    valid = np.isfinite(depth) & (depth > 0)
+    low = float(depth[valid].min()) if valid.any() else 0.0
+    high = float(depth[valid].max()) if valid.any() else 0.0
+    if offset_mm is None:
+        offset_mm = low
+    if scale_mm is None:
+        scale_mm = (high - offset_mm) / 65534.0 if high > offset_mm else 1.0
+    if not (np.isfinite(scale_mm) and scale_mm > 0):
+        raise ValueError(f"scale_mm must be a positive number of mm per count; got {scale_mm!r}")
+    counts = np.zeros(depth.shape, dtype=np.float64)
+    counts[valid] = 1.0 + np.round((depth[valid] - offset_mm) / scale_mm)
+    if valid.any() and (counts[valid].min() < 1 or counts[valid].max() > 65535):
+        raise ValueError(
+            f"depth {low:.6g}..{high:.6g} mm does not fit 16 bit with scale_mm={scale_mm} and "
+            f"offset_mm={offset_mm}; pass a larger scale_mm or leave it to be chosen"
+        )
+    metadata = {
+        "unit": "mm",
+        "scale_mm": float(scale_mm),
+        "offset_mm": float(offset_mm),
+        "invalid": 0,
+        "formula": "depth_mm = offset_mm + (stored - 1) * scale_mm; stored == 0 means no depth",
+    }
+    return counts.astype(np.uint16), metadata
+
+
+def decode_depth_png(stored: np.ndarray, metadata: dict) -> np.ndarray:
+    """Inverse of :func:`encode_depth_png`: ``(H, W)`` ``uint16`` -> ``(H, W)`` ``float64`` mm, ``NaN`` for 0."""
+    counts = np.asarray(stored).astype(np.float64)
+    depth = float(metadata["offset_mm"]) + (counts - 1.0) * float(metadata["scale_mm"])
+    return np.where(counts == 0, np.nan, depth)
+
+
+def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, offset_mm: float | None = None) -> Path:
+    """Write an ``(H, W)`` depth map in mm; the format follows the suffix.
+
+    - ``.pfm``: ``float32``, ``NaN`` where there is no depth (``recon.pfm``; rows top-down in memory).
+    - ``.npy``: ``float32`` as given (``NaN`` kept).
+    - ``.png``: 16-bit grey, quantised by :func:`encode_depth_png`; the scale is stored in a PNG
+      ``tEXt`` chunk under :data:`PNG_SCALE_KEY` and in the sidecar ``<name>.png.json``.
+
+    Returns the path written.
+    """
+    path = Path(path)
+    depth = np.asarray(depth_mm)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_mm must be (H, W); got shape {depth.shape}")
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        from recon.pfm import write_pfm
+
+        write_pfm(path, depth.astype(np.float32))
+    elif suffix == ".npy":
+        np.save(path, depth.astype(np.float32))
+    elif suffix == ".png":
+        import cv2
+
+        stored, metadata = encode_depth_png(depth, scale_mm=scale_mm, offset_mm=offset_mm)
+        ok, encoded = cv2.imencode(".png", stored)
+        if not ok:
+            raise DepthFormatError(f"{path}: OpenCV could not encode the depth PNG")
+        text = json.dumps(metadata, sort_keys=True)
+        path.write_bytes(_insert_text_chunk(encoded.tobytes(), PNG_SCALE_KEY, text))
+        png_sidecar_path(path).write_text(json.dumps(metadata, indent=2, sort_keys=True) + "\n")
+    else:
+        raise DepthFormatError(f"{path}: unknown depth-map suffix {path.suffix!r}; use .pfm, .png or .npy")
+    return path
+
+
+def read_depth(path) -> np.ndarray:
+    """Read a depth map written by :func:`write_depth`: ``(H, W)`` float mm, ``NaN`` where none.
+
+    For ``.png`` the scale comes from the PNG text chunk, else from the sidecar JSON.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DepthFormatError(f"{path}: no such depth map")
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        from recon.pfm import read_pfm
+
+        return read_pfm(path)
+    if suffix == ".npy":
+        return np.load(path)
+    if suffix == ".png":
+        import cv2
+
+        data = path.read_bytes()
+        texts = _read_text_chunks(data)
+        if PNG_SCALE_KEY in texts:
+            metadata = json.loads(texts[PNG_SCALE_KEY])
+        elif png_sidecar_path(path).is_file():
+            metadata = json.loads(png_sidecar_path(path).read_text())
+        else:
+            raise DepthFormatError(
+                f"{path}: a 16-bit depth PNG needs its scale, but there is no '{PNG_SCALE_KEY}' text "
+                f"chunk and no {png_sidecar_path(path).name}; write it with lfrig or supply the sidecar"
+            )
+        stored = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if stored is None or stored.dtype != np.uint16 or stored.ndim != 2:
+            raise DepthFormatError(f"{path}: not a single-channel 16-bit PNG")
+        return decode_depth_png(stored, metadata)
+    raise DepthFormatError(f"{path}: unknown depth-map suffix {path.suffix!r}; use .pfm, .png or .npy")
