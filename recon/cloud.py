@@ -66,6 +66,7 @@ class Mesh:
     ----------
     vertices_mm, normals, colours, pixels
         As in :class:`PointCloud`, one row per vertex (only pixels used by some triangle).
+        ``pixels`` is ``None`` for a mesh not made on the pixel grid (Poisson reconstruction).
     triangles
         ``(M, 3)`` ``int64`` vertex indices, wound counter-clockwise as seen from the camera, so the
         right-hand-rule face normal points towards the camera.
@@ -75,7 +76,7 @@ class Mesh:
     triangles: np.ndarray
     normals: np.ndarray
     colours: np.ndarray | None
-    pixels: np.ndarray
+    pixels: np.ndarray | None
 
 
 # --------------------------------------------------------------------------------------------------

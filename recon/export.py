@@ -1,0 +1,415 @@
+"""The export edge: point clouds and meshes to PLY files through open3d.
+
+This is the only module that imports open3d (lazily, inside the functions that need it, so that
+``import recon.export`` and ``lfrig --help`` stay fast). Everything before this point is plain numpy
+(:mod:`recon.depth`, :mod:`recon.cloud`).
+
+PLY files are binary little-endian by default, ASCII on request; coordinates are mm in the camera
+frame of the centre view (x right, y down, z forward; ``docs/conventions.md``). Vertices carry
+``x y z`` (double), ``nx ny nz`` (double) and, with an image, ``red green blue`` (uchar). Meshes add
+``face`` lists of vertex indices. MeshLab, CloudCompare and open3d read these files.
+
+Entry points
+------------
+- :func:`export_ply`: disparity (+ centre view and camera) -> PLY file; what ``lfrig reconstruct
+  --ply`` and the simulated session call.
+- :func:`export_result`: the same from a reconstruction folder (``lfrig export``).
+- :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`poisson_mesh`: the pieces.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from recon.cloud import MAX_RELATIVE_JUMP, Mesh, PointCloud, depth_mesh, point_cloud
+from recon.depth import disparity_to_depth
+from recon.errors import ReconError
+
+
+class ExportError(ReconError):
+    """A result folder cannot be exported, or a PLY file cannot be written."""
+
+
+def _open3d():
+    import open3d
+
+    return open3d
+
+
+# --------------------------------------------------------------------------------------------------
+# arrays <-> open3d
+# --------------------------------------------------------------------------------------------------
+
+
+def to_open3d_cloud(cloud: PointCloud):
+    """An ``open3d.geometry.PointCloud`` with points (mm), normals and colours (if any)."""
+    o3d = _open3d()
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.ascontiguousarray(cloud.points_mm, dtype=np.float64))
+    pcd.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(cloud.normals, dtype=np.float64))
+    if cloud.colours is not None:
+        pcd.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(cloud.colours, dtype=np.float64))
+    return pcd
+
+
+def to_open3d_mesh(mesh: Mesh):
+    """An ``open3d.geometry.TriangleMesh`` with vertex normals and colours (if any)."""
+    o3d = _open3d()
+    out = o3d.geometry.TriangleMesh()
+    out.vertices = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.vertices_mm, dtype=np.float64))
+    out.triangles = o3d.utility.Vector3iVector(np.ascontiguousarray(mesh.triangles, dtype=np.int32))
+    out.vertex_normals = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.normals, dtype=np.float64))
+    if mesh.colours is not None:
+        out.vertex_colors = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.colours, dtype=np.float64))
+    return out
+
+
+def _check_target(path: Path) -> Path:
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise ExportError(f"{path}: the output file must end in .ply")
+    if not path.parent.exists():
+        raise ExportError(f"{path}: folder {path.parent} does not exist; create it first")
+    return path
+
+
+def write_cloud_ply(path, cloud: PointCloud, *, ascii: bool = False) -> Path:
+    """Write a point cloud as PLY (binary unless ``ascii``). Returns the path."""
+    path = _check_target(path)
+    if len(cloud) == 0:
+        raise ExportError(f"{path}: nothing to write, the point cloud is empty (no pixel had a trustworthy depth)")
+    if not _open3d().io.write_point_cloud(str(path), to_open3d_cloud(cloud), write_ascii=ascii):
+        raise ExportError(f"{path}: open3d could not write the point cloud (is the folder writable?)")
+    return path
+
+
+def write_mesh_ply(path, mesh: Mesh, *, ascii: bool = False) -> Path:
+    """Write a triangle mesh as PLY (binary unless ``ascii``). Returns the path."""
+    path = _check_target(path)
+    if len(mesh.triangles) == 0:
+        raise ExportError(
+            f"{path}: nothing to write, the mesh has no triangles (too few connected pixels); "
+            "export --points instead, or raise the jump threshold"
+        )
+    ok = _open3d().io.write_triangle_mesh(
+        str(path), to_open3d_mesh(mesh), write_ascii=ascii, write_vertex_normals=True,
+        write_vertex_colors=mesh.colours is not None, write_triangle_uvs=False,
+    )
+    if not ok:
+        raise ExportError(f"{path}: open3d could not write the mesh (is the folder writable?)")
+    return path
+
+
+def poisson_mesh(cloud: PointCloud, *, depth: int = 9, density_quantile: float = 0.02) -> Mesh:
+    """Screened Poisson surface reconstruction (Kazhdan and Hoppe 2013, via open3d) of an oriented cloud.
+
+    Poisson closes the surface; the parts it invents far from any point have low point density and
+    are removed: vertices whose density is below the ``density_quantile`` quantile, and anything
+    outside the cloud's bounding box.
+
+    Parameters
+    ----------
+    cloud
+        Points with camera-facing normals (:func:`recon.cloud.point_cloud`).
+    depth
+        Octree depth: the solution grid is at most ``2**depth`` cells across.
+    density_quantile
+        Fraction of the least supported vertices to drop, in ``[0, 1)``.
+
+    Returns
+    -------
+    :class:`recon.cloud.Mesh` with ``pixels = None``; normals re-oriented to face the camera.
+    """
+    if len(cloud) < 4:
+        raise ExportError(f"Poisson reconstruction needs at least 4 points; the cloud has {len(cloud)}")
+    if not 0 <= density_quantile < 1:
+        raise ValueError(f"density_quantile must be in [0, 1); got {density_quantile!r}")
+    o3d = _open3d()
+    pcd = to_open3d_cloud(cloud)
+    mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    densities = np.asarray(densities)
+    if density_quantile > 0 and len(densities):
+        mesh.remove_vertices_by_mask(densities < np.quantile(densities, density_quantile))
+    mesh = mesh.crop(pcd.get_axis_aligned_bounding_box())
+    mesh.remove_unreferenced_vertices()
+    mesh.compute_vertex_normals()
+    vertices = np.asarray(mesh.vertices).copy()
+    triangles = np.asarray(mesh.triangles).astype(np.int64)
+    normals = np.asarray(mesh.vertex_normals).copy()
+    away = np.einsum("ij,ij->i", normals, vertices) > 0
+    if away.mean() > 0.5:  # Poisson's outward side is away from the camera: flip winding and normals
+        triangles = triangles[:, [0, 2, 1]]
+        normals = -normals
+    colours = np.asarray(mesh.vertex_colors).astype(np.float32) if mesh.has_vertex_colors() else None
+    return Mesh(vertices_mm=vertices, triangles=triangles, normals=normals, colours=colours, pixels=None)
+
+
+# --------------------------------------------------------------------------------------------------
+# from disparity to a file
+# --------------------------------------------------------------------------------------------------
+
+Kind = Literal["mesh", "points"]
+
+
+@dataclass
+class ExportSummary:
+    """What :func:`export_ply` wrote."""
+
+    path: Path
+    kind: str  # "points", "mesh" or "poisson"
+    points: int  # vertices in the file
+    triangles: int  # 0 for a point cloud
+    pixels_used: int  # pixels with a trustworthy depth
+    pixels_total: int
+    depth_range_mm: tuple[float, float] | None
+
+    def as_dict(self) -> dict[str, Any]:
+        out = dict(self.__dict__)
+        out["path"] = str(self.path)
+        return out
+
+    def __str__(self) -> str:
+        what = f"{self.points} points" + (f", {self.triangles} triangles" if self.triangles else "")
+        span = ""
+        if self.depth_range_mm:
+            span = f", depth {self.depth_range_mm[0]:.1f}..{self.depth_range_mm[1]:.1f} mm"
+        share = 100.0 * self.pixels_used / max(self.pixels_total, 1)
+        return f"{self.path}: {self.kind}, {what} from {share:.1f} % of pixels{span}"
+
+
+def export_ply(
+    path,
+    *,
+    disparity_px: np.ndarray,
+    image: np.ndarray | None,
+    focal_px: float,
+    pitch_mm: float,
+    disparity_offset: float = 0.0,
+    principal_point_px=None,
+    mask: np.ndarray | None = None,
+    kind: Kind = "mesh",
+    poisson: bool = False,
+    ascii: bool = False,
+    max_relative_jump: float = MAX_RELATIVE_JUMP,
+    poisson_depth: int = 9,
+) -> ExportSummary:
+    """Disparity of the centre view -> depth -> coloured point cloud or cut mesh -> PLY.
+
+    Parameters
+    ----------
+    path
+        Output ``.ply`` file (its folder must exist).
+    disparity_px
+        ``(H, W)`` disparity of the centre view, pixels per view step; ``NaN`` where not trusted.
+    image
+        ``(H, W, 3)`` RGB or ``(H, W)`` grey centre view for the colours, or ``None``.
+    focal_px, pitch_mm, disparity_offset
+        Camera of the rectified light field (:func:`recon.depth.disparity_to_depth`).
+    principal_point_px
+        ``(cx, cy)``; default the image centre.
+    mask
+        ``(H, W)`` bool, ``True`` where the disparity is trustworthy; ``NaN`` disparities and
+        non-positive effective disparities are left out in any case.
+    kind
+        ``"mesh"`` (the depth grid triangulated, cut at depth jumps) or ``"points"``.
+    poisson
+        Mesh by screened Poisson reconstruction of the oriented cloud instead of the grid
+        (``kind`` must be ``"mesh"``).
+    ascii
+        Write ASCII PLY instead of binary.
+    max_relative_jump
+        Neighbours whose depths differ by more than this fraction are not joined
+        (:data:`recon.cloud.MAX_RELATIVE_JUMP`).
+    poisson_depth
+        Octree depth for :func:`poisson_mesh`.
+    """
+    if kind not in ("mesh", "points"):
+        raise ValueError(f"kind must be 'mesh' or 'points'; got {kind!r}")
+    if poisson and kind != "mesh":
+        raise ExportError("Poisson reconstruction makes a mesh; use it with --mesh (the default), not --points")
+    disparity = np.asarray(disparity_px)
+    if disparity.ndim != 2:
+        raise ValueError(f"disparity_px must be an (H, W) map; got shape {disparity.shape}")
+    depth = disparity_to_depth(
+        disparity.astype(np.float64), focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset
+    )
+    options = {"focal_px": focal_px, "principal_point_px": principal_point_px, "mask": mask,
+               "max_relative_jump": max_relative_jump}
+    cloud = point_cloud(depth, image, **options)
+    depth_range = (float(cloud.points_mm[:, 2].min()), float(cloud.points_mm[:, 2].max())) if len(cloud) else None
+    common = {"pixels_used": len(cloud), "pixels_total": int(disparity.size), "depth_range_mm": depth_range}
+    if kind == "points":
+        written = write_cloud_ply(path, cloud, ascii=ascii)
+        return ExportSummary(path=written, kind="points", points=len(cloud), triangles=0, **common)
+    mesh = poisson_mesh(cloud, depth=poisson_depth) if poisson else depth_mesh(depth, image, **options)
+    written = write_mesh_ply(path, mesh, ascii=ascii)
+    return ExportSummary(
+        path=written, kind="poisson" if poisson else "mesh", points=len(mesh.vertices_mm),
+        triangles=len(mesh.triangles), **common,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# reconstruction folders
+# --------------------------------------------------------------------------------------------------
+
+RESULT_JSON = "result.json"
+DISPARITY_FILE = "disparity.pfm"
+CENTRE_VIEW_FILE = "centre_view.png"
+
+
+@dataclass
+class ResultFolder:
+    """What :func:`read_result` takes from a reconstruction folder.
+
+    ``focal_px``/``pitch_mm`` may be ``None`` when ``result.json`` did not know them (e.g. a
+    benchmark scene without ``parameters.cfg``); :func:`export_result` then needs them passed in.
+    """
+
+    path: Path
+    disparity_px: np.ndarray
+    image: np.ndarray | None
+    focal_px: float | None
+    pitch_mm: float | None
+    disparity_offset: float
+    principal_point_px: tuple[float, float] | None
+    mask: np.ndarray | None
+    record: dict[str, Any] = field(default_factory=dict)
+
+
+def _number(record: dict, key: str, where: Path, *, positive: bool) -> float | None:
+    value = record.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
+        need = "a positive number" if positive else "a finite number"
+        raise ExportError(f"{where}: {key} = {value!r} must be {need}")
+    return float(value)
+
+
+def read_result(result_dir) -> ResultFolder:
+    """Read a reconstruction folder written by ``lfrig reconstruct``.
+
+    Reads ``disparity.pfm`` and ``result.json`` with the keys ``focal_px``, ``pitch_mm``,
+    ``disparity_offset`` (default 0), and optionally ``principal_point_px`` (``[cx, cy]``), ``mask``
+    (a PNG in the folder, non-zero = trusted) and ``source`` (the light-field folder, absolute or
+    relative to the result folder). Colours come from ``centre_view.png`` in the folder if present,
+    else from the centre view of ``source``; without either the export has no colours.
+    """
+    from recon.pfm import read_pfm
+
+    folder = Path(result_dir)
+    if not folder.is_dir():
+        raise ExportError(f"{folder}: no such reconstruction folder (run lfrig reconstruct first)")
+    record_path = folder / RESULT_JSON
+    if not record_path.is_file():
+        raise ExportError(f"{record_path}: missing; RESULT_DIR must be a folder written by lfrig reconstruct")
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ExportError(f"{record_path}: not valid JSON ({error})") from None
+    if not isinstance(record, dict):
+        raise ExportError(f"{record_path}: expected a JSON object with focal_px, pitch_mm, disparity_offset")
+    disparity_path = folder / DISPARITY_FILE
+    if not disparity_path.is_file():
+        raise ExportError(f"{disparity_path}: missing; the reconstruction did not finish, run it again")
+    disparity = read_pfm(disparity_path)
+    if disparity.ndim != 2:
+        raise ExportError(f"{disparity_path}: expected a one-channel disparity map, got shape {disparity.shape}")
+
+    principal = record.get("principal_point_px")
+    if principal is not None:
+        if not (isinstance(principal, list) and len(principal) == 2 and all(isinstance(c, (int, float)) for c in principal)):
+            raise ExportError(f"{record_path}: principal_point_px = {principal!r} must be [cx, cy] in pixels")
+        principal = (float(principal[0]), float(principal[1]))
+
+    mask = None
+    if record.get("mask"):
+        mask = _read_image(folder / str(record["mask"]), what="mask")
+        mask = (mask if mask.ndim == 2 else mask.max(axis=-1)) > 0
+        if mask.shape != disparity.shape:
+            raise ExportError(f"{folder / record['mask']}: mask is {mask.shape}, disparity is {disparity.shape}")
+
+    image = None
+    if (folder / CENTRE_VIEW_FILE).is_file():
+        image = _read_image(folder / CENTRE_VIEW_FILE, what="centre view")
+    elif record.get("source"):
+        source = Path(str(record["source"]))
+        source = source if source.is_absolute() else folder / source
+        if source.is_dir():
+            from recon.io import read_lightfield
+
+            image = read_lightfield(source).centre_view()
+    if image is not None and image.shape[:2] != disparity.shape:
+        raise ExportError(
+            f"{folder}: centre view is {image.shape[:2]} but disparity.pfm is {disparity.shape}; "
+            "they must come from the same reconstruction"
+        )
+    return ResultFolder(
+        path=folder,
+        disparity_px=disparity,
+        image=image,
+        focal_px=_number(record, "focal_px", record_path, positive=True),
+        pitch_mm=_number(record, "pitch_mm", record_path, positive=True),
+        disparity_offset=_number(record, "disparity_offset", record_path, positive=False) or 0.0,
+        principal_point_px=principal,
+        mask=mask,
+        record=record,
+    )
+
+
+def _read_image(path: Path, *, what: str) -> np.ndarray:
+    from recon.imageio import read_image
+
+    if not path.is_file():
+        raise ExportError(f"{path}: the {what} named by result.json is missing")
+    return read_image(path)
+
+
+def export_result(
+    result_dir,
+    ply_path,
+    *,
+    kind: Kind = "mesh",
+    poisson: bool = False,
+    ascii: bool = False,
+    focal_px: float | None = None,
+    pitch_mm: float | None = None,
+    disparity_offset: float | None = None,
+    max_relative_jump: float = MAX_RELATIVE_JUMP,
+) -> ExportSummary:
+    """:func:`export_ply` for a reconstruction folder (:func:`read_result`).
+
+    ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given.
+    """
+    result = read_result(result_dir)
+    focal = focal_px if focal_px is not None else result.focal_px
+    pitch = pitch_mm if pitch_mm is not None else result.pitch_mm
+    offset = disparity_offset if disparity_offset is not None else result.disparity_offset
+    missing = [name for name, value in (("focal_px", focal), ("pitch_mm", pitch)) if value is None]
+    if missing:
+        flags = " and ".join("--" + name.replace("_", "-") for name in missing)
+        raise ExportError(
+            f"{result.path / RESULT_JSON}: {', '.join(missing)} unknown (the light field had no camera "
+            f"parameters); metric depth needs them, pass {flags}"
+        )
+    return export_ply(
+        ply_path,
+        disparity_px=result.disparity_px,
+        image=result.image,
+        focal_px=focal,
+        pitch_mm=pitch,
+        disparity_offset=offset,
+        principal_point_px=result.principal_point_px,
+        mask=result.mask,
+        kind=kind,
+        poisson=poisson,
+        ascii=ascii,
+        max_relative_jump=max_relative_jump,
+    )
