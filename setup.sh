@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Set up everything lfrig needs, idempotently: a Python >= 3.12, the system library open3d needs,
+# uv, and the locked environment in .venv/ (with the `lfrig` command in .venv/bin/).
+#
+#   ./setup.sh            set up (fast when everything is already there)
+#
+# Environment:
+#   LFRIG_PYTHON=/path/to/python3.12   use this interpreter instead of searching for one
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")"
+
+say() { printf 'setup: %s\n' "$*" >&2; }
+die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
+
+# --- a Python >= 3.12 --------------------------------------------------------------------------
+is_py312() { "$1" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 12) else 1)' >/dev/null 2>&1; }
+
+find_python() {
+  if [ -n "${LFRIG_PYTHON:-}" ]; then
+    is_py312 "$LFRIG_PYTHON" || die "LFRIG_PYTHON=$LFRIG_PYTHON is not a Python >= 3.12"
+    echo "$LFRIG_PYTHON"; return
+  fi
+  local candidate
+  for candidate in python3.12 python3.13 python3.14 python3 python; do
+    if command -v "$candidate" >/dev/null 2>&1 && is_py312 "$(command -v "$candidate")"; then
+      command -v "$candidate"; return
+    fi
+  done
+  # pyenv may hold one that is not on PATH: ask pyenv where its versions live.
+  if command -v pyenv >/dev/null 2>&1; then
+    local root version
+    root=$(pyenv root)
+    for version in $(pyenv versions --bare 2>/dev/null | grep -E '^3\.(1[2-9]|[2-9][0-9])(\.[0-9]+)?$' | sort -V); do
+      candidate="$root/versions/$version/bin/python3"
+      if is_py312 "$candidate"; then echo "$candidate"; return; fi
+    done
+  fi
+  return 1
+}
+
+PYTHON=$(find_python) || die "no Python >= 3.12 found (tried python3.12, python3.13, python3 on PATH and pyenv).
+  Install one, e.g. 'pyenv install 3.12' or your system's python3.12 package, or set LFRIG_PYTHON."
+say "Python: $PYTHON ($("$PYTHON" -c 'import sys; print(sys.version.split()[0])'))"
+
+# --- the system library open3d needs -------------------------------------------------------------
+if [ "$(uname -s)" = Linux ] && ! ldconfig -p 2>/dev/null | grep -q 'libusb-1\.0\.so\.0'; then
+  if command -v apt-get >/dev/null 2>&1; then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    say "installing libusb-1.0-0 (open3d needs it) with apt-get"
+    $SUDO apt-get update -qq >/dev/null && \
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null \
+      || die "could not install libusb-1.0-0; install it by hand: sudo apt-get install libusb-1.0-0"
+  else
+    die "open3d needs libusb-1.0 (libusb-1.0.so.0); install it with your system's package manager"
+  fi
+fi
+
+# --- uv ------------------------------------------------------------------------------------------
+if command -v uv >/dev/null 2>&1; then
+  UV=$(command -v uv)
+else
+  UV=.cache/uv-bootstrap/bin/uv
+  if [ ! -x "$UV" ]; then
+    say "installing uv into .cache/uv-bootstrap (from PyPI)"
+    "$PYTHON" -m pip --version >/dev/null 2>&1 || "$PYTHON" -m ensurepip --upgrade >/dev/null 2>&1 \
+      || die "$PYTHON has no pip; install uv (https://docs.astral.sh/uv/) or pip for it"
+    PIP_ROOT_USER_ACTION=ignore "$PYTHON" -m pip install --quiet --disable-pip-version-check --target .cache/uv-bootstrap uv \
+      || die "could not install uv with pip"
+  fi
+fi
+
+# --- the locked environment ----------------------------------------------------------------------
+export UV_PYTHON_DOWNLOADS=never
+"$UV" sync --frozen --python "$PYTHON" --quiet || die "uv sync failed (see above)"
+say "environment ready: .venv/bin/lfrig"

@@ -1,0 +1,31 @@
+"""Shared fixtures.
+
+``hci_scene_dir`` is the benchmark scene in ``../shared``. It is licensed data that never enters the
+repository; tests that need it skip on a developer machine without it, but FAIL under CI (where the
+variable ``CI`` is set), so a CI run can never pass by silently skipping them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+HCI_BACKGAMMON = SHARED / "data" / "hci" / "stratified" / "backgammon"
+
+
+def require_hci_scene(path: Path = HCI_BACKGAMMON) -> Path:
+    """Return the scene folder, or fail under CI / skip elsewhere when it is missing."""
+    if (path / "input_Cam040.png").is_file() and (path / "gt_disp_lowres.pfm").is_file():
+        return path
+    message = f"benchmark scene not found at {path} (it must sit in ../shared beside the checkout)"
+    if os.environ.get("CI"):
+        pytest.fail(message)
+    pytest.skip(message)
+
+
+@pytest.fixture
+def hci_scene_dir() -> Path:
+    return require_hci_scene()

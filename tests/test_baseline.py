@@ -1,0 +1,71 @@
+"""The cost-volume kernel and the baseline estimator on synthetic light fields with known disparity."""
+
+import numpy as np
+import pytest
+
+from recon.baseline import disparity_candidates, estimate_baseline, parabolic_refine
+from recon.costvolume import pixel_cost, pixel_cost_reference, view_offsets
+from recon.evaluate import score
+from recon.lightfield import LightField
+from recon.synthetic import Layer, noise_texture, occluding_square_scene, render
+
+
+@pytest.mark.parametrize("disparity", [0.0, 0.37, -1.8, 3.2])
+def test_fast_kernel_agrees_with_reference(disparity):
+    gray = np.random.default_rng(1).random((5, 5, 17, 23)).astype(np.float32)
+    offsets = view_offsets((5, 5))
+    indices = (offsets + 2).astype(np.int64)
+    fast = pixel_cost(gray, disparity, offsets=offsets, indices=indices)
+    slow = pixel_cost_reference(gray, disparity, offsets=offsets, indices=indices)
+    np.testing.assert_allclose(fast, slow, atol=2e-6)
+
+
+def test_constant_light_field_costs_nothing():
+    gray = np.full((3, 3, 8, 8), 0.4, np.float32)
+    offsets = view_offsets((3, 3))
+    cost = pixel_cost(gray, 1.3, offsets=offsets, indices=(offsets + 1).astype(np.int64))
+    np.testing.assert_allclose(cost, 0, atol=1e-7)
+
+
+def test_cost_is_zero_at_the_true_disparity_of_a_plane():
+    # An integer disparity shifts by whole pixels, so no interpolation blurs the comparison.
+    lf, truth = render([Layer(noise_texture((40, 40), seed=3), 1.0)], grid=(5, 5))
+    offsets = view_offsets((5, 5))
+    indices = (offsets + 2).astype(np.int64)
+    inner = (slice(8, -8), slice(8, -8))
+    at_truth = pixel_cost(lf.views, 1.0, offsets=offsets, indices=indices)[inner].mean()
+    off_truth = pixel_cost(lf.views, 1.2, offsets=offsets, indices=indices)[inner].mean()
+    assert at_truth < 1e-6 < off_truth
+
+
+def test_candidates_include_both_ends():
+    c = disparity_candidates((-1.7, 0.7), 0.02)
+    assert c[0] == -1.7 and c[-1] == pytest.approx(0.7) and len(c) == 121
+
+
+def test_parabolic_refinement_finds_the_vertex():
+    candidates = np.arange(-1.0, 1.01, 0.1)
+    true = 0.234
+    volume = ((candidates - true) ** 2)[:, None, None] * np.ones((1, 2, 2))
+    disparity, _ = parabolic_refine(volume.astype(np.float32), candidates)
+    np.testing.assert_allclose(disparity, true, atol=1e-5)
+
+
+def test_baseline_recovers_a_fronto_parallel_plane_to_sub_pixel_accuracy():
+    lf, truth = render([Layer(noise_texture((48, 48), seed=5), 0.43)], grid=(9, 9))
+    result = estimate_baseline(lf, window=7, step=0.05, disparity_range=(-1.0, 1.0))
+    s = score(result.disparity, truth, border=8)
+    assert s["badpix_0.03"] < 1.0
+
+
+def test_baseline_sign_follows_the_conventions():
+    lf, truth = occluding_square_scene(48, back=-0.5, front=1.0)
+    d = estimate_baseline(lf, window=5, step=0.05).disparity
+    assert np.median(d[20:28, 20:28]) == pytest.approx(1.0, abs=0.05)
+    assert np.median(d[3:8, 3:8]) == pytest.approx(-0.5, abs=0.05)
+
+
+def test_baseline_rejects_an_even_window():
+    lf = LightField(views=np.zeros((3, 3, 8, 8), np.float32))
+    with pytest.raises(ValueError, match="odd"):
+        estimate_baseline(lf, window=4)

@@ -1,0 +1,175 @@
+"""Light-field folders: both layouts read back what was written; bad input gives one clear line."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from recon.cli import main
+from recon.errors import LfrigError
+from recon.io import read_lightfield, write_lightfield
+from recon.lightfield import LightField
+from rig.errors import CaptureLayoutError
+from rig.layout import CaptureWriter, read_capture
+
+CFG = """[intrinsics]
+focal_length_mm = 100
+sensor_size_mm = 35
+image_resolution_x_px = 8
+image_resolution_y_px = 6
+
+[extrinsics]
+num_cams_x = 3
+num_cams_y = 3
+baseline_mm = 30
+focus_distance_m = 8
+
+[meta]
+disp_min = -1.5
+disp_max = 0.5
+"""
+
+
+def random_views(rows=3, cols=3, h=6, w=8, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (rows, cols, h, w, 3), dtype=np.uint8)
+
+
+def write_benchmark(folder, views, cfg=CFG):
+    folder.mkdir(exist_ok=True)
+    rows, cols = views.shape[:2]
+    for u in range(rows):
+        for v in range(cols):
+            cv2.imwrite(str(folder / f"input_Cam{u * cols + v:03d}.png"), views[u, v, :, :, ::-1])
+    if cfg is not None:
+        (folder / "parameters.cfg").write_text(cfg)
+    return folder
+
+
+def test_benchmark_layout_is_row_major_rgb_with_parameters(tmp_path):
+    views = random_views()
+    lf = read_lightfield(write_benchmark(tmp_path / "scene", views))
+    np.testing.assert_array_equal(lf.views, views)
+    assert lf.grid_shape == (3, 3) and lf.centre_index == (1, 1)
+    assert lf.pitch_mm == 30 and lf.disparity_range == (-1.5, 0.5)
+    assert lf.focal_px == pytest.approx(100 / 35 * 8)
+    assert lf.disparity_offset == pytest.approx(lf.focal_px * 30 / 8000)
+
+
+def test_benchmark_without_parameters_takes_the_grid_from_the_view_count(tmp_path):
+    lf = read_lightfield(write_benchmark(tmp_path / "scene", random_views(), cfg=None))
+    assert lf.grid_shape == (3, 3) and lf.pitch_mm is None and lf.disparity_range is None
+
+
+def test_capture_layout_round_trip(tmp_path):
+    lf = LightField(views=random_views(), pitch_mm=0.5, focal_px=7000.0, disparity_range=(3.0, 4.0))
+    write_lightfield(tmp_path / "cap", lf)
+    back = read_lightfield(tmp_path / "cap")
+    np.testing.assert_array_equal(back.views, lf.views)
+    assert back.pitch_mm == 0.5 and back.focal_px == 7000.0 and back.disparity_range == (3.0, 4.0)
+    assert back.metadata["layout"] == "lfrig-capture"
+
+
+def header(pitch=0.5):
+    grid = {"rows": 2, "cols": 2, "pitch_mm": pitch}
+    return {"grid": grid, "settings": {"grid": grid, "order": "serpentine"}}
+
+
+def test_capture_resumes_and_refuses_other_settings(tmp_path):
+    image = np.zeros((4, 5, 3), np.uint8)
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        w.write_view(0, 0, image, {"commanded_mm": [0, 0, 0]})
+        w.write_view(0, 1, image + 1)
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        assert set(w.completed) == {(0, 0), (0, 1)}
+        assert w.completed[(0, 0)]["commanded_mm"] == [0, 0, 0]
+    with pytest.raises(CaptureLayoutError, match="other settings.*grid"):
+        CaptureWriter(tmp_path / "c", header=header(pitch=0.6))
+
+
+def test_capture_drops_views_whose_file_changed_or_vanished(tmp_path):
+    image = np.zeros((4, 5, 3), np.uint8)
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        w.write_view(0, 0, image)
+        w.write_view(1, 1, image)
+    (tmp_path / "c/views/u00_v00.png").unlink()
+    (tmp_path / "c/views/u01_v01.png").write_bytes(b"garbage")
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        assert w.completed == {}
+
+
+def test_capture_ignores_a_torn_last_journal_line(tmp_path):
+    image = np.zeros((4, 5, 3), np.uint8)
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        w.write_view(0, 0, image)
+    with open(tmp_path / "c/manifest.jsonl", "a") as f:
+        f.write('{"kind": "view", "u": 0, "v"')
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        assert set(w.completed) == {(0, 0)}
+
+
+def test_incomplete_capture_says_how_to_resume(tmp_path):
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        w.write_view(0, 0, np.zeros((4, 5), np.uint8))
+    with pytest.raises(CaptureLayoutError, match="3 of 4 views missing.*again to resume"):
+        read_capture(tmp_path / "c")
+
+
+def test_capture_manifest_is_json_lines(tmp_path):
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        w.write_view(1, 0, np.zeros((4, 5), np.uint8))
+    lines = [json.loads(line) for line in (tmp_path / "c/manifest.jsonl").read_text().splitlines()]
+    assert lines[0]["kind"] == "header" and lines[0]["format"] == "lfrig-capture"
+    assert lines[1]["file"] == "views/u01_v00.png" and len(lines[1]["sha256"]) == 64
+
+
+# --- bad input through the command line: one line naming the file, exit 2, no traceback ----------
+
+def run_cli(capsys, *args):
+    status = main(list(map(str, args)))
+    captured = capsys.readouterr()
+    return status, captured.err
+
+
+def broken(tmp_path, kind):
+    folder = write_benchmark(tmp_path / "scene", random_views())
+    if kind == "missing":
+        (folder / "input_Cam004.png").unlink()
+        return folder, "input_Cam004.png"
+    if kind == "extra":
+        cv2.imwrite(str(folder / "input_Cam009.png"), np.zeros((6, 8, 3), np.uint8))
+        return folder, "input_Cam009.png"
+    if kind == "mixed":
+        cv2.imwrite(str(folder / "input_Cam005.png"), np.zeros((7, 8, 3), np.uint8))
+        return folder, "input_Cam005.png"
+    if kind == "unreadable":
+        (folder / "input_Cam002.png").write_bytes(b"\x89PNG not really")
+        return folder, "input_Cam002.png"
+    if kind == "cfg":
+        (folder / "parameters.cfg").write_text("this is [not an ini file\n")
+        return folder, "parameters.cfg"
+    if kind == "cfg-value":
+        (folder / "parameters.cfg").write_text(CFG.replace("disp_min = -1.5", "disp_min = 2"))
+        return folder, "parameters.cfg"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize("kind", ["missing", "extra", "mixed", "unreadable", "cfg", "cfg-value"])
+def test_bad_light_field_gives_one_line_naming_the_file(tmp_path, capsys, kind):
+    folder, name = broken(tmp_path, kind)
+    status, err = run_cli(capsys, "info", folder)
+    assert status == 2
+    assert err.startswith("lfrig: error: ") and err.count("\n") == 1
+    assert name in err and "Traceback" not in err
+
+
+def test_broken_pfm_through_evaluate(tmp_path, capsys):
+    (tmp_path / "gt.pfm").write_bytes(b"Pf\n2 2\n-1.0\n")
+    (tmp_path / "e.pfm").write_bytes(b"Pf\n2 2\n-1.0\n" + bytes(16))
+    status, err = run_cli(capsys, "evaluate", tmp_path / "e.pfm", tmp_path / "gt.pfm")
+    assert status == 2 and "gt.pfm" in err and "truncated" in err and err.count("\n") == 1
+
+
+def test_not_a_light_field(tmp_path):
+    with pytest.raises(LfrigError, match="no light field here"):
+        read_lightfield(tmp_path)
