@@ -128,6 +128,53 @@ def depth_to_disparity(
     return np.where(np.isfinite(depth) & (depth > 0), disparity, np.nan).astype(depth.dtype)
 
 
+def depth_error_scores(
+    depth_mm, truth_mm, *, mask=None, border_px: int = 0, tolerance: float = 0.005
+) -> dict[str, float]:
+    """Relative depth error of an estimate against the truth.
+
+    Parameters
+    ----------
+    depth_mm, truth_mm
+        ``(H, W)`` depth in mm; pixels where either is not finite and positive are skipped.
+    mask
+        Optional ``(H, W)`` bool: score only where ``True`` (e.g. textured pixels).
+    border_px
+        Pixels left out on every side (the benchmark leaves out 15).
+    tolerance
+        Relative error counted as good for ``within_pct``, default 0.5 % of the distance.
+
+    Returns
+    -------
+    ``{"median_abs_rel_pct", "mean_abs_rel_pct", "p90_abs_rel_pct", "within_pct", "tolerance_pct",
+    "pixels"}``: percentages of the true distance (``|Z - Z_true| / Z_true``), the share of pixels
+    within ``tolerance`` in percent, and how many pixels were scored. NaN scores when none is left.
+    """
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    truth = np.asarray(truth_mm, dtype=np.float64)
+    if depth.shape != truth.shape or depth.ndim != 2:
+        raise ValueError(f"depth_mm {depth.shape} and truth_mm {truth.shape} must be (H, W) maps of one shape")
+    keep = np.zeros(depth.shape, dtype=bool)
+    height, width = depth.shape
+    keep[border_px : height - border_px, border_px : width - border_px] = True
+    with np.errstate(invalid="ignore"):
+        keep &= np.isfinite(depth) & np.isfinite(truth) & (depth > 0) & (truth > 0)
+    if mask is not None:
+        keep &= np.asarray(mask, dtype=bool)
+    relative = np.abs(depth[keep] - truth[keep]) / truth[keep]
+    scores = {"tolerance_pct": 100.0 * tolerance, "pixels": int(keep.sum())}
+    if relative.size == 0:
+        nan = float("nan")
+        return {"median_abs_rel_pct": nan, "mean_abs_rel_pct": nan, "p90_abs_rel_pct": nan, "within_pct": nan, **scores}
+    return {
+        "median_abs_rel_pct": float(100.0 * np.median(relative)),
+        "mean_abs_rel_pct": float(100.0 * np.mean(relative)),
+        "p90_abs_rel_pct": float(100.0 * np.percentile(relative, 90)),
+        "within_pct": float(100.0 * np.mean(relative <= tolerance)),
+        **scores,
+    }
+
+
 # --------------------------------------------------------------------------------------------------
 # the benchmark's camera
 # --------------------------------------------------------------------------------------------------
@@ -355,6 +402,8 @@ def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, of
     depth = np.asarray(depth_mm)
     if depth.ndim != 2:
         raise ValueError(f"depth_mm must be (H, W); got shape {depth.shape}")
+    if not path.parent.is_dir():
+        raise DepthFormatError(f"{path}: folder {path.parent} does not exist; create it first")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
         from recon.pfm import write_pfm

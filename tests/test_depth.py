@@ -189,3 +189,25 @@ def test_unknown_suffix_is_refused(tmp_path):
 def test_benchmark_camera_is_a_value():
     camera = BenchmarkCamera(100.0, 35.0, 512, 512, 30.0, 8.3)
     assert camera.pitch_mm == 30.0
+
+
+def test_depth_error_scores():
+    from recon.depth import depth_error_scores
+
+    truth = np.full((10, 10), 1000.0)
+    estimate = truth.copy()
+    estimate[:, :5] *= 1.002  # 0.2 % too far on the left half
+    estimate[:, 9] *= 1.02  # 2 % on the last column
+    estimate[0, 0] = np.nan
+    scores = depth_error_scores(estimate, truth)
+    assert scores["pixels"] == 99
+    assert scores["median_abs_rel_pct"] == pytest.approx(0.2)
+    assert scores["within_pct"] == pytest.approx(100 * 89 / 99)
+    inner = depth_error_scores(estimate, truth, border_px=1, mask=np.ones((10, 10), bool))
+    assert inner["pixels"] == 64 and inner["within_pct"] == 100.0
+    assert np.isnan(depth_error_scores(estimate, truth, mask=np.zeros((10, 10), bool))["median_abs_rel_pct"])
+
+
+def test_writing_into_a_missing_folder_names_it(tmp_path):
+    with pytest.raises(DepthFormatError, match="does not exist"):
+        write_depth(tmp_path / "nope" / "depth.npy", _depth_map())
