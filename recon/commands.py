@@ -8,10 +8,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-#: Reconstruction methods: name -> one-line description for --help.
-METHODS = {
-    "baseline": "fixed square window, SAD over all views, parabolic sub-pixel refinement",
-}
+from recon.methods import METHODS
+
 DEFAULT_METHOD = "baseline"
 
 
@@ -38,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")
     rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
     rec.add_argument("--method", choices=sorted(METHODS), default=DEFAULT_METHOD,
-                     help="; ".join(f"{k}: {v}" for k, v in METHODS.items()))
+                     help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()))
     rec.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
                      help="disparities to search, pixels per view step (default: the light field's, else -4 4)")
     rec.add_argument("--step", type=float, default=0.02, help="spacing of candidate disparities (baseline)")
@@ -132,6 +130,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from recon.evaluate import score
     from recon.imageio import write_png
     from recon.io import read_ground_truth, read_lightfield
+    from recon.methods import run_method
     from recon.pfm import write_pfm
     from recon.progress import Progress
 
@@ -140,15 +139,11 @@ def _reconstruct(args: argparse.Namespace) -> None:
         raise ReconError(f"--disparity-range {args.disparity_range[0]} {args.disparity_range[1]}: MIN must be less than MAX")
     args.output.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    bar = Progress(f"{args.method}", 1, quiet=args.quiet)
-    options: dict[str, Any]
+    options: dict[str, Any] = {"disparity_range": tuple(args.disparity_range) if args.disparity_range else None}
     if args.method == "baseline":
-        from recon.baseline import estimate_baseline
-
-        options = {"window": args.window, "step": args.step,
-                   "disparity_range": tuple(args.disparity_range) if args.disparity_range else None}
-        disparity = estimate_baseline(lf, progress=bar.update, **options).disparity
-    bar.close()
+        options.update(window=args.window, step=args.step)
+    with Progress(args.method, 1, quiet=args.quiet) as bar:
+        disparity = run_method(args.method, lf, progress=bar.update, **options).disparity
     seconds = time.perf_counter() - started
     write_pfm(args.output / "disparity.pfm", disparity)
     picture, shown = colourise(disparity, value_range=lf.disparity_range)
