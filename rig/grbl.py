@@ -1,0 +1,916 @@
+"""GRBL v1.1 over a serial port: the wire protocol as pure functions, and the :class:`GrblStage` driver.
+
+The protocol follows GRBL's own interface documents (``doc/markdown/interface.md``,
+``realtime_cmds.md``, ``commands.md`` of gnea/grbl):
+
+- Line commands end in ``\\n`` and are answered by exactly one ``ok`` or ``error:N``. The driver sends
+  one line and waits for its answer before sending the next (GRBL's "simple send-response" streaming).
+- Real-time commands are single bytes, never followed by a newline and never answered by ``ok``:
+  ``?`` status report, ``!`` feed hold, ``~`` cycle start, ``0x18`` soft reset.
+- Push messages may arrive at any time: ``<...>`` status reports, ``ALARM:N``, ``[MSG:...]``,
+  ``Grbl 1.1h ['$' for help]`` after a reset, ``$N=value`` lines of a ``$$`` listing.
+
+A motion is *done* when a ``G4 P0`` sent after it is answered ``ok`` (GRBL answers a dwell only once
+the planner has emptied) **and** a ``?`` status report says ``Idle`` at the target within a tolerance.
+
+The driver never resends a motion command on its own: when a reply goes missing it raises
+:class:`GrblTimeoutError` and leaves the decision to the user (the capture session resumes from its
+journal after re-homing). Every wait has a timeout.
+
+Positions are machine coordinates (``MPos``) in mm, ``(x, y, z)`` (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, Sequence
+
+from rig.errors import RigError
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------------------------------
+# Clocks: the driver, the fake controller and the session share one, so a simulated session can run
+# on virtual time.
+
+
+class Clock(Protocol):
+    """A monotonic clock that can wait. ``rig.fakegrbl.VirtualClock`` advances instantly."""
+
+    def monotonic(self) -> float:
+        """Seconds since an arbitrary origin; never decreases."""
+
+    def sleep(self, seconds: float) -> None:
+        """Wait ``seconds`` (>= 0)."""
+
+
+class SystemClock:
+    """The wall clock: :func:`time.monotonic` and :func:`time.sleep`."""
+
+    def monotonic(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            time.sleep(seconds)
+
+
+# --------------------------------------------------------------------------------------------------
+# Errors
+
+
+class GrblError(RigError):
+    """Something went wrong talking to a GRBL controller."""
+
+
+class GrblCommandError(GrblError):
+    """GRBL answered ``error:N``: the line was not executed."""
+
+    def __init__(self, code: int, line: str, port: str = "") -> None:
+        self.code = code
+        self.line = line
+        where = f" on {port}" if port else ""
+        super().__init__(
+            f"GRBL{where} rejected {line!r} with error:{code} ({describe_error(code)}); "
+            "the command was not executed"
+        )
+
+
+class GrblAlarmError(GrblError):
+    """GRBL raised ``ALARM:N``: it stopped and locked out G-code until homed, unlocked or reset."""
+
+    def __init__(self, code: int, port: str = "", context: str = "") -> None:
+        self.code = code
+        where = f" on {port}" if port else ""
+        during = f" during {context}" if context else ""
+        super().__init__(
+            f"GRBL{where} raised ALARM:{code}{during} ({describe_alarm(code)}); "
+            f"{_ALARM_ADVICE.get(code, 'reset the controller and home it before moving again')}"
+        )
+
+
+class GrblTimeoutError(GrblError):
+    """A reply did not arrive in time. Motion commands are never resent automatically."""
+
+
+class GrblConnectionError(GrblError):
+    """The port could not be opened, went away, or the controller reset on its own."""
+
+
+class GrblPositionError(GrblError):
+    """The controller reports Idle, but not at the commanded position."""
+
+
+class GrblLimitError(GrblError):
+    """A commanded position lies outside the machine's travel; nothing was sent."""
+
+
+class GrblProtocolError(GrblError):
+    """A reply that GRBL's interface does not allow in that place."""
+
+
+# --------------------------------------------------------------------------------------------------
+# GRBL's code tables (facts from GRBL's interface document, worded here).
+
+ERROR_CODES: dict[int, str] = {
+    1: "a G-code word has no letter: expected a command letter",
+    2: "a numeric value is badly formatted or missing",
+    3: "the '$' system command is not recognised or not supported",
+    4: "a negative value was given where a positive one is expected",
+    5: "homing is not enabled in the settings ($22)",
+    6: "the minimum step pulse time must be more than 3 microseconds",
+    7: "EEPROM read failed; settings were reset to their defaults",
+    8: "this '$' command is only accepted while GRBL is Idle",
+    9: "G-code is locked out while GRBL is in alarm or jog state",
+    10: "soft limits cannot be enabled without homing",
+    11: "the line is longer than GRBL's line buffer and was not processed",
+    12: "a '$' setting value exceeds the maximum step rate",
+    13: "the safety door is open",
+    14: "build info or startup line exceeds the EEPROM line length",
+    15: "the jog target exceeds the machine travel; jog ignored",
+    16: "jog command without '=' or with a prohibited G-code",
+    17: "laser mode requires PWM output",
+    20: "unsupported or invalid G-code command in the block",
+    21: "more than one G-code command of the same modal group in the block",
+    22: "the feed rate has not been set",
+    23: "the G-code command requires an integer value",
+    24: "two G-code commands in the block both need the XYZ axis words",
+    25: "a G-code word is repeated in the block",
+    26: "the G-code command needs XYZ axis words but none were given",
+    27: "the N line number is outside 1 - 9,999,999",
+    28: "the G-code command is missing a required P or L value",
+    29: "only work coordinate systems G54-G59 are supported",
+    30: "G53 needs G0 or G1 motion mode to be active",
+    31: "unused axis words in the block while G80 motion cancel is active",
+    32: "G2/G3 arc has no XYZ axis words in the selected plane",
+    33: "the motion target is invalid (impossible arc, or probe target at the current position)",
+    34: "G2/G3 radius-format arc has a mathematical error",
+    35: "G2/G3 offset-format arc is missing its IJK word in the selected plane",
+    36: "unused, leftover G-code words in the block",
+    37: "G43.1 tool length offset is not on its configured axis",
+    38: "the tool number exceeds the maximum supported value",
+}
+
+ALARM_CODES: dict[int, str] = {
+    1: "hard limit triggered; the machine position is likely lost after the sudden halt",
+    2: "the G-code motion target exceeds the machine travel (soft limit); the position was kept",
+    3: "reset while in motion; the position cannot be guaranteed and steps may have been lost",
+    4: "probe fail: the probe was not in the expected initial state",
+    5: "probe fail: the probe did not make contact within the programmed travel",
+    6: "homing fail: the homing cycle was reset",
+    7: "homing fail: the safety door was opened during homing",
+    8: "homing fail: the pull-off did not clear the limit switch",
+    9: "homing fail: the limit switch was not found within the search distance",
+}
+
+_ALARM_ADVICE = {
+    1: "check the stage for an obstruction, then reset and home it (`lfrig stage home`) and run again",
+    2: "check the grid centre, size and pitch against the machine travel; reset, then unlock or home",
+    3: "home the stage again (`lfrig stage home`) before moving",
+    6: "home the stage again",
+    8: "check the limit switches and the pull-off setting ($27), then home again",
+    9: "check the limit switch wiring and the maximum travel settings ($130-$132), then home again",
+}
+
+
+def describe_error(code: int) -> str:
+    """GRBL's meaning of ``error:code``."""
+    return ERROR_CODES.get(code, "unknown error code (see GRBL's error_codes document)")
+
+
+def describe_alarm(code: int) -> str:
+    """GRBL's meaning of ``ALARM:code``."""
+    return ALARM_CODES.get(code, "unknown alarm code (see GRBL's alarm_codes document)")
+
+
+# --------------------------------------------------------------------------------------------------
+# Encoding (host -> GRBL). Pure functions returning the exact bytes to write.
+
+#: GRBL's serial line buffer holds 80 characters (longer lines get ``error:11``).
+LINE_LIMIT = 80
+STATUS_QUERY = b"?"
+FEED_HOLD = b"!"
+CYCLE_START = b"~"
+SOFT_RESET = b"\x18"
+REALTIME_BYTES = frozenset(b"?!~\x18") | frozenset(range(0x80, 0x100))
+#: GRBL's wake-up: blank lines, then wait for it to initialise and flush what it printed.
+WAKE = b"\r\n\r\n"
+
+
+def encode_line(text: str) -> bytes:
+    """The bytes of one line command: ASCII ``text`` followed by ``\\n``.
+
+    Raises ``ValueError`` for non-ASCII text, embedded newlines or real-time characters (which GRBL
+    would act on immediately instead of buffering), or lines longer than :data:`LINE_LIMIT`.
+    """
+    if not text.isascii():
+        raise ValueError(f"GRBL lines must be ASCII; got {text!r}")
+    data = text.encode("ascii")
+    if b"\n" in data or b"\r" in data:
+        raise ValueError(f"a GRBL line must not contain a newline; got {text!r}")
+    if any(b in REALTIME_BYTES for b in data):
+        raise ValueError(f"{text!r} contains a real-time character (? ! ~ or ctrl-x) that GRBL would execute at once")
+    if len(data) > LINE_LIMIT - 1:
+        raise ValueError(f"{text!r} is {len(data)} characters; GRBL's line buffer holds {LINE_LIMIT - 1}")
+    return data + b"\n"
+
+
+def format_mm(value: float) -> str:
+    """A coordinate as GRBL-friendly text: fixed point, 3 decimals (1 micrometre), no ``-0.000``."""
+    if not math.isfinite(value):
+        raise ValueError(f"coordinate must be finite; got {value!r}")
+    text = f"{value:.3f}"
+    return "0.000" if text == "-0.000" else text
+
+
+def encode_move(position_mm: Sequence[float], *, feed_mm_min: float | None = None) -> bytes:
+    """An absolute move to ``position_mm = (x, y, z)`` in mm.
+
+    ``G0`` (rapid, at the machine's maximum rates) when ``feed_mm_min`` is ``None``, else
+    ``G1 ... F<feed>`` at that feed in mm/min. Assumes ``G90 G21`` modes (set by
+    :func:`encode_modes`); the modes are not repeated on every line.
+    """
+    if len(position_mm) != 3:
+        raise ValueError(f"position must be (x, y, z) in mm; got {position_mm!r}")
+    x, y, z = (format_mm(float(c)) for c in position_mm)
+    if feed_mm_min is None:
+        return encode_line(f"G0 X{x} Y{y} Z{z}")
+    if not (feed_mm_min > 0 and math.isfinite(feed_mm_min)):
+        raise ValueError(f"feed_mm_min must be a positive number; got {feed_mm_min!r}")
+    return encode_line(f"G1 X{x} Y{y} Z{z} F{feed_mm_min:.1f}")
+
+
+def encode_modes() -> bytes:
+    """``G90 G21``: absolute distances, millimetres."""
+    return encode_line("G90 G21")
+
+
+def encode_dwell(seconds: float = 0.0) -> bytes:
+    """``G4 P<s>``: GRBL answers ``ok`` only after the planner has emptied and the dwell elapsed."""
+    if not seconds >= 0:
+        raise ValueError(f"dwell must be >= 0 s; got {seconds!r}")
+    return encode_line(f"G4 P{seconds:g}")
+
+
+def encode_home() -> bytes:
+    """``$H``: run the homing cycle (answered ``ok`` when it has finished)."""
+    return encode_line("$H")
+
+
+def encode_unlock() -> bytes:
+    """``$X``: clear the alarm lock without homing."""
+    return encode_line("$X")
+
+
+def encode_settings_query() -> bytes:
+    """``$$``: list the ``$N=value`` settings, then ``ok``."""
+    return encode_line("$$")
+
+
+def encode_output(on: bool) -> bytes:
+    """``M8`` (flood coolant output on) or ``M9`` (off): a spare output used as a camera trigger."""
+    return encode_line("M8" if on else "M9")
+
+
+# --------------------------------------------------------------------------------------------------
+# Parsing (GRBL -> host). Pure functions from one line of text (without its line end).
+
+
+@dataclass(frozen=True)
+class Ok:
+    pass
+
+
+@dataclass(frozen=True)
+class Error:
+    code: int
+
+
+@dataclass(frozen=True)
+class Alarm:
+    code: int
+
+
+@dataclass(frozen=True)
+class Welcome:
+    version: str
+
+
+@dataclass(frozen=True)
+class Message:
+    """A bracketed feedback line, ``[MSG:...]``, ``[GC:...]``, ``[VER:...]``, ..."""
+
+    kind: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Setting:
+    number: int
+    value: float
+
+
+@dataclass(frozen=True)
+class Unknown:
+    text: str
+
+
+@dataclass(frozen=True)
+class Status:
+    """One real-time status report ``<State|MPos:...|...>``.
+
+    ``mpos_mm`` is filled from ``WPos`` + ``WCO`` when the report gives work coordinates and a work
+    offset is known (passed to :func:`parse_status`); otherwise it may be ``None``.
+    """
+
+    state: str
+    substate: int | None = None
+    mpos_mm: tuple[float, float, float] | None = None
+    wpos_mm: tuple[float, float, float] | None = None
+    wco_mm: tuple[float, float, float] | None = None
+    feed_mm_min: float | None = None
+    spindle_rpm: float | None = None
+    buffer: tuple[int, int] | None = None
+    line_number: int | None = None
+    pins: str = ""
+    fields: dict[str, str] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "substate": self.substate,
+            "mpos_mm": self.mpos_mm,
+            "wpos_mm": self.wpos_mm,
+            "wco_mm": self.wco_mm,
+            "feed_mm_min": self.feed_mm_min,
+            "pins": self.pins,
+        }
+
+
+Reply = Ok | Error | Alarm | Welcome | Message | Setting | Status | Unknown
+
+_WELCOME = re.compile(r"^Grbl (\S+) \[.*\]$")
+_SETTING = re.compile(r"^\$(\d+)=(-?[0-9.]+)$")
+STATES = ("Idle", "Run", "Hold", "Jog", "Alarm", "Door", "Check", "Home", "Sleep")
+
+
+def _floats(text: str, n: int | None = None) -> tuple[float, ...]:
+    values = tuple(float(t) for t in text.split(","))
+    if n is not None and len(values) < n:
+        raise ValueError(f"expected {n} values in {text!r}")
+    return values
+
+
+def parse_status(text: str, *, wco_mm: Sequence[float] | None = None) -> Status:
+    """Parse ``<State|MPos:x,y,z|FS:f,s|WCO:x,y,z|...>``. Raises ``ValueError`` when malformed.
+
+    ``wco_mm`` is the last known work coordinate offset; GRBL sends ``WCO`` only now and then, and
+    ``MPos = WPos + WCO`` per axis. Only the first three axes are kept.
+    """
+    if not (text.startswith("<") and text.endswith(">")):
+        raise ValueError(f"not a status report: {text!r}")
+    parts = text[1:-1].split("|")
+    state, _, sub = parts[0].partition(":")
+    if state not in STATES:
+        raise ValueError(f"unknown machine state {state!r} in {text!r}")
+    substate = int(sub) if sub else None
+    fields: dict[str, str] = {}
+    for part in parts[1:]:
+        key, sep, value = part.partition(":")
+        if not sep or not key:
+            raise ValueError(f"malformed field {part!r} in {text!r}")
+        fields[key] = value
+    mpos = wpos = wco = None
+    if "MPos" in fields:
+        mpos = _floats(fields["MPos"], 3)[:3]
+    if "WPos" in fields:
+        wpos = _floats(fields["WPos"], 3)[:3]
+    if "WCO" in fields:
+        wco = _floats(fields["WCO"], 3)[:3]
+    if mpos is None and wpos is None:
+        raise ValueError(f"status report without MPos or WPos: {text!r}")
+    offset = wco if wco is not None else (tuple(wco_mm)[:3] if wco_mm is not None else None)
+    if mpos is None and wpos is not None and offset is not None:
+        mpos = tuple(w + o for w, o in zip(wpos, offset))
+    if wpos is None and mpos is not None and offset is not None:
+        wpos = tuple(m - o for m, o in zip(mpos, offset))
+    feed = spindle = None
+    if "FS" in fields:
+        fs = _floats(fields["FS"])
+        feed, spindle = fs[0], (fs[1] if len(fs) > 1 else None)
+    elif "F" in fields:
+        feed = _floats(fields["F"])[0]
+    buffer = None
+    if "Bf" in fields:
+        bf = [int(t) for t in fields["Bf"].split(",")]
+        buffer = (bf[0], bf[1])
+    line_number = int(fields["Ln"]) if "Ln" in fields else None
+    return Status(
+        state=state,
+        substate=substate,
+        mpos_mm=mpos,  # type: ignore[arg-type]
+        wpos_mm=wpos,  # type: ignore[arg-type]
+        wco_mm=wco,  # type: ignore[arg-type]
+        feed_mm_min=feed,
+        spindle_rpm=spindle,
+        buffer=buffer,
+        line_number=line_number,
+        pins=fields.get("Pn", ""),
+        fields=fields,
+    )
+
+
+def parse_line(text: str, *, wco_mm: Sequence[float] | None = None) -> Reply:
+    """Classify one line GRBL sent (line end already stripped). Never raises: unparseable lines,
+    including garbled status reports, come back as :class:`Unknown`."""
+    text = text.strip()
+    if text == "ok":
+        return Ok()
+    try:
+        if text.startswith("error:"):
+            return Error(int(text[6:]))
+        if text.startswith("ALARM:"):
+            return Alarm(int(text[6:]))
+        if text.startswith("<"):
+            return parse_status(text, wco_mm=wco_mm)
+    except ValueError:
+        return Unknown(text)
+    match = _WELCOME.match(text)
+    if match:
+        return Welcome(match[1])
+    if text.startswith("[") and text.endswith("]"):
+        kind, _, rest = text[1:-1].partition(":")
+        return Message(kind, rest)
+    match = _SETTING.match(text)
+    if match:
+        return Setting(int(match[1]), float(match[2]))
+    return Unknown(text)
+
+
+# --------------------------------------------------------------------------------------------------
+# Machine geometry from the $$ settings.
+
+
+def travel_limits_mm(settings: dict[int, float]) -> tuple[tuple[float, float], ...] | None:
+    """Per-axis ``(min, max)`` machine coordinates the stage can reach, from ``$$`` settings.
+
+    GRBL homes towards +max by default, sets that point to machine zero (minus the pull-off) and
+    travels into negative coordinates: ``[-max_travel, 0]``. An axis whose bit is set in the homing
+    direction mask ``$23`` homes to the other end: ``[0, max_travel]``. ``None`` without ``$130..$132``.
+    """
+    if not all(k in settings for k in (130, 131, 132)):
+        return None
+    mask = int(settings.get(23, 0))
+    limits = []
+    for axis in range(3):
+        travel = abs(settings[130 + axis])
+        limits.append((0.0, travel) if mask & (1 << axis) else (-travel, 0.0))
+    return tuple(limits)
+
+
+def motion_time_s(distance_mm: float, *, rate_mm_min: float, accel_mm_s2: float) -> float:
+    """Duration of a rest-to-rest move with a trapezoidal (or triangular) speed profile."""
+    if distance_mm <= 0:
+        return 0.0
+    v = rate_mm_min / 60.0
+    a = accel_mm_s2
+    if distance_mm >= v * v / a:
+        return distance_mm / v + v / a
+    return 2.0 * math.sqrt(distance_mm / a)
+
+
+# --------------------------------------------------------------------------------------------------
+# The driver.
+
+
+def open_port(url: str, *, baudrate: int = 115200, poll_s: float = 0.05):
+    """Open a pyserial port by URL or device path (``/dev/ttyUSB0``, ``socket://host:port``,
+    ``fakegrbl://name``). Raises :class:`GrblConnectionError` naming the URL on failure."""
+    import serial  # local: keeps `lfrig --help` fast
+
+    if url.lower().startswith("fakegrbl://"):
+        import rig.fakegrbl  # noqa: F401  (registers the fakegrbl:// protocol handler)
+    try:
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0)
+    except (serial.SerialException, ValueError, OSError) as error:
+        raise GrblConnectionError(
+            f"cannot open the GRBL port {url!r}: {error}; check the device path or URL "
+            "(e.g. /dev/ttyUSB0, socket://host:port) and that no other program holds it"
+        ) from None
+
+
+class GrblStage:
+    """A three-axis stage driven by a GRBL v1.1 controller (implements :class:`rig.protocols.Stage`).
+
+    Parameters
+    ----------
+    url
+        Port device or pyserial URL (``/dev/ttyUSB0``, ``socket://host:23``, ``fakegrbl://bench``),
+        or an already open pyserial-like object (``port=``).
+    clock
+        Time source for every timeout and wait (default :class:`SystemClock`).
+    reply_timeout_s
+        How long to wait for ``ok`` to a non-motion line, or for a status report.
+    home_timeout_s
+        How long the homing cycle may take.
+    tolerance_mm
+        Largest per-axis distance between the commanded and the reported position accepted as
+        "at the target".
+    wake_s
+        Wait after waking GRBL (``\\r\\n\\r\\n``) before flushing its start-up output; boards that reset
+        when the port opens (Arduino) need about 2 s.
+    reset_on_connect
+        Send a soft reset (``0x18``) after waking and wait for the welcome line, so the controller
+        starts from a known state (position is kept when it was not moving).
+    """
+
+    def __init__(
+        self,
+        url: str = "",
+        *,
+        port: Any = None,
+        baudrate: int = 115200,
+        clock: Clock | None = None,
+        reply_timeout_s: float = 2.0,
+        home_timeout_s: float = 120.0,
+        move_timeout_margin_s: float = 5.0,
+        tolerance_mm: float = 0.005,
+        wake_s: float = 2.0,
+        reset_on_connect: bool = True,
+        poll_s: float = 0.05,
+    ) -> None:
+        self.url = url or getattr(port, "port", "") or "<port>"
+        self.clock: Clock = clock if clock is not None else SystemClock()
+        self.reply_timeout_s = reply_timeout_s
+        self.home_timeout_s = home_timeout_s
+        self.move_timeout_margin_s = move_timeout_margin_s
+        self.tolerance_mm = tolerance_mm
+        self.poll_s = poll_s
+        self._rx = bytearray()
+        self._wco: tuple[float, float, float] | None = None
+        self._target: tuple[float, float, float] | None = None
+        self._last_status: Status | None = None
+        self._closed = False
+        self.version: str | None = None
+        self.settings_values: dict[int, float] = {}
+        self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
+        self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
+        try:
+            self._connect(wake_s=wake_s, reset=reset_on_connect)
+        except BaseException:
+            self._close_port()
+            raise
+
+    # -- context manager ----------------------------------------------------------------------
+    def __enter__(self) -> "GrblStage":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the port (does not stop a running motion: use :meth:`stop` for that)."""
+        self._close_port()
+
+    def _close_port(self) -> None:
+        if not self._closed:
+            self._closed = True
+            try:
+                self._port.close()
+            except Exception:  # closing a dead port must not hide the original error
+                pass
+
+    # -- low level I/O ------------------------------------------------------------------------
+    def _io_error(self, error: Exception) -> GrblConnectionError:
+        return GrblConnectionError(
+            f"lost the connection to GRBL on {self.url}: {error}; check the cable and power, then run again"
+        )
+
+    def _write(self, data: bytes) -> None:
+        import serial
+
+        self._trace(">", data.decode("ascii", "replace"))
+        try:
+            self._port.write(data)
+            self._port.flush()
+        except (serial.SerialException, OSError) as error:
+            raise self._io_error(error) from None
+
+    def _trace(self, direction: str, text: str) -> None:
+        log.debug("%s %s %r", self.url, direction, text)
+        if self.on_line is not None:
+            self.on_line(direction, text)
+
+    def _read_line(self, deadline: float) -> str | None:
+        """The next line GRBL sent, without its line end, or ``None`` when ``deadline`` passed."""
+        import serial
+
+        while True:
+            end = self._rx.find(b"\n")
+            if end >= 0:
+                raw = bytes(self._rx[:end])
+                del self._rx[: end + 1]
+                text = raw.decode("ascii", "replace").strip("\r")
+                if not text:
+                    continue
+                self._trace("<", text)
+                return text
+            if self.clock.monotonic() >= deadline:
+                return None
+            try:
+                waiting = self._port.in_waiting
+                chunk = self._port.read(waiting or 1)
+            except (serial.SerialException, OSError) as error:
+                raise self._io_error(error) from None
+            if chunk:
+                self._rx += chunk
+
+    def _next_reply(self, deadline: float, *, context: str) -> Reply | None:
+        """Read lines until one that matters to a waiting caller; handle push messages."""
+        while True:
+            text = self._read_line(deadline)
+            if text is None:
+                return None
+            reply = parse_line(text, wco_mm=self._wco)
+            if isinstance(reply, Status):
+                self._remember(reply)
+                return reply
+            if isinstance(reply, Alarm):
+                self._target = None
+                raise GrblAlarmError(reply.code, self.url, context)
+            if isinstance(reply, Welcome):
+                self._target = None
+                raise GrblConnectionError(
+                    f"GRBL on {self.url} reset itself during {context} (it printed its welcome line); "
+                    "a power dip or a reset button? Home the stage and run again"
+                )
+            if isinstance(reply, Unknown):
+                log.warning("%s: ignoring unrecognised line %r from GRBL", self.url, text)
+                continue
+            if isinstance(reply, Message) and reply.kind == "MSG":
+                log.info("%s: GRBL says %s", self.url, reply.text)
+            return reply
+
+    def _remember(self, status: Status) -> None:
+        if status.wco_mm is not None:
+            self._wco = status.wco_mm
+        self._last_status = status
+
+    def command(self, line: str, *, timeout_s: float | None = None) -> list[Reply]:
+        """Send one line command and wait for its ``ok``; return the lines that came before it.
+
+        Raises :class:`GrblCommandError` on ``error:N``, :class:`GrblAlarmError` on ``ALARM:N`` and
+        :class:`GrblTimeoutError` when no answer arrives within ``timeout_s``. Never resends.
+        """
+        data = encode_line(line)
+        self._write(data)
+        timeout = self.reply_timeout_s if timeout_s is None else timeout_s
+        deadline = self.clock.monotonic() + timeout
+        collected: list[Reply] = []
+        while True:
+            reply = self._next_reply(deadline, context=repr(line))
+            if reply is None:
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} did not answer {line!r} within {timeout:g} s; the line may or may "
+                    "not have been executed, so it is not sent again. Check the stage, then home it and "
+                    "run again (a capture resumes where it stopped)"
+                )
+            if isinstance(reply, Ok):
+                return collected
+            if isinstance(reply, Error):
+                raise GrblCommandError(reply.code, line, self.url)
+            if not isinstance(reply, Status):
+                collected.append(reply)
+
+    def _connect(self, *, wake_s: float, reset: bool) -> None:
+        # GRBL's interface: wake it up with blank lines, let it initialise, flush its start-up text.
+        self._write(WAKE)
+        self.clock.sleep(wake_s)
+        self._flush_input()
+        if reset:
+            self.reset()
+        self.settings_values = self.read_settings()
+
+    def _flush_input(self) -> None:
+        import serial
+
+        try:
+            self._port.reset_input_buffer()
+        except (serial.SerialException, OSError) as error:
+            raise self._io_error(error) from None
+        self._rx.clear()
+
+    def reset(self) -> None:
+        """Soft reset (``0x18``) and wait for the welcome line. Clears queued motions; a reset during
+        motion makes GRBL raise ALARM:3 (re-home)."""
+        self._write(SOFT_RESET)
+        deadline = self.clock.monotonic() + self.reply_timeout_s
+        while True:
+            text = self._read_line(deadline)
+            if text is None:
+                raise GrblTimeoutError(
+                    f"no welcome line from GRBL on {self.url} within {self.reply_timeout_s:g} s after a soft reset; "
+                    "is this a GRBL controller, at the right baud rate (115200)?"
+                )
+            reply = parse_line(text)
+            if isinstance(reply, Welcome):
+                self.version = reply.version
+                self._target = None
+                self._wco = None
+                break
+        # Messages that follow the welcome ([MSG:'$H'|'$X' to unlock], startup lines) are read by
+        # whatever command comes next.
+
+    # -- settings -----------------------------------------------------------------------------
+    def read_settings(self) -> dict[int, float]:
+        """The controller's ``$$`` settings as ``{number: value}``."""
+        replies = self.command("$$")
+        return {r.number: r.value for r in replies if isinstance(r, Setting)}
+
+    def limits_mm(self) -> tuple[tuple[float, float], ...] | None:
+        """Per-axis ``(min, max)`` reachable machine coordinates, or ``None`` when soft limits are off
+        or the travel is unknown."""
+        if not int(self.settings_values.get(20, 0)):
+            return None
+        return travel_limits_mm(self.settings_values)
+
+    def settings(self) -> dict[str, Any]:
+        """What is worth recording about this stage."""
+        return {
+            "driver": "grbl",
+            "url": self.url,
+            "version": self.version,
+            "tolerance_mm": self.tolerance_mm,
+            "limits_mm": self.limits_mm(),
+            "grbl_settings": {f"${k}": v for k, v in sorted(self.settings_values.items())},
+        }
+
+    # -- Stage protocol -----------------------------------------------------------------------
+    def home(self) -> None:
+        """``$H`` (wait for the cycle to finish), then ``G90 G21``."""
+        self._target = None
+        self.command("$H", timeout_s=self.home_timeout_s)
+        self.prepare()
+
+    def prepare(self) -> None:
+        """``G90 G21``: absolute coordinates in millimetres, assumed by every move."""
+        self.command("G90 G21")
+
+    def unlock(self) -> None:
+        """``$X``: clear an alarm lock without homing (the position may be wrong), then ``G90 G21``."""
+        self.command("$X")
+        self.prepare()
+
+    def _check_limits(self, position: tuple[float, float, float]) -> None:
+        limits = self.limits_mm()
+        if limits is None:
+            return
+        for axis, (value, (lo, hi)) in enumerate(zip(position, limits)):
+            if not (lo - 1e-9 <= value <= hi + 1e-9):
+                raise GrblLimitError(
+                    f"target {'XYZ'[axis]}={value:.3f} mm is outside the machine travel [{lo:.3f}, {hi:.3f}] mm "
+                    f"of {self.url}; nothing was sent. Move the grid centre or shrink the grid"
+                )
+
+    def move_to(self, position_mm: Sequence[float], *, feed_mm_min: float | None = None) -> None:
+        """Start an absolute move (``G0``, or ``G1`` at ``feed_mm_min``). Returns once GRBL has
+        accepted the line, usually before the motion ends: call :meth:`wait_until_idle`."""
+        position = tuple(float(c) for c in position_mm)
+        if len(position) != 3:
+            raise ValueError(f"position must be (x, y, z) in mm; got {position_mm!r}")
+        self._check_limits(position)  # type: ignore[arg-type]
+        data = encode_move(position, feed_mm_min=feed_mm_min)
+        start = self._last_status.mpos_mm if self._last_status is not None else None
+        self._target = None
+        self.command(data.decode("ascii").rstrip("\n"))
+        self._target = position  # type: ignore[assignment]
+        self._move_estimate_s = self._estimate_s(start, position, feed_mm_min)
+
+    def _estimate_s(self, start, end, feed_mm_min) -> float:
+        s = self.settings_values
+        rates = [s.get(110 + i, 500.0) for i in range(3)]
+        accels = [s.get(120 + i, 10.0) for i in range(3)]
+        if start is None:
+            limits = travel_limits_mm(s)
+            distance = math.sqrt(sum((hi - lo) ** 2 for lo, hi in limits)) if limits else 500.0
+        else:
+            distance = math.dist(start, end)
+        rate = min(rates) if feed_mm_min is None else min(feed_mm_min, min(rates))
+        return motion_time_s(distance, rate_mm_min=rate, accel_mm_s2=min(accels))
+
+    def wait_until_idle(self, *, timeout_s: float | None = None) -> tuple[float, float, float]:
+        """Wait for the commanded motion to finish: ``G4 P0`` answered ``ok``, then a ``?`` report in
+        ``Idle`` within ``tolerance_mm`` of the target. Returns the reported machine position."""
+        if timeout_s is None:
+            timeout_s = 2.0 * getattr(self, "_move_estimate_s", 0.0) + self.move_timeout_margin_s
+        start = self.clock.monotonic()
+        try:
+            self.command("G4 P0", timeout_s=timeout_s)
+        except GrblTimeoutError:
+            status = self._try_status()
+            raise GrblTimeoutError(
+                f"the stage on {self.url} did not finish its move to {_fmt(self._target)} within {timeout_s:.1f} s "
+                f"(last report: {_describe(status)}); an axis may be stalled or blocked. Stop it "
+                "(Ctrl-C twice, or `lfrig stage status`), check the mechanics, home and run again"
+            ) from None
+        remaining = max(timeout_s - (self.clock.monotonic() - start), self.reply_timeout_s)
+        deadline = self.clock.monotonic() + remaining
+        while True:
+            status = self.status_report()
+            if status.state == "Idle" and status.mpos_mm is not None:
+                if self._target is None:
+                    return status.mpos_mm
+                error = max(abs(a - b) for a, b in zip(status.mpos_mm, self._target))
+                if error <= self.tolerance_mm:
+                    return status.mpos_mm
+                raise GrblPositionError(
+                    f"the stage on {self.url} is Idle at {_fmt(status.mpos_mm)} but was sent to {_fmt(self._target)} "
+                    f"({error:.4f} mm off, tolerance {self.tolerance_mm} mm); home it and run again"
+                )
+            if status.state == "Alarm":
+                raise GrblError(
+                    f"the stage on {self.url} is in Alarm state after a move to {_fmt(self._target)}; "
+                    "home it and run again"
+                )
+            if self.clock.monotonic() >= deadline:
+                raise GrblTimeoutError(
+                    f"the stage on {self.url} did not report Idle at {_fmt(self._target)} within {timeout_s:.1f} s "
+                    f"(last report: {_describe(status)})"
+                )
+            self.clock.sleep(self.poll_s)
+
+    def _try_status(self) -> Status | None:
+        try:
+            return self.status_report()
+        except GrblError:
+            return self._last_status
+
+    def status_report(self) -> Status:
+        """Send ``?`` and return the next status report."""
+        self._write(STATUS_QUERY)
+        deadline = self.clock.monotonic() + self.reply_timeout_s
+        while True:
+            reply = self._next_reply(deadline, context="a status query")
+            if reply is None:
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} sent no status report within {self.reply_timeout_s:g} s of '?'; "
+                    "it may be homing, in a critical alarm awaiting reset, or disconnected"
+                )
+            if isinstance(reply, Status):
+                if reply.mpos_mm is None:
+                    # WPos without a known WCO yet: ask again, GRBL sends WCO within a few reports.
+                    self._write(STATUS_QUERY)
+                    continue
+                return reply
+            if isinstance(reply, (Ok, Error)):
+                log.warning("%s: stray %r while waiting for a status report (a late reply?)", self.url, reply)
+
+    def status(self) -> dict[str, Any]:
+        """The controller's state as a dict (``state``, ``mpos_mm``, ``wpos_mm``, ...)."""
+        return self.status_report().as_dict()
+
+    def position(self) -> tuple[float, float, float]:
+        """The reported machine position (``MPos``) in mm."""
+        mpos = self.status_report().mpos_mm
+        assert mpos is not None
+        return mpos
+
+    def set_output(self, on: bool) -> None:
+        """Switch the flood-coolant output (``M8``/``M9``), e.g. wired to a camera trigger input.
+        GRBL synchronises coolant changes with motion, so this waits for running moves."""
+        self.command("M8" if on else "M9")
+
+    def stop(self) -> None:
+        """Stop at once: feed hold (``!``), wait briefly for the deceleration, then soft reset."""
+        self._write(FEED_HOLD)
+        deadline = self.clock.monotonic() + 1.0
+        while self.clock.monotonic() < deadline:
+            try:
+                status = self.status_report()
+            except GrblError:
+                break
+            if status.state != "Run" and not (status.state == "Hold" and status.substate == 1):
+                break
+            self.clock.sleep(self.poll_s)
+        try:
+            self.reset()
+        except GrblTimeoutError:
+            log.warning("%s: no welcome line after the soft reset", self.url)
+        self._target = None
+
+
+def _fmt(position: Sequence[float] | None) -> str:
+    if position is None:
+        return "(unknown)"
+    return "(" + ", ".join(f"{c:.3f}" for c in position) + ") mm"
+
+
+def _describe(status: Status | None) -> str:
+    if status is None:
+        return "none"
+    state = status.state + (f":{status.substate}" if status.substate is not None else "")
+    return f"{state} at {_fmt(status.mpos_mm)}"

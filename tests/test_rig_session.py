@@ -1,0 +1,245 @@
+"""Capture sessions against the fake GRBL on a virtual clock, with a stand-in camera.
+
+The stand-in camera writes the stage's *physical* position (from the fake controller, not from the
+driver) into each frame and counts triggers, so the tests can check that each view was taken once,
+at its grid position, and never while the stage moved.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.errors import CaptureLayoutError
+from rig.fakegrbl import FakeGrbl, VirtualClock, register, unregister
+from rig.grbl import (
+    GrblAlarmError,
+    GrblCommandError,
+    GrblConnectionError,
+    GrblStage,
+    GrblTimeoutError,
+)
+from rig.grid import GridError, GridSpec, view_position
+from rig.layout import read_capture
+from rig.session import CaptureAborted, CaptureInterrupted, run_capture
+
+CENTRE = (-50.0, -50.0, -10.0)
+SHAPE = (6, 8)
+
+
+class PositionCamera:
+    """Stand-in camera: row 0 holds the physical position in 10 um steps (+ offset) and a serial."""
+
+    def __init__(self, controller: FakeGrbl, *, on_trigger=None) -> None:
+        self.controller = controller
+        self.triggers = 0
+        self.moving_triggers = 0
+        self.on_trigger = on_trigger
+
+    def trigger(self) -> np.ndarray:
+        self.triggers += 1
+        if self.on_trigger is not None:
+            self.on_trigger(self.triggers)
+        if self.controller.is_moving():
+            self.moving_triggers += 1
+        x, y, z = self.controller.physical_position()
+        image = np.zeros(SHAPE, np.uint16)
+        image[0, :3] = [round((c + 200.0) * 100.0) for c in (x, y, z)]
+        image[0, 3] = self.triggers
+        return image
+
+    def settings(self) -> dict:
+        return {"driver": "stand-in", "shape": list(SHAPE)}
+
+    def close(self) -> None:
+        pass
+
+
+def decode(image: np.ndarray) -> tuple[np.ndarray, int]:
+    return image[0, :3].astype(float) / 100.0 - 200.0, int(image[0, 3])
+
+
+@pytest.fixture
+def rig():
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock)
+    url = register(controller)
+    yield clock, controller, url
+    unregister(url)
+
+
+def open_stage(url: str, clock: VirtualClock) -> GrblStage:
+    return GrblStage(url, clock=clock)
+
+
+def view_lines(path: Path) -> list[dict]:
+    lines = [json.loads(l) for l in (path / "manifest.jsonl").read_text().splitlines() if l.strip()]
+    return [l for l in lines if l["kind"] == "view"]
+
+
+def check_capture(path: Path, spec: GridSpec) -> None:
+    """Every view exactly once in the journal, at its grid position, from distinct triggers."""
+    views = view_lines(path)
+    counts = Counter((v["u"], v["v"]) for v in views)
+    assert sorted(counts) == [(u, v) for u in range(spec.rows) for v in range(spec.cols)]
+    assert set(counts.values()) == {1}
+    lf = read_capture(path)
+    assert lf.views.shape[:2] == (spec.rows, spec.cols)
+    serials = []
+    for u in range(spec.rows):
+        for v in range(spec.cols):
+            position, serial = decode(lf.views[u, v])
+            np.testing.assert_allclose(position, view_position(spec, u, v), atol=0.011)
+            serials.append(serial)
+    assert (path / "parameters.cfg").is_file()
+    lines = (path / "manifest.jsonl").read_text().splitlines()
+    assert json.loads(lines[-1])["kind"] == "complete"
+
+
+def test_full_81_view_session_on_virtual_clock(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    start = time.perf_counter()
+    with open_stage(url, clock) as stage:
+        result = run_capture(tmp_path / "cap", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    wall = time.perf_counter() - start
+    assert result.complete and not result.interrupted and result.taken == 81
+    assert camera.triggers == 81 and camera.moving_triggers == 0
+    check_capture(tmp_path / "cap", spec)
+    # virtual time: homing plus 81 moves with settling takes minutes of simulated time
+    assert result.elapsed_s > 81 * 0.2
+    log = (tmp_path / "cap" / "session.log").read_text()
+    assert "capture complete" in log and "'$H'" in log
+    print(f"81 views: {result.elapsed_s:.1f} s simulated, {wall:.2f} s wall")
+
+
+def test_every_view_is_approached_moving_in_plus_direction(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=3, centre_mm=CENTRE)
+    with open_stage(url, clock) as stage:
+        run_capture(tmp_path / "c", stage=stage, camera=PositionCamera(controller), grid=spec, clock=clock, progress=None)
+    moves = [l for l in controller.lines_received if l.startswith("G0")]
+    positions = [tuple(float(w[1:]) for w in m.split()[1:]) for m in moves]
+    targets = {view_position(spec, u, v) for u in range(3) for v in range(3)}
+    previous = None
+    for p in positions:
+        if p in targets and previous is not None:
+            assert all(b - a >= -1e-9 for a, b in zip(previous, p)), (previous, p)
+        previous = p
+
+
+def test_resume_with_other_settings_is_refused(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(rows=2, cols=2, centre_mm=CENTRE)
+    with open_stage(url, clock) as stage:
+        run_capture(tmp_path / "c", stage=stage, camera=PositionCamera(controller), grid=spec, clock=clock,
+                    progress=None, should_stop=lambda: True)
+        with pytest.raises(CaptureLayoutError, match="pitch_mm|grid"):
+            run_capture(tmp_path / "c", stage=stage, camera=PositionCamera(controller),
+                        grid=GridSpec(rows=2, cols=2, pitch_mm=1.0, centre_mm=CENTRE), clock=clock, progress=None)
+
+
+def test_grid_outside_travel_is_refused_before_anything_moves(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(centre_mm=(-1.0, -50.0, -10.0))  # +x half of the grid is beyond machine zero
+    with open_stage(url, clock) as stage:
+        with pytest.raises(GridError, match=r"view \(0, 7\) needs x = 0\.500 mm, outside"):
+            run_capture(tmp_path / "c", stage=stage, camera=PositionCamera(controller), grid=spec, clock=clock,
+                        progress=None)
+    assert b"$H" not in controller.rx_log and b"G0" not in controller.rx_log
+
+
+def test_stop_request_finishes_the_view_then_resume_completes(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(rows=4, cols=5, centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    with open_stage(url, clock) as stage:
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                             should_stop=lambda: camera.triggers >= 7)
+    assert result.interrupted and result.completed == 7 and camera.triggers == 7
+    with open_stage(url, clock) as stage:
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert result.complete and result.taken == 13 and camera.triggers == 20
+    check_capture(tmp_path / "c", spec)
+
+
+def test_first_sigint_finishes_current_view_and_stops(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+
+    def on_trigger(n):
+        if n == 5:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    camera = PositionCamera(controller, on_trigger=on_trigger)
+    with open_stage(url, clock) as stage:
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert result.interrupted and result.completed == 5 and camera.triggers == 5
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with open_stage(url, clock) as stage:
+        run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert camera.triggers == 12
+    check_capture(tmp_path / "c", spec)
+
+
+def test_second_sigint_sends_feed_hold_and_reset(rig, tmp_path):
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+
+    def on_trigger(n):
+        if n == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    camera = PositionCamera(controller, on_trigger=on_trigger)
+    with open_stage(url, clock) as stage:
+        before = len(controller.rx_log)
+        with pytest.raises(CaptureInterrupted, match="second Ctrl-C"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+        tail = bytes(controller.rx_log[before:])
+        assert b"!" in tail and tail.rindex(b"\x18") > tail.rindex(b"!")
+    with open_stage(url, clock) as stage:
+        run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    check_capture(tmp_path / "c", spec)
+    assert len(view_lines(tmp_path / "c")) == 12
+
+
+FAULT_CASES = [
+    ("lost_ok", GrblTimeoutError, r"did not answer 'G0 X.*not sent again"),
+    ("garbled", GrblCommandError, r"error:1 \(a G-code word has no letter"),
+    ("alarm_mid_move", GrblAlarmError, r"ALARM:1 .*hard limit"),
+    ("stall", GrblTimeoutError, r"did not finish its move.*stalled"),
+    ("disconnect", GrblConnectionError, r"lost the connection"),
+]
+
+
+@pytest.mark.parametrize("kind, error_type, message", FAULT_CASES, ids=[c[0] for c in FAULT_CASES])
+def test_fault_gives_clear_error_and_resume_completes(rig, tmp_path, kind, error_type, message):
+    clock, controller, url = rig
+    spec = GridSpec(rows=5, cols=5, centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    controller.arm_fault(kind, after=12)
+    with open_stage(url, clock) as stage:
+        with pytest.raises(CaptureAborted) as caught:
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert isinstance(caught.value.__cause__, error_type)
+    assert caught.value.__cause__ is not None
+    import re
+
+    assert re.search(message, str(caught.value)), str(caught.value)
+    assert "run the same command again to resume" in str(caught.value)
+    first = camera.triggers
+    assert 0 < first < 25
+    with open_stage(url, clock) as stage:  # reconnecting resets the controller, like an Arduino
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert result.complete and result.taken == 25 - first
+    assert camera.triggers == 25 and camera.moving_triggers == 0  # no frame lost or taken twice
+    check_capture(tmp_path / "c", spec)
