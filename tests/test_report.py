@@ -1,0 +1,128 @@
+"""The HTML report: the page, its figures, and the drawing helpers behind them."""
+
+from __future__ import annotations
+
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from recon.depth import depth_to_disparity
+from recon.report import (
+    REGION_COLOURS,
+    colour_map,
+    colourbar_figure,
+    line_plot,
+    nice_ticks,
+    region_picture,
+    write_report,
+)
+
+CAMERA = {"focal_px": 300.0, "pitch_mm": 2.0, "disparity_offset": 0.0}
+
+
+def scene(height=48, width=64):
+    rng = np.random.default_rng(5)
+    ys, xs = np.indices((height, width))
+    depth = np.full((height, width), 1000.0) + 2.0 * xs
+    depth[10:30, 20:40] = 700.0
+    truth = depth_to_disparity(depth, **CAMERA)
+    estimate = truth + 0.01 * rng.standard_normal(truth.shape)
+    estimate[12:28, 19] += 0.5  # a fat edge
+    estimate[0, :5] = np.nan
+    image = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
+    labels = np.full((height, width), 2, np.uint8)
+    labels[:, 18:20] = 0
+    labels[40:, :] = 3
+    window = np.where(labels == 3, 15, 5)
+    return image, estimate, truth, labels, window
+
+
+def page_images(page) -> list[str]:
+    return re.findall(r'<img src="([^"]+)"', page.read_text())
+
+
+def test_full_report_writes_every_figure(tmp_path):
+    image, estimate, truth, labels, window = scene()
+    page = write_report(tmp_path / "report", centre_view=image, disparity_px=estimate, truth_disparity_px=truth,
+                        camera=CAMERA, region_map=labels, window_size_px=window, rows=[20, 44],
+                        title="test <scene>", scores={"seconds": 1.5}, info={"method": "entropy"})
+    assert page.name == "index.html"
+    names = page_images(page)
+    for expected in ("centre_view.png", "disparity.png", "depth.png", "error.png", "badpix.png",
+                     "regions.png", "window_size.png", "profile_row20.png", "profile_row44.png"):
+        assert expected in names
+    for name in names:  # every figure the page shows exists and decodes
+        picture = cv2.imread(str(page.parent / name))
+        assert picture is not None and picture.shape[0] > 50 and picture.shape[1] > 100, name
+    text = page.read_text()
+    assert "test &lt;scene&gt;" in text and "<scene>" not in text
+    assert "BadPix 0.07" in text and "median depth error" in text
+    for region in ("occluding", "occluded", "texture", "smooth"):
+        assert region in text
+    assert "http" not in text.replace("http-equiv", "")  # self-contained: no network needed
+
+
+def test_report_without_truth_or_camera_shows_what_it_has(tmp_path):
+    image, estimate, *_ = scene()
+    page = write_report(tmp_path, centre_view=image[..., 0], disparity_px=estimate)
+    names = page_images(page)
+    assert "disparity.png" in names and "centre_view.png" in names
+    assert not {"error.png", "badpix.png", "depth.png", "regions.png"} & set(names)
+    assert any(name.startswith("profile_row") for name in names)
+    assert "Scores against the truth" not in page.read_text()
+
+
+def test_scores_on_the_page_match_the_benchmark_scores(tmp_path):
+    from recon.evaluate import score
+
+    image, estimate, truth, *_ = scene()
+    page = write_report(tmp_path, centre_view=image, disparity_px=estimate, truth_disparity_px=truth, border_px=4)
+    expected = score(estimate.astype(np.float32), truth.astype(np.float32), border=4)
+    assert f"{expected['badpix_0.07']:.2f} %" in page.read_text()
+
+
+def test_shape_mismatch_is_refused(tmp_path):
+    image, estimate, truth, *_ = scene()
+    with pytest.raises(ValueError, match="centre_view"):
+        write_report(tmp_path, centre_view=image[:10], disparity_px=estimate)
+    with pytest.raises(ValueError, match="truth_disparity_px"):
+        write_report(tmp_path, centre_view=image, disparity_px=estimate, truth_disparity_px=truth[:, :5])
+
+
+def test_region_picture_uses_the_papers_colours():
+    labels = np.array([[0, 1], [2, 3]])
+    picture = region_picture(labels)
+    assert tuple(picture[0, 0]) == REGION_COLOURS["occluding"] == (255, 0, 0)
+    assert tuple(picture[0, 1]) == REGION_COLOURS["occluded"] == (0, 0, 255)
+    assert tuple(picture[1, 0]) == REGION_COLOURS["texture"] == (255, 255, 0)
+    assert tuple(picture[1, 1]) == REGION_COLOURS["smooth"]
+
+
+@pytest.mark.parametrize("low, high", [(0.0, 1.0), (-1.7, 0.7), (812.0, 1418.0), (3.0, 15.0), (-0.2, 0.2)])
+def test_nice_ticks_are_round_evenly_spaced_and_inside(low, high):
+    ticks = nice_ticks(low, high)
+    assert 3 <= len(ticks) <= 8
+    assert ticks.min() >= low - 1e-9 and ticks.max() <= high + 1e-9
+    steps = np.diff(ticks)
+    np.testing.assert_allclose(steps, steps[0])
+    mantissa = steps[0] / 10 ** np.floor(np.log10(steps[0]))
+    assert min(abs(mantissa - m) for m in (1, 2, 2.5, 5)) < 1e-9
+
+
+def test_colour_map_ends_and_missing_values():
+    values = np.array([[0.0, 1.0, np.nan, 5.0]])
+    picture = colour_map(values, low=0.0, high=1.0, lut="diverging")
+    np.testing.assert_array_equal(picture[0, 1], picture[0, 3])  # clipped at the top
+    assert tuple(picture[0, 0]) != tuple(picture[0, 1])
+    assert picture[0, 2, 0] == picture[0, 2, 1] == picture[0, 2, 2]  # grey for no value
+
+
+def test_colourbar_and_plot_have_the_promised_sizes():
+    picture = colour_map(np.linspace(0, 1, 40 * 30).reshape(30, 40), low=0, high=1)
+    figure = colourbar_figure(picture, low=0, high=1, lut="turbo", label="x", scale=2.0)
+    assert figure.shape[0] >= 60 and figure.shape[1] > 80  # the picture plus the bar
+    plot = line_plot(np.arange(10), [("a", np.arange(10.0), (0, 0, 255))], xlabel="x", ylabel="y", size=(300, 150))
+    assert plot.shape == (150, 300, 3)
+    assert (plot == (0, 0, 255)).all(axis=-1).any(), "the line is drawn"
