@@ -17,6 +17,7 @@ from recon.errors import LfrigError
 #: Modules whose ``register(subparsers)`` adds subcommands, in the order ``--help`` lists them.
 COMMAND_MODULES = [
     "recon.commands",
+    "recon.export_cli",
 ]
 
 
