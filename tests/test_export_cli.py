@@ -35,7 +35,7 @@ def result_dir(tmp_path):
 
 
 def test_export_mesh_depth_and_report(result_dir, tmp_path, capsys):
-    o3d = pytest.importorskip("open3d")
+    import open3d as o3d
     status = main(["export", str(result_dir), "--ply", str(tmp_path / "m.ply"), "--depth", str(tmp_path / "d.png"),
                    "--depth", str(tmp_path / "d.npy"), "--report", str(tmp_path / "report")])
     assert status == 0
@@ -52,7 +52,6 @@ def test_export_mesh_depth_and_report(result_dir, tmp_path, capsys):
 
 
 def test_export_points_ascii(result_dir, tmp_path):
-    pytest.importorskip("open3d")
     assert main(["export", str(result_dir), "--ply", str(tmp_path / "p.ply"), "--points", "--ascii"]) == 0
     assert b"format ascii 1.0" in (tmp_path / "p.ply").read_bytes()[:100]
 
