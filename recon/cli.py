@@ -18,6 +18,7 @@ from recon.errors import LfrigError
 COMMAND_MODULES = [
     "recon.commands",
     "recon.export_cli",
+    "rig.cli",
 ]
 
 

@@ -70,10 +70,11 @@ class VirtualClock:
 # Settings
 
 #: ``$N`` defaults of the simulated controller: a small precision stage (100 x 100 x 50 mm travel,
-#: 800 steps/mm, 600 mm/min, 50 mm/s^2), homing and soft limits on, status reports in MPos.
+#: 800 steps/mm, 600 mm/min, 50 mm/s^2), homing (seek 1000, locate 100 mm/min) and soft limits on,
+#: status reports in MPos.
 DEFAULT_SETTINGS: dict[int, float] = {
     0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 1, 21: 1, 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
+    20: 1, 21: 1, 22: 1, 23: 0, 24: 100.0, 25: 1000.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
     100: 800.0, 101: 800.0, 102: 800.0,
     110: 600.0, 111: 600.0, 112: 600.0,
     120: 50.0, 121: 50.0, 122: 50.0,
@@ -719,7 +720,7 @@ class FakeGrbl:
         switch = [self.settings[130 + i] if mask & (1 << i) else 0.0 for i in range(3)]
         distance = [abs(s - p) for s, p in zip(switch, physical)]
         duration = distance[2] / seek + max(distance[0], distance[1]) / seek
-        duration += 2 * (3 * pulloff / locate) + 2 * self.settings[26] / 1000.0
+        duration += 3 * pulloff / locate + 2 * self.settings[26] / 1000.0  # locate, pull off, debounce
         goal = tuple(s + pulloff if mask & (1 << i) else s - pulloff for i, s in enumerate(switch))
         # during homing the counter is meaningless to the host (no reports); show the physical path
         self._offset = (0.0, 0.0, 0.0)

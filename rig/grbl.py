@@ -74,9 +74,10 @@ class GrblCommandError(GrblError):
         self.code = code
         self.line = line
         where = f" on {port}" if port else ""
+        advice = _ERROR_ADVICE.get(code, "")
         super().__init__(
             f"GRBL{where} rejected {line!r} with error:{code} ({describe_error(code)}); "
-            "the command was not executed"
+            "the command was not executed" + (f"; {advice}" if advice else "")
         )
 
 
@@ -165,6 +166,12 @@ ALARM_CODES: dict[int, str] = {
     7: "homing fail: the safety door was opened during homing",
     8: "homing fail: the pull-off did not clear the limit switch",
     9: "homing fail: the limit switch was not found within the search distance",
+}
+
+_ERROR_ADVICE = {
+    9: "home the stage first (`lfrig stage home`, or `--home`), or unlock it with `lfrig stage unlock`",
+    5: "enable homing ($22=1) or unlock with `lfrig stage unlock` instead",
+    8: "wait until the stage is Idle",
 }
 
 _ALARM_ADVICE = {

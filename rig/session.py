@@ -22,6 +22,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -79,27 +80,35 @@ class SessionLog:
 
 
 class Progress:
-    """A one-line progress bar with ETA (redrawn in place on a terminal, one line per view otherwise)."""
+    """A one-line progress bar with ETA: redrawn in place on a terminal, otherwise a line at most every
+    ``interval_s`` seconds (and at the end), so logs stay short."""
 
-    def __init__(self, *, total: int, done: int, clock: Clock, stream: TextIO | None, width: int = 24) -> None:
+    def __init__(self, *, total: int, done: int, stream: TextIO | None, width: int = 24, interval_s: float = 5.0) -> None:
         self.total = total
         self.start_done = done
-        self.clock = clock
         self.stream = stream
         self.width = width
-        self.t0 = clock.monotonic()
+        self.t0 = time.monotonic()
         self._tty = bool(stream is not None and getattr(stream, "isatty", lambda: False)())
+        self.interval_s = 0.0 if self._tty else interval_s
+        self._last = -1e9
 
     def eta_s(self, done: int) -> float | None:
+        """Wall-clock seconds left, from this run's mean time per view (a simulated session's virtual
+        time would say nothing about when the user gets the result)."""
         taken = done - self.start_done
         if taken <= 0:
             return None
-        per_view = (self.clock.monotonic() - self.t0) / taken
+        per_view = (time.monotonic() - self.t0) / taken
         return per_view * (self.total - done)
 
     def update(self, done: int, label: str) -> None:
         if self.stream is None:
             return
+        now = time.monotonic()
+        if now - self._last < self.interval_s and done < self.total:
+            return
+        self._last = now
         filled = int(self.width * done / max(self.total, 1))
         eta = self.eta_s(done)
         eta_text = "--:--" if eta is None else _hms(eta)
@@ -198,7 +207,7 @@ def build_header(
     settings); the read-back device settings are recorded but may differ between runs."""
     header: dict[str, Any] = {
         "grid": {"rows": spec.rows, "cols": spec.cols, "pitch_mm": spec.pitch_mm},
-        "settings": {"grid": spec.settings(), "camera": dict(camera_request or {})},
+        "settings": {**spec.settings(), **{f"camera.{k}": v for k, v in (camera_request or {}).items()}},
         "camera": dict(camera_settings or {}),
         "stage": dict(stage_settings or {}),
     }
@@ -305,7 +314,7 @@ def run_capture(
         check_limits(moves, limits_mm)
         if handle_sigint:
             interrupts.install()
-        bar = Progress(total=total, done=done_before, clock=clock, stream=progress)
+        bar = Progress(total=total, done=done_before, stream=progress)
         try:
             _attach_wire_log(stage, log)
             if home:
@@ -396,7 +405,7 @@ def _finish(writer: CaptureWriter, grid: GridSpec, camera: Camera, log: Callable
     writer.write_parameters(
         image_shape=(int(shape[0]), int(shape[1])),
         pitch_mm=grid.pitch_mm,
-        focal_px=settings.get("focal_px"),
+        focal_px=settings.get("focal_px", getattr(camera, "focal_px", None)),
         disparity_range=settings.get("disparity_range"),
     )
     writer.mark_complete()

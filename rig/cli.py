@@ -1,0 +1,309 @@
+"""``lfrig capture`` and ``lfrig stage``: parse, open the devices, call :mod:`rig.session`.
+
+Device specs:
+
+- ``--stage fake`` (default): a simulated GRBL stage (``rig.fakegrbl``) on a virtual clock, driven by
+  the real GRBL driver; ``fake?clock=real`` moves in real time; ``fake?fault=stall&after=10``
+  arms a fault (``lost_ok``, ``garbled``, ``alarm_mid_move``, ``stall``, ``disconnect``).
+- ``--stage grbl:///dev/ttyUSB0``, ``--stage /dev/ttyACM0`` or any pyserial URL
+  (``socket://host:23``, ``rfc2217://host:port``): a GRBL controller.
+- ``--camera fake`` (default): the simulated camera (``rig.fakecam``) seeing its default scene from
+  the stage's position; ``--camera opencv:0`` (device index or path): a camera through OpenCV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import urllib.parse
+from pathlib import Path
+from typing import Any
+
+from rig.errors import RigError
+
+#: Grid centre used with the fake stage when none is given: well inside its 100 x 100 x 50 mm travel.
+FAKE_CENTRE_MM = (-50.0, -50.0, -10.0)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    cap = subparsers.add_parser(
+        "capture",
+        help="capture a light field on the translation stage (resumable)",
+        description=(
+            "Home the stage, move the camera through the grid (serpentine, each view approached from the same "
+            "direction), take one frame per view and write OUT_DIR in lfrig's capture layout. Run the same command "
+            "again to resume an interrupted capture. First Ctrl-C: finish the current view and stop; second: stop "
+            "the stage at once (feed hold + reset)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    cap.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="capture folder (created, or resumed)")
+    _stage_argument(cap)
+    cap.add_argument("--camera", default="fake", metavar="SPEC", help="fake, or opencv:INDEX|PATH")
+    cap.add_argument("--dry-run", action="store_true", help="print the moves and check them against the travel; move nothing")
+    grid = cap.add_argument_group("grid")
+    grid.add_argument("--rows", type=int, default=9, help="views per column (u)")
+    grid.add_argument("--cols", type=int, default=9, help="views per row (v)")
+    grid.add_argument("--pitch-mm", type=float, default=0.5, help="distance between neighbouring views")
+    grid.add_argument("--centre-mm", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                      help=f"machine position of the centre view (required for a real stage; fake: {FAKE_CENTRE_MM})")
+    grid.add_argument("--row-axis", default="+y", help="stage axis along which u (the row) grows")
+    grid.add_argument("--col-axis", default="+x", help="stage axis along which v (the column) grows")
+    grid.add_argument("--order", choices=("serpentine", "raster"), default="serpentine", help="visiting order")
+    grid.add_argument("--backlash-mm", type=float, default=0.2,
+                      help="overshoot so every view is approached moving in + direction (0: off)")
+    motion = cap.add_argument_group("motion")
+    motion.add_argument("--settle-s", type=float, default=0.2, help="wait after the stage stops, before the frame")
+    motion.add_argument("--feed-mm-min", type=float, help="feed for G1 moves (default: rapid G0 moves)")
+    motion.add_argument("--tolerance-mm", type=float, default=0.005, help="accepted distance from the target")
+    motion.add_argument("--no-home", action="store_true", help="do not run the homing cycle first")
+    motion.add_argument("--limits-mm", type=float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
+                        help="travel to check against (default: from the controller's $130-$132 settings)")
+    camera = cap.add_argument_group("camera (opencv)")
+    camera.add_argument("--width", type=int, help="requested frame width in pixels")
+    camera.add_argument("--height", type=int, help="requested frame height in pixels")
+    camera.add_argument("--exposure", type=float, help="exposure in the backend's units (V4L2: 100 us)")
+    camera.add_argument("--gain", type=float, help="gain in the backend's units")
+    camera.add_argument("--drop-frames", type=int, help="buffered frames dropped per trigger (default 4)")
+    camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
+    fake = cap.add_argument_group("camera (fake)")
+    fake.add_argument("--binning", type=int, default=2, help="detector binning (1: 1280x980, 2: 640x490, ...)")
+    fake.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
+    fake.add_argument("--supersample", type=int, default=2, help="samples per pixel along each axis")
+    fake.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma, fraction of full scale")
+    fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
+                      help="true geometry of the simulated camera and stage")
+    cap.add_argument("--quiet", action="store_true", help="no progress bar")
+    cap.set_defaults(handler=_capture)
+
+    stage = subparsers.add_parser(
+        "stage",
+        help="home, jog or query the stage",
+        description="Talk to the stage by hand: home it, move it to an absolute machine position, or show its status.",
+    )
+    actions = stage.add_subparsers(dest="action", metavar="ACTION", required=True)
+    home = actions.add_parser("home", help="run the homing cycle ($H)")
+    _stage_argument(home)
+    move = actions.add_parser("move", help="move to an absolute machine position (mm) and wait")
+    move.add_argument("position", type=float, nargs=3, metavar=("X", "Y", "Z"))
+    move.add_argument("--feed-mm-min", type=float, help="feed (default: rapid)")
+    move.add_argument("--home", action="store_true", help="home first")
+    _stage_argument(move)
+    status = actions.add_parser("status", help="print the controller's state and position")
+    _stage_argument(status)
+    unlock = actions.add_parser("unlock", help="clear an alarm lock without homing ($X)")
+    _stage_argument(unlock)
+    for parser in (home, move, status, unlock):
+        parser.set_defaults(handler=_stage)
+
+
+def _stage_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--stage", default="fake", metavar="SPEC",
+                        help="fake[?clock=real|virtual&fault=KIND&after=N], grbl://DEVICE, a device path or a pyserial URL")
+    parser.add_argument("--baud", type=int, default=115200, help="serial baud rate")
+
+
+# --------------------------------------------------------------------------------------------------
+# Opening devices
+
+
+class _Devices:
+    """What the CLI opened: the stage, the fake controller behind it (if any) and the shared clock."""
+
+    def __init__(self) -> None:
+        self.stage: Any = None
+        self.controller: Any = None
+        self.clock: Any = None
+        self.url: str | None = None
+        self.camera: Any = None
+
+    def close(self) -> None:
+        if self.camera is not None:
+            self.camera.close()
+        if self.stage is not None:
+            self.stage.close()
+        if self.url is not None:
+            from rig.fakegrbl import unregister
+
+            unregister(self.url)
+
+
+def is_fake_stage(spec: str) -> bool:
+    return spec == "fake" or spec.startswith("fake?")
+
+
+def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, devices: _Devices | None = None):
+    """Open the stage named by ``spec`` (see the module docstring); returns the :class:`_Devices`."""
+    from rig.grbl import GrblStage, SystemClock
+
+    devices = devices if devices is not None else _Devices()
+    if is_fake_stage(spec):
+        from rig.fakegrbl import FAULTS, FakeGrbl, VirtualClock, register
+
+        options = {k: v[-1] for k, v in urllib.parse.parse_qs(spec.partition("?")[2]).items()}
+        unknown = set(options) - {"clock", "fault", "after"}
+        if unknown:
+            raise RigError(f"--stage {spec!r}: unknown option(s) {', '.join(sorted(unknown))}; known: clock, fault, after")
+        clock_name = options.get("clock", "virtual")
+        if clock_name not in ("virtual", "real"):
+            raise RigError(f"--stage {spec!r}: clock must be 'virtual' or 'real'")
+        devices.clock = VirtualClock() if clock_name == "virtual" else SystemClock()
+        devices.controller = FakeGrbl(clock=devices.clock)
+        if "fault" in options:
+            if options["fault"] not in FAULTS:
+                raise RigError(f"--stage {spec!r}: unknown fault {options['fault']!r}; choose one of {', '.join(FAULTS)}")
+            try:
+                after = int(options.get("after", "0"))
+            except ValueError:
+                raise RigError(f"--stage {spec!r}: after must be a whole number of moves") from None
+            devices.controller.arm_fault(options["fault"], after=after)
+        devices.url = register(devices.controller)
+        devices.stage = GrblStage(devices.url, clock=devices.clock, wake_s=0.05, tolerance_mm=tolerance_mm)
+    else:
+        url = spec[len("grbl://"):] if spec.startswith("grbl://") else spec
+        if not url:
+            raise RigError(f"--stage {spec!r}: give a device, e.g. grbl:///dev/ttyUSB0")
+        devices.clock = SystemClock()
+        devices.stage = GrblStage(url, baudrate=baud, clock=devices.clock, tolerance_mm=tolerance_mm)
+    return devices
+
+
+def open_camera(args: argparse.Namespace, devices: _Devices, *, centre_mm: tuple[float, float, float]):
+    """Open the camera named by ``--camera``; returns ``(camera, requested_settings)``."""
+    spec = args.camera
+    if spec == "fake":
+        from rig.fakecam import FakeCamera, FakeRig
+
+        base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[args.fake_rig]
+        rig = base(ref_mm=tuple(centre_mm))  # the scene is centred on the grid's centre view
+        if devices.controller is not None:
+            position, moving = devices.controller.physical_position, devices.controller.is_moving
+        else:
+            position, moving = devices.stage.position, None
+        try:
+            camera = FakeCamera(position, rig=rig, binning=args.binning, roi=tuple(args.roi) if args.roi else None,
+                                supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth,
+                                is_moving=moving)
+        except ValueError as error:
+            raise RigError(f"--camera fake: {error}") from None
+        request = {"device": "fake", "rig": args.fake_rig, "binning": args.binning,
+                   "roi": list(args.roi) if args.roi else None, "supersample": args.supersample,
+                   "noise_sigma": args.noise, "bit_depth": args.bit_depth}
+        return camera, request
+    if spec.startswith("opencv:"):
+        from rig.camera import OpenCVCamera, parse_source
+
+        source = parse_source(spec[len("opencv:"):])
+        trigger = devices.stage.set_output if args.hw_trigger else None
+        camera = OpenCVCamera(source, width=args.width, height=args.height, exposure=args.exposure, gain=args.gain,
+                              drop_frames=args.drop_frames, hardware_trigger=trigger, clock=devices.clock)
+        request = {"device": spec, "width": args.width, "height": args.height, "exposure": args.exposure,
+                   "gain": args.gain, "hw_trigger": bool(args.hw_trigger)}
+        return camera, request
+    raise RigError(f"--camera {spec!r}: expected 'fake' or 'opencv:INDEX' (e.g. opencv:0) or 'opencv:/dev/videoN'")
+
+
+# --------------------------------------------------------------------------------------------------
+# Handlers
+
+
+def _grid_from_args(args: argparse.Namespace):
+    from rig.grid import GridSpec, parse_axis
+
+    if args.centre_mm is not None:
+        centre = tuple(args.centre_mm)
+    elif is_fake_stage(args.stage):
+        centre = FAKE_CENTRE_MM
+    else:
+        raise RigError("give --centre-mm X Y Z: the machine position (mm) of the centre view on this stage")
+    return GridSpec(
+        rows=args.rows, cols=args.cols, pitch_mm=args.pitch_mm, centre_mm=centre,  # type: ignore[arg-type]
+        row_axis=parse_axis(args.row_axis), col_axis=parse_axis(args.col_axis),
+        order=args.order, backlash_mm=args.backlash_mm,
+    )
+
+
+def _limits_from_args(args: argparse.Namespace):
+    if args.limits_mm is None:
+        return None
+    v = args.limits_mm
+    return ((v[0], v[1]), (v[2], v[3]), (v[4], v[5]))
+
+
+def _capture(args: argparse.Namespace) -> int:
+    from rig.grid import check_limits, format_plan, grid_extent_mm, plan_moves
+    from rig.session import CaptureInterrupted, plan_summary, run_capture
+
+    grid = _grid_from_args(args)
+    limits = _limits_from_args(args)
+    if args.dry_run:
+        moves = plan_moves(grid)
+        print(format_plan(moves))
+        print(plan_summary(moves))
+        extent = grid_extent_mm(moves)
+        print("extent: " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", extent)) + " mm")
+        if limits is None:
+            devices = open_stage(args.stage, baud=args.baud)
+            try:
+                limits = devices.stage.limits_mm()
+            finally:
+                devices.close()
+        if limits is None:
+            print("travel limits unknown (soft limits off on the controller): not checked; pass --limits-mm")
+        else:
+            check_limits(moves, limits)
+            print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
+        return 0
+
+    devices = _Devices()
+    try:
+        open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
+        devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
+        try:
+            result = run_capture(
+                args.out_dir, stage=devices.stage, camera=devices.camera, grid=grid, settle_s=args.settle_s,
+                feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
+                tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
+                progress=None if args.quiet else sys.stderr,
+                header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+            )
+        except CaptureInterrupted as error:
+            print(f"lfrig: {error}", file=sys.stderr)
+            return 130
+    finally:
+        devices.close()
+    if result.interrupted:
+        print(
+            f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "
+            "run the same command again to resume",
+            file=sys.stderr,
+        )
+        return 130
+    print(f"{result.path}: {result.completed} of {result.total} views ({result.taken} taken now), complete")
+    return 0
+
+
+def _stage(args: argparse.Namespace) -> int:
+    devices = open_stage(args.stage, baud=args.baud)
+    stage = devices.stage
+    try:
+        if args.action == "home":
+            stage.home()
+        elif args.action == "unlock":
+            stage.unlock()
+        elif args.action == "move":
+            if args.home:
+                stage.home()
+            else:
+                stage.prepare()
+            stage.move_to(tuple(args.position), feed_mm_min=args.feed_mm_min)
+            stage.wait_until_idle()
+        status = stage.status()
+        position = status.get("mpos_mm")
+        where = "unknown" if position is None else ", ".join(f"{a}={c:.3f}" for a, c in zip("XYZ", position))
+        state = status["state"] + (f":{status['substate']}" if status.get("substate") is not None else "")
+        print(f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version})")
+    finally:
+        devices.close()
+    return 0
