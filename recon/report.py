@@ -10,6 +10,7 @@ Figures (all PNG, drawn with OpenCV; matplotlib is not a dependency):
 - ``centre_view.png``: the centre view, with the rows of the profiles marked;
 - ``disparity.png``: disparity with a colour bar (turbo, near = red);
 - ``depth.png``: depth in mm with a colour bar (when the camera is known);
+- ``shaded.png``: the depth map as a lit surface, so bumps and false steps are easy to see;
 - ``error.png``: signed disparity error against the truth (blue = estimate too small, i.e. too
   far; red = too large, too near), clipped at ``error_range_px``;
 - ``badpix.png``: the centre view in grey with pixels off by more than 0.07 px in red;
@@ -113,6 +114,38 @@ def region_picture(labels: np.ndarray, *, names: Sequence[str] = REGION_NAMES) -
     for label, name in enumerate(names):
         if name in REGION_COLOURS:
             rgb[labels == label] = REGION_COLOURS[name]
+    return rgb
+
+
+def shaded_relief(depth_mm: np.ndarray, *, focal_px: float, smooth_px: float = 1.5,
+                  light=(-0.45, -0.55, -1.0)) -> np.ndarray:
+    """``(H, W)`` depth in mm -> ``(H, W, 3)`` grey RGB of the surface lit by a distant light.
+
+    The depth is first smoothed with a Gaussian of ``smooth_px`` pixels (missing pixels do not
+    count; 0 for none) so that single-pixel noise does not drown the shape; normals come from
+    :func:`recon.cloud.grid_normals` (never across depth jumps). ``light`` points from the surface
+    towards the light in the camera frame (default: up, left, towards the camera). Brightness is
+    ``0.15 + 0.85 * max(n . l, 0)``; pixels without depth are :data:`NO_VALUE`.
+    """
+    from recon.cloud import depth_to_points, grid_normals, neighbour_links
+
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    valid = np.isfinite(depth) & (depth > 0)
+    if smooth_px > 0:
+        weights = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), smooth_px)
+        summed = cv2.GaussianBlur(np.where(valid, depth, 0.0), (0, 0), smooth_px)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            depth = np.where(valid, summed / weights, np.nan)
+    points = depth_to_points(depth, focal_px=focal_px)
+    right, down = neighbour_links(depth)
+    normals = grid_normals(points, right, down)
+    direction = np.asarray(light, dtype=np.float64)
+    direction /= np.linalg.norm(direction)
+    with np.errstate(invalid="ignore"):
+        brightness = 0.15 + 0.85 * np.clip(normals @ direction, 0.0, 1.0)
+    grey = np.round(np.nan_to_num(brightness) * 255).astype(np.uint8)
+    rgb = np.repeat(grey[..., None], 3, axis=-1)
+    rgb[~np.isfinite(brightness)] = NO_VALUE
     return rgb
 
 
@@ -593,6 +626,12 @@ def write_report(
         figures.append(_figure("depth.png", "Depth",
                                f"Z = focal_px · pitch_mm / (d + d0), focal {camera['focal_px']:.6g} px, "
                                f"pitch {camera['pitch_mm']:.4g} mm, d0 {camera.get('disparity_offset', 0.0):.4g}"))
+
+    if depth is not None:
+        _write_png(out / "shaded.png", image_figure(shaded_relief(depth, focal_px=camera["focal_px"]), scale=factor))
+        figures.append(_figure("shaded.png", "Shaded surface",
+                               "the depth map (smoothed over 1.5 px) lit from the upper left: bumps and false steps show as "
+                               "light and shade"))
 
     if truth is not None:
         error = disparity - truth

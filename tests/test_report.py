@@ -126,3 +126,17 @@ def test_colourbar_and_plot_have_the_promised_sizes():
     plot = line_plot(np.arange(10), [("a", np.arange(10.0), (0, 0, 255))], xlabel="x", ylabel="y", size=(300, 150))
     assert plot.shape == (150, 300, 3)
     assert (plot == (0, 0, 255)).all(axis=-1).any(), "the line is drawn"
+
+
+def test_shaded_relief_lights_planes_evenly_and_marks_holes():
+    from recon.report import NO_VALUE, shaded_relief
+
+    depth = np.full((20, 30), 1000.0)
+    x_over_f = (np.arange(15, 30) - 14.5) / 100.0
+    depth[:, 15:] = 1000.0 / (1.0 - 2.0 * x_over_f)  # the plane Z = 1000 + 2 X, turned away from the light
+    depth[3, 3] = np.nan
+    picture = shaded_relief(depth, focal_px=100.0, smooth_px=0)
+    assert tuple(picture[3, 3]) == NO_VALUE
+    flat, slanted = picture[10, 2:12, 0], picture[10, 18:28, 0]
+    assert np.ptp(flat) == 0 and np.ptp(slanted) <= 1
+    assert flat[0] != slanted[0]
