@@ -1,0 +1,1 @@
+"""The matching-entropy disparity estimator (Shi et al.), see ``docs/entropy-method.md``."""

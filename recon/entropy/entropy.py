@@ -1,0 +1,211 @@
+"""Matching entropy (Eq. 1) and the window choice of Section 4.2.
+
+For a window ``w`` of ``N`` pixels (clipped to the image)::
+
+    E(w) = -sum_k p_k log p_k  +  alpha1 * sum_k p'_k log p'_k  +  alpha2 * sum_k p''_k log p''_k
+
+- ``p_k``: grey-level histogram of the centre view in ``w`` (``grey_bins`` levels over ``[0, 1]``;
+  256 by default, the 8-bit levels a grey histogram of the paper's data has),
+- ``p'_k``: histogram of the initial disparity in ``w``, bins ``disparity_bin`` wide,
+- ``p''_k``: grey-level histogram of the *mismatched* pixels of ``w`` (occluded-region pixels when the
+  centre pixel is occluding, occluding-region pixels when it is occluded), normalised by ``N``, the
+  window's pixel count, so that the term is the mismatched pixels' share of the window's grey entropy:
+  it is 0 without mismatched pixels and more negative the more of them there are. (Normalising by
+  their own count would make one mismatched pixel, or any number of one grey level, cost nothing.)
+
+Natural logarithms. ``alpha2`` is ``alpha2_occlusion`` (1) for occluding and occluded pixels and
+``alpha2_other`` (0) elsewhere. The window is the arg-max over the candidates: in occlusion regions
+the shapes W1..W8 (1..8) at every size, elsewhere the full square (0) at every size. Ties go to the
+larger window and then to the lower shape index.
+
+The entropies of all sizes of one shape are computed incrementally: the windows of one shape are
+nested, so each size only adds the ring of new pixels to the histograms and ``sum c log c`` is
+updated per added pixel (``E`` then follows from ``N`` and the running sums).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from recon.entropy.regions import OCCLUDED, OCCLUDING
+from recon.entropy.windows import N_SHAPES, window_rect
+
+
+def quantise_grey(image: np.ndarray, bins: int) -> np.ndarray:
+    """``(H, W)`` int64 bin index of grey values in ``[0, 1]`` (``bins`` equal bins)."""
+    return np.clip((image * bins).astype(np.int64), 0, bins - 1)
+
+
+def quantise_disparity(d0: np.ndarray, width: float) -> np.ndarray:
+    """``(H, W)`` int64 bin index ``floor((d0 - min) / width)``, starting at 0."""
+    q = np.floor((d0 - np.nanmin(d0)) / width).astype(np.int64)
+    return q
+
+
+def _plogp_sum(counts: np.ndarray, n: int) -> float:
+    c = counts[counts > 0].astype(np.float64)
+    return float(np.sum(c / n * np.log(c / n)))
+
+
+def matching_entropy_reference(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray,
+                               y: int, x: int, shape: int, size: int, *, alpha1: float,
+                               alpha2: float) -> float:
+    """Eq. 1 for one window (readable reference); arguments as in :func:`select_windows`."""
+    H, W = grey_q.shape
+    y0, y1, x0, x1 = window_rect(shape, size)
+    ys = slice(max(y + y0, 0), min(y + y1, H - 1) + 1)
+    xs = slice(max(x + x0, 0), min(x + x1, W - 1) + 1)
+    g = grey_q[ys, xs].ravel()
+    d = disp_q[ys, xs].ravel()
+    n = g.size
+    e = -_plogp_sum(np.bincount(g), n) + alpha1 * _plogp_sum(np.bincount(d), n)
+    if alpha2 != 0 and labels[y, x] in (OCCLUDED, OCCLUDING):
+        opposite = OCCLUDING if labels[y, x] == OCCLUDED else OCCLUDED
+        mism = g[labels[ys, xs].ravel() == opposite]
+        if mism.size:
+            e += alpha2 * _plogp_sum(np.bincount(mism), n)
+    return e
+
+
+def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_occlusion,
+                             alpha2_other):
+    """Arg-max of Eq. 1 per pixel (readable reference of :func:`select_windows`)."""
+    H, W = grey_q.shape
+    shape_map = np.zeros((H, W), np.int64)
+    size_map = np.zeros((H, W), np.int64)
+    best_e = np.full((H, W), -np.inf)
+    for y in range(H):
+        for x in range(W):
+            occl = labels[y, x] in (OCCLUDED, OCCLUDING)
+            shapes = range(1, N_SHAPES) if occl else (0,)
+            a2 = alpha2_occlusion if occl else alpha2_other
+            for shape in shapes:
+                for size in sizes:
+                    e = matching_entropy_reference(grey_q, disp_q, labels, y, x, shape, size,
+                                                   alpha1=alpha1, alpha2=a2)
+                    better = e > best_e[y, x] + 1e-9
+                    tie = abs(e - best_e[y, x]) <= 1e-9 and size > size_map[y, x]
+                    if better or tie:
+                        best_e[y, x], shape_map[y, x], size_map[y, x] = e, shape, size
+    return shape_map, size_map, best_e.astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _add(counts, k, s, xlogx):
+    c = counts[k]
+    counts[k] = c + 1
+    return s + xlogx[c + 1] - xlogx[c]
+
+
+@numba.njit(cache=True, parallel=True)
+def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
+                   n_disp, xlogx, shape_map, size_map, best_e, all_e):
+    H, W = grey_q.shape
+    n_shapes = rects.shape[0]
+    n_sizes = rects.shape[1]
+    for y in numba.prange(H):
+        hg = np.zeros(n_grey, np.int64)
+        hd = np.zeros(n_disp, np.int64)
+        hm = np.zeros(n_grey, np.int64)
+        for x in range(W):
+            lab = labels[y, x]
+            occl = lab == 0 or lab == 1
+            opposite = 1 if lab == 0 else 0
+            a2 = a2_occl if occl else a2_other
+            s_first = 1 if occl else 0
+            s_last = n_shapes if occl else 1
+            best = -1e300
+            best_shape = 0
+            best_size = 0
+            for s in range(s_first, s_last):
+                sg = 0.0
+                sd = 0.0
+                sm = 0.0
+                n = 0
+                m = 0
+                py0 = 0
+                py1 = -1
+                px0 = 0
+                px1 = -1
+                for k in range(n_sizes):
+                    ya = max(y + rects[s, k, 0], 0)
+                    yb = min(y + rects[s, k, 1], H - 1)
+                    xa = max(x + rects[s, k, 2], 0)
+                    xb = min(x + rects[s, k, 3], W - 1)
+                    for yy in range(ya, yb + 1):
+                        inside_rows = py0 <= yy <= py1
+                        for xx in range(xa, xb + 1):
+                            if inside_rows and px0 <= xx <= px1:
+                                continue
+                            g = grey_q[yy, xx]
+                            sg = _add(hg, g, sg, xlogx)
+                            sd = _add(hd, disp_q[yy, xx], sd, xlogx)
+                            n += 1
+                            if occl and labels[yy, xx] == opposite:
+                                sm = _add(hm, g, sm, xlogx)
+                                m += 1
+                    py0, py1, px0, px1 = ya, yb, xa, xb
+                    logn = np.log(n)
+                    e = (logn - sg / n) + alpha1 * (sd / n - logn)
+                    if m > 0:
+                        e += a2 * (sm / n - m / n * logn)
+                    all_e[y, x, s * n_sizes + k] = e
+                    if e > best + 1e-9 or (abs(e - best) <= 1e-9 and sizes_n[k] > best_size):
+                        best = e
+                        best_shape = s
+                        best_size = sizes_n[k]
+                # reset the histograms over the largest window
+                for yy in range(py0, py1 + 1):
+                    for xx in range(px0, px1 + 1):
+                        hg[grey_q[yy, xx]] = 0
+                        hd[disp_q[yy, xx]] = 0
+                        hm[grey_q[yy, xx]] = 0
+            shape_map[y, x] = best_shape
+            size_map[y, x] = best_size
+            best_e[y, x] = best
+
+
+def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
+                   sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
+                   alpha2_other: float, return_all: bool = False):
+    """Window of largest matching entropy per pixel (compiled).
+
+    Parameters
+    ----------
+    grey_q
+        ``(H, W)`` int grey-level bin of the centre view (:func:`quantise_grey`).
+    disp_q
+        ``(H, W)`` int initial-disparity bin (:func:`quantise_disparity`).
+    labels
+        ``(H, W)`` region labels (``recon.entropy.regions``).
+    sizes
+        Window sizes (odd), ascending.
+    alpha1, alpha2_occlusion, alpha2_other
+        Weights of Eq. 1 (``alpha2`` in occlusion regions and elsewhere).
+
+    Returns
+    -------
+    ``(shape_map, size_map, entropy)``: ``(H, W)`` int64, int64, float32; with ``return_all`` also
+    ``(H, W, 9 * len(sizes))`` float32 entropy of every window ``shape * len(sizes) + size_index``
+    (``-inf`` for windows not allowed in the pixel's region).
+    """
+    sizes = tuple(sorted(int(s) for s in sizes))
+    H, W = grey_q.shape
+    rects = np.array([[window_rect(s, z) for z in sizes] for s in range(N_SHAPES)], np.int64)
+    grey_q = np.ascontiguousarray(grey_q, np.int64)
+    disp_q = np.ascontiguousarray(disp_q, np.int64)
+    n_grey = int(grey_q.max()) + 1
+    n_disp = int(disp_q.max()) + 1
+    c = np.arange(max(sizes) ** 2 + 2, dtype=np.float64)
+    xlogx = np.where(c > 0, c * np.log(np.maximum(c, 1)), 0.0)
+    shape_map = np.zeros((H, W), np.int64)
+    size_map = np.zeros((H, W), np.int64)
+    best_e = np.zeros((H, W), np.float64)
+    all_e = np.full((H, W, N_SHAPES * len(sizes)), -np.inf, np.float32)
+    _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
+                   np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
+                   float(alpha2_other), n_grey, n_disp, xlogx, shape_map, size_map, best_e, all_e)
+    if return_all:
+        return shape_map, size_map, best_e.astype(np.float32), all_e
+    return shape_map, size_map, best_e.astype(np.float32)

@@ -1,0 +1,254 @@
+"""The whole matching-entropy estimator: :func:`estimate_disparity`.
+
+Steps (paper Sections 3-4; ``docs/entropy-method.md`` says which reading each follows):
+
+1. initial disparity ``d0`` from the nine views (centre + farthest in eight directions),
+2. search range: the caller's, else the light field's, else the robust extent of ``d0``,
+3. region labels (Eqs. 8-12),
+4. window per pixel by largest matching entropy (Eq. 1); visible-view set of the shape for occluded
+   pixels, all views elsewhere,
+5. line search of Eq. 5 over all views with sub-step parabolic refinement (Eqs. 6-7),
+6. TV refinement of Eq. 13 in smooth regions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
+from recon.entropy.initial import initial_disparity, range_from_initial
+from recon.entropy.matching import disparity_candidates, joint_line_search, line_search
+from recon.entropy.windows import N_SHAPES
+from recon.entropy.refine import tv_refine
+from recon.entropy.regions import OCCLUDED, SMOOTH, region_labels
+from recon.errors import ReconError
+from recon.lightfield import LightField
+
+
+def _opt(default, help: str):
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass(frozen=True)
+class EntropyOptions:
+    """Every parameter of the estimator; the defaults are the paper's values where it gives one.
+
+    Units: disparities and steps in pixels per view step; window sizes in pixels (odd).
+    """
+
+    disparity_range: tuple[float, float] | None = _opt(
+        None, "(min, max) disparity to search; default: the light field's, else found from the "
+              "initial estimate")
+    initial_range: tuple[float, float] = _opt(
+        (-4.0, 4.0), "range the initial nine-view search covers when no range is known")
+    initial_step: float = _opt(0.05, "candidate spacing of the initial nine-view search")
+    initial_window: int = _opt(5, "window side of the initial nine-view search")
+    initial_shiftable: bool = _opt(
+        True, "initial search takes the least cost over the square and W1..W8 with their visible "
+              "sets (else the square alone)")
+    range_percentile: float = _opt(
+        0.5, "the search range found from the initial estimate spans its percentiles "
+             "[p, 100 - p] ...")
+    range_margin: float = _opt(0.25, "... widened by this margin on each side")
+    step: float = _opt(0.02, "candidate spacing of the line search (refined by a parabola)")
+    layer_gap: float = _opt(
+        0.25, "layers (median-filtered initial disparity) closer than this count as one (Eq. 9)")
+    layer_median: int = _opt(5, "median filter size applied to the initial disparity for the layers")
+    smooth_neighbourhood: int = _opt(5, "side of the square neighbourhood of psi (Eq. 12)")
+    smooth_tolerance: float = _opt(
+        2.0, "grey values differ (Eq. 12) when they differ by more than this times the noise sigma")
+    grey_bins: int = _opt(256, "grey-level histogram bins of the matching entropy (Eq. 1)")
+    disparity_bin: float = _opt(0.1, "bin width of the initial-disparity histogram (Eq. 1)")
+    window_sizes: tuple[int, ...] = _opt((3, 5, 7, 9, 11, 13, 15), "window sizes searched")
+    alpha1: float = _opt(1.0, "weight of the disparity-consistency term (Eq. 1)")
+    alpha2_occlusion: float = _opt(1.0, "weight of the anti-occlusion term in occlusion regions")
+    alpha2_other: float = _opt(0.0, "weight of the anti-occlusion term elsewhere")
+    visible_sets: bool = _opt(True, "use the shape's visible-viewpoint set for occluded pixels")
+    joint: bool = _opt(
+        True, "minimise Eq. 7 jointly over disparity and window (else: window by largest entropy "
+              "first, then the line search with it)")
+    lambda_entropy: float = _opt(1.0, "lambda of Eq. 6 (weight of the matching entropy)")
+    intensity_scale: float = _opt(
+        255.0, "grey values enter the matching cost in these units (255: 8-bit levels)")
+    gamma: float = _opt(0.2, "TV weight of the refinement (Eq. 13)")
+    tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
+
+
+#: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
+#: gives each name, type, default and ``metadata["help"]``).
+DEFAULTS = EntropyOptions()
+
+
+@dataclass
+class EntropyResult:
+    """Output of :func:`estimate_disparity`; every map is ``(H, W)`` over the centre view.
+
+    Attributes
+    ----------
+    disparity
+        Final disparity (float32, pixels per view step): ``matched`` after TV refinement.
+    initial_disparity
+        Nine-view fixed-window estimate ``d0``.
+    matched_disparity
+        Line-search result ``d*`` with the adaptive windows, before refinement.
+    labels
+        uint8 region type: 0 occluding, 1 occluded, 2 texture, 3 smooth (Eq. 8).
+    window_size, window_shape, view_set
+        uint8 chosen window side (pixels), shape (0 square, 1..8 = W1..W8) and visible-viewpoint
+        set (0 all views, k = the set of W_k).
+    entropy, cost
+        float32 matching entropy of the chosen window and matching cost at the chosen disparity.
+    disparity_range
+        ``(min, max)`` searched.
+    timings
+        Seconds per step.
+    options
+        The options used.
+    """
+
+    disparity: np.ndarray
+    initial_disparity: np.ndarray
+    matched_disparity: np.ndarray
+    labels: np.ndarray
+    window_size: np.ndarray
+    window_shape: np.ndarray
+    view_set: np.ndarray
+    entropy: np.ndarray
+    cost: np.ndarray
+    disparity_range: tuple[float, float]
+    timings: dict[str, float]
+    options: EntropyOptions
+    info: dict = field(default_factory=dict)
+
+    @property
+    def refined_disparity(self) -> np.ndarray:
+        """Alias of :attr:`disparity` (the TV-refined map)."""
+        return self.disparity
+
+
+def make_options(options: EntropyOptions | None = None, **overrides) -> EntropyOptions:
+    """``options`` (default :data:`DEFAULTS`) with ``overrides`` applied; unknown names raise."""
+    base = DEFAULTS if options is None else options
+    names = {f.name for f in dataclasses.fields(EntropyOptions)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise ValueError(f"unknown entropy option(s) {unknown}; valid names: {sorted(names)}")
+    return dataclasses.replace(base, **overrides)
+
+
+def _check(lf: LightField, opts: EntropyOptions) -> None:
+    U, V = lf.grid_shape
+    if U < 3 or V < 3:
+        raise ReconError(f"the entropy estimator needs at least a 3x3 grid of views, got {U}x{V}")
+    sizes = opts.window_sizes
+    if not sizes or any(s < 3 or s % 2 == 0 for s in sizes):
+        raise ValueError(f"window_sizes must be odd sizes >= 3, got {sizes}")
+    if opts.step <= 0 or opts.initial_step <= 0:
+        raise ValueError(f"step and initial_step must be > 0, got {opts.step}, {opts.initial_step}")
+    rng = opts.disparity_range
+    if rng is not None and not rng[0] < rng[1]:
+        raise ValueError(f"disparity_range must be (min, max) with min < max, got {rng}")
+
+
+def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
+                       progress: Callable[[str], None] | None = None,
+                       **overrides) -> EntropyResult:
+    """Disparity of the centre view by the matching-entropy method.
+
+    Parameters
+    ----------
+    lf
+        Light field with a grid of at least 3x3 views (``views[u, v, y, x(, c)]``).
+    options
+        :class:`EntropyOptions`; default :data:`DEFAULTS` (the paper's values).
+    progress
+        Called with a short message at the start of each step.
+    **overrides
+        Any :class:`EntropyOptions` field by name, e.g. ``step=0.05``.
+
+    Returns
+    -------
+    :class:`EntropyResult` with the disparity (pixels per view step, ``docs/conventions.md`` sign)
+    and the intermediate maps.
+    """
+    opts = make_options(options, **overrides)
+    _check(lf, opts)
+    say = progress or (lambda message: None)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        timings[name] = now - t
+        t = now
+
+    gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
+    U, V, H, W = gray.shape
+    lap("load")
+
+    known = opts.disparity_range or lf.disparity_range
+    say("initial disparity (nine views)")
+    initial_rng = known if known is not None else opts.initial_range
+    if known is not None:  # search a little beyond a known range: edges of the range are refined
+        initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
+    d0, _ = initial_disparity(gray, disparity_range=initial_rng, step=opts.initial_step,
+                              window=opts.initial_window, shiftable=opts.initial_shiftable)
+    lap("initial")
+    if known is not None:
+        rng = (float(known[0]), float(known[1]))
+    else:
+        rng = range_from_initial(d0, percentile=opts.range_percentile, margin=opts.range_margin,
+                                 limits=opts.initial_range)
+
+    say("region types")
+    labels, region_info = region_labels(
+        gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
+        smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance)
+    lap("regions")
+
+    say("window selection (matching entropy)")
+    grey_q = quantise_grey(gray[U // 2, V // 2], opts.grey_bins)
+    disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin)
+    sizes = tuple(sorted(opts.window_sizes))
+    shape_map, size_map, entropy, all_entropy = select_windows(
+        grey_q, disp_q, labels, sizes=sizes, alpha1=opts.alpha1,
+        alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other, return_all=True)
+    lap("windows")
+
+    say(f"line search over [{rng[0]:.2f}, {rng[1]:.2f}] step {opts.step}")
+    candidates = disparity_candidates(rng[0], rng[1], opts.step)
+    occluded = (labels == OCCLUDED) & opts.visible_sets
+    if opts.joint:
+        windows = [(s, z) for s in range(N_SHAPES) for z in sizes]
+        penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
+        matched, cost, k = joint_line_search(
+            gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
+            use_shape_set=occluded, intensity_scale=opts.intensity_scale)
+        shape_map = k // len(sizes)
+        size_map = np.asarray(sizes)[k % len(sizes)]
+        entropy = np.take_along_axis(all_entropy, k[..., None], 2)[..., 0]
+    del all_entropy
+    set_map = np.where(occluded, shape_map, 0)
+    if not opts.joint:
+        matched, cost = line_search(gray, candidates, shape_map=shape_map, size_map=size_map,
+                                    set_map=set_map)
+    lap("matching")
+
+    say("TV refinement of smooth regions")
+    refined = tv_refine(matched, labels == SMOOTH, gamma=opts.gamma, iterations=opts.tv_iterations)
+    lap("refine")
+
+    return EntropyResult(
+        disparity=refined, initial_disparity=d0.astype(np.float32),
+        matched_disparity=matched, labels=labels.astype(np.uint8),
+        window_size=size_map.astype(np.uint8), window_shape=shape_map.astype(np.uint8),
+        view_set=set_map.astype(np.uint8), entropy=entropy, cost=cost, disparity_range=rng,
+        timings=timings, options=opts,
+        info={"noise_sigma": region_info["noise_sigma"],
+              "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]})

@@ -1,0 +1,455 @@
+"""Matching cost of Eq. 5 and the line search of Eqs. 6-7.
+
+For a candidate disparity ``d`` (pixels per view step, lfrig's sign, ``docs/conventions.md``) the
+centre-view pixel ``(y, x)`` is compared with view ``(u, v)`` at ``(y - du * d, x - dv * d)`` where
+``du = u - u0``, ``dv = v - v0`` (bilinear interpolation, edge pixels repeated outside the image).
+
+The absolute differences of every view are summed into nine *view blocks*: block
+``3 * (sign(du) + 1) + (sign(dv) + 1)``. Every visible-viewpoint set of :mod:`recon.entropy.windows`
+is a union of blocks, so the per-set difference image is a sum of at most nine block images, and the
+window sum over a rectangular (side) window is an O(1) lookup in its integral image. With
+``beta = 1 / #w`` (Eq. 5) and a further ``1 / #Phi`` the cost is the mean absolute difference over
+window pixels and visible views, comparable between windows and sets.
+
+Each kernel has a readable reference (``*_reference``) and a compiled twin (``*_fast``); the tests
+check that they agree.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from recon.entropy.windows import SET_BLOCKS, window_rect
+
+N_BLOCKS = 9
+
+
+def view_offsets(grid_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(du, dv)``: ``(U, V)`` int arrays of ``u - u0`` and ``v - v0``."""
+    U, V = grid_shape
+    du, dv = np.meshgrid(np.arange(U) - U // 2, np.arange(V) - V // 2, indexing="ij")
+    return du, dv
+
+
+def view_blocks(grid_shape: tuple[int, int]) -> np.ndarray:
+    """``(U, V)`` block index ``3 * (sign(du) + 1) + (sign(dv) + 1)`` in ``0..8``."""
+    du, dv = view_offsets(grid_shape)
+    return (3 * (np.sign(du) + 1) + (np.sign(dv) + 1)).astype(np.int64)
+
+
+def _bilinear(image: np.ndarray, y: float, x: float) -> float:
+    H, W = image.shape
+    y = min(max(y, 0.0), H - 1.0)
+    x = min(max(x, 0.0), W - 1.0)
+    y0 = min(int(np.floor(y)), H - 2) if H > 1 else 0
+    x0 = min(int(np.floor(x)), W - 2) if W > 1 else 0
+    fy, fx = y - y0, x - x0
+    y1, x1 = min(y0 + 1, H - 1), min(x0 + 1, W - 1)
+    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x1])
+            + fy * ((1 - fx) * image[y1, x0] + fx * image[y1, x1]))
+
+
+def block_abs_diff_reference(gray: np.ndarray, disparity: float, *,
+                             view_mask: np.ndarray | None = None) -> np.ndarray:
+    """Per-block sums of ``|L_c(y, x) - L_uv(y - du d, x - dv d)|`` (readable reference).
+
+    Parameters
+    ----------
+    gray
+        ``(U, V, H, W)`` float32 light field.
+    disparity
+        Candidate disparity ``d`` in pixels per view step.
+    view_mask
+        ``(U, V)`` bool, views to include (default all).
+
+    Returns
+    -------
+    ``(9, H, W)`` float32: sum over the included views of each block.
+    """
+    U, V, H, W = gray.shape
+    du, dv = view_offsets((U, V))
+    blocks = view_blocks((U, V))
+    centre = gray[U // 2, V // 2]
+    out = np.zeros((N_BLOCKS, H, W), np.float64)
+    for u in range(U):
+        for v in range(V):
+            if view_mask is not None and not view_mask[u, v]:
+                continue
+            for y in range(H):
+                for x in range(W):
+                    s = _bilinear(gray[u, v], y - du[u, v] * disparity, x - dv[u, v] * disparity)
+                    out[blocks[u, v], y, x] += abs(centre[y, x] - s)
+    return out.astype(np.float32)
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
+    H = gray.shape[2]
+    W = gray.shape[3]
+    u0 = gray.shape[0] // 2
+    v0 = gray.shape[1] // 2
+    out[:] = 0.0
+    for y in numba.prange(H):
+        for k in range(vu.shape[0]):
+            u = vu[k]
+            v = vv[k]
+            b = vblock[k]
+            sy = y - vdu[k] * disparity
+            if sy < 0.0:
+                sy = 0.0
+            elif sy > H - 1.0:
+                sy = H - 1.0
+            y0 = int(np.floor(sy))
+            if y0 > H - 2:
+                y0 = H - 2
+            if y0 < 0:
+                y0 = 0
+            fy = sy - y0
+            y1 = min(y0 + 1, H - 1)
+            shift_x = vdv[k] * disparity
+            for x in range(W):
+                sx = x - shift_x
+                if sx < 0.0:
+                    sx = 0.0
+                elif sx > W - 1.0:
+                    sx = W - 1.0
+                x0 = int(np.floor(sx))
+                if x0 > W - 2:
+                    x0 = W - 2
+                if x0 < 0:
+                    x0 = 0
+                fx = sx - x0
+                x1 = min(x0 + 1, W - 1)
+                img = gray[u, v]
+                s = ((1.0 - fy) * ((1.0 - fx) * img[y0, x0] + fx * img[y0, x1])
+                     + fy * ((1.0 - fx) * img[y1, x0] + fx * img[y1, x1]))
+                out[b, y, x] += abs(gray[u0, v0, y, x] - s)
+
+
+def _view_lists(grid_shape, view_mask):
+    du, dv = view_offsets(grid_shape)
+    blocks = view_blocks(grid_shape)
+    mask = np.ones(grid_shape, bool) if view_mask is None else np.asarray(view_mask, bool)
+    uu, vv = np.nonzero(mask)
+    return (uu.astype(np.int64), vv.astype(np.int64), du[uu, vv].astype(np.float32),
+            dv[uu, vv].astype(np.float32), blocks[uu, vv])
+
+
+def block_abs_diff_fast(gray: np.ndarray, disparity: float, *,
+                        view_mask: np.ndarray | None = None,
+                        out: np.ndarray | None = None) -> np.ndarray:
+    """Compiled twin of :func:`block_abs_diff_reference` (same arguments and result)."""
+    gray = np.ascontiguousarray(gray, dtype=np.float32)
+    U, V, H, W = gray.shape
+    if out is None:
+        out = np.empty((N_BLOCKS, H, W), np.float32)
+    _block_abs_diff_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity), out)
+    return out
+
+
+def set_view_counts(grid_shape: tuple[int, int], view_mask: np.ndarray | None = None) -> np.ndarray:
+    """``(9,)`` number of (included) views in each visible-viewpoint set."""
+    blocks = view_blocks(grid_shape)
+    mask = np.ones(grid_shape, bool) if view_mask is None else np.asarray(view_mask, bool)
+    per_block = np.bincount(blocks[mask], minlength=N_BLOCKS)
+    return (SET_BLOCKS.astype(np.int64) @ per_block).astype(np.int64)
+
+
+def integral_image(image: np.ndarray) -> np.ndarray:
+    """``(H + 1, W + 1)`` float64 summed-area table with a zero first row and column."""
+    out = np.zeros((image.shape[0] + 1, image.shape[1] + 1), np.float64)
+    np.cumsum(np.cumsum(image, axis=0, dtype=np.float64), axis=1, out=out[1:, 1:])
+    return out
+
+
+def window_cost_reference(blocks_ad: np.ndarray, shape_map: np.ndarray, size_map: np.ndarray,
+                          set_map: np.ndarray, set_counts: np.ndarray) -> np.ndarray:
+    """Cost of Eq. 5 for one disparity with each pixel's own window and view set (reference).
+
+    Parameters
+    ----------
+    blocks_ad
+        ``(9, H, W)`` per-block absolute differences (:func:`block_abs_diff_reference`).
+    shape_map, size_map, set_map
+        ``(H, W)`` int: window shape (0 = full square, 1..8 = W1..W8), window size (odd, side of
+        the square) and visible-viewpoint set (0 = all views, 1..8 = the set of W1..W8).
+    set_counts
+        ``(9,)`` number of views in each set (:func:`set_view_counts`).
+
+    Returns
+    -------
+    ``(H, W)`` float32 mean absolute difference over the window (clipped to the image) and the set.
+    """
+    _, H, W = blocks_ad.shape
+    out = np.zeros((H, W), np.float32)
+    for y in range(H):
+        for x in range(W):
+            s = set_map[y, x]
+            img = np.tensordot(SET_BLOCKS[s].astype(np.float32), blocks_ad, axes=1)
+            y0, y1, x0, x1 = window_rect(shape_map[y, x], size_map[y, x])
+            ya, yb = max(y + y0, 0), min(y + y1, H - 1)
+            xa, xb = max(x + x0, 0), min(x + x1, W - 1)
+            patch = img[ya:yb + 1, xa:xb + 1]
+            out[y, x] = patch.sum() / (patch.size * max(set_counts[s], 1))
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _window_cost_kernel(integrals, set_index, rects, set_counts, out):
+    H = out.shape[0]
+    W = out.shape[1]
+    for y in numba.prange(H):
+        for x in range(W):
+            k = set_index[y, x]
+            ya = max(y + rects[y, x, 0], 0)
+            yb = min(y + rects[y, x, 1], H - 1) + 1
+            xa = max(x + rects[y, x, 2], 0)
+            xb = min(x + rects[y, x, 3], W - 1) + 1
+            ii = integrals[k]
+            total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+            out[y, x] = total / ((yb - ya) * (xb - xa) * set_counts[y, x])
+
+
+@numba.njit(cache=True, parallel=True)
+def _set_integrals_kernel(blocks_ad, set_weights, out):
+    # out[s] = summed-area table of sum_b set_weights[s, b] * blocks_ad[b], zero first row/column.
+    S = set_weights.shape[0]
+    B, H, W = blocks_ad.shape
+    for job in numba.prange(S * H):
+        s = job // H
+        y = job % H
+        acc = 0.0
+        out[s, y + 1, 0] = 0.0
+        for x in range(W):
+            v = 0.0
+            for b in range(B):
+                if set_weights[s, b] != 0.0:
+                    v += blocks_ad[b, y, x]
+            acc += v
+            out[s, y + 1, x + 1] = acc
+    for job in numba.prange(S):
+        out[job, 0, :] = 0.0
+    for job in numba.prange(S * (W + 1)):
+        s = job // (W + 1)
+        x = job % (W + 1)
+        for y in range(1, H + 1):
+            out[s, y, x] += out[s, y - 1, x]
+
+
+def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
+                  out: np.ndarray | None = None) -> np.ndarray:
+    """``(S, H + 1, W + 1)`` float64 summed-area tables of the view-set images ``sets`` (0..8)."""
+    _, H, W = blocks_ad.shape
+    if out is None:
+        out = np.empty((len(sets), H + 1, W + 1), np.float64)
+    _set_integrals_kernel(blocks_ad, SET_BLOCKS[np.asarray(sets)].astype(np.float64), out)
+    return out
+
+
+class WindowCost:
+    """Fast evaluation of Eq. 5 for per-pixel windows and view sets, one disparity at a time.
+
+    Build once per window assignment, then call with each ``(9, H, W)`` block image.
+    """
+
+    def __init__(self, shape_map: np.ndarray, size_map: np.ndarray, set_map: np.ndarray,
+                 set_counts: np.ndarray) -> None:
+        H, W = shape_map.shape
+        rects = np.empty((H, W, 4), np.int64)
+        for shape in np.unique(shape_map):
+            for size in np.unique(size_map[shape_map == shape]):
+                sel = (shape_map == shape) & (size_map == size)
+                rects[sel] = window_rect(int(shape), int(size))
+        self.rects = rects
+        self.sets = np.unique(set_map)
+        lookup = np.full(N_BLOCKS, -1, np.int64)
+        lookup[self.sets] = np.arange(len(self.sets))
+        self.set_index = lookup[set_map]
+        self.pixel_counts = set_counts[set_map].astype(np.float64)
+        self._integrals = None
+
+    def __call__(self, blocks_ad: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        _, H, W = blocks_ad.shape
+        self._integrals = set_integrals(blocks_ad, self.sets, out=self._integrals)
+        if out is None:
+            out = np.empty((H, W), np.float32)
+        _window_cost_kernel(self._integrals, self.set_index, self.rects, self.pixel_counts, out)
+        return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _min_window_cost_kernel(integrals, window_set, rects, counts, out):
+    H = out.shape[0]
+    W = out.shape[1]
+    for y in numba.prange(H):
+        for x in range(W):
+            best = 1e300
+            for k in range(rects.shape[0]):
+                ya = max(y + rects[k, 0], 0)
+                yb = min(y + rects[k, 1], H - 1) + 1
+                xa = max(x + rects[k, 2], 0)
+                xb = min(x + rects[k, 3], W - 1) + 1
+                ii = integrals[window_set[k]]
+                total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+                c = total / ((yb - ya) * (xb - xa) * counts[k])
+                if c < best:
+                    best = c
+            out[y, x] = best
+
+
+def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
+                           windows: list[tuple[int, int, int]],
+                           view_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Line search whose cost at each candidate is the least over several windows.
+
+    ``windows`` lists ``(shape, size, view_set)``; at every candidate disparity each pixel takes the
+    smallest mean absolute difference over them (a "shiftable window": near an edge one of the side
+    windows with its visible views lies on the pixel's own surface). Returns ``(disparity, cost)``,
+    ``(H, W)`` float32, with the parabolic sub-step refinement of :func:`subpixel_argmin`.
+    """
+    U, V, H, W = gray.shape
+    counts = set_view_counts((U, V), view_mask)
+    sets = np.unique([w[2] for w in windows])
+    lookup = {int(s): i for i, s in enumerate(sets)}
+    window_set = np.array([lookup[w[2]] for w in windows], np.int64)
+    rects = np.array([window_rect(w[0], w[1]) for w in windows], np.int64)
+    wcounts = np.array([counts[w[2]] for w in windows], np.float64)
+    gray = np.ascontiguousarray(gray, dtype=np.float32)
+    buf = np.empty((N_BLOCKS, H, W), np.float32)
+    integrals = None
+    costs = np.empty((len(candidates), H, W), np.float32)
+    for i, d in enumerate(candidates):
+        block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
+        integrals = set_integrals(buf, sets, out=integrals)
+        _min_window_cost_kernel(integrals, window_set, rects, wcounts, costs[i])
+    return subpixel_argmin(costs, candidates)
+
+
+@numba.njit(cache=True, parallel=True)
+def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, scale, out,
+                       out_k):
+    H = out.shape[0]
+    W = out.shape[1]
+    K = rects.shape[0]
+    for y in numba.prange(H):
+        for x in range(W):
+            best = 1e300
+            best_k = -1
+            occluded_set = pixel_set[y, x]
+            for k in range(K):
+                pen = penalty[y, x, k]
+                if pen == np.inf:
+                    continue
+                s = window_shape[k] if occluded_set else 0
+                ya = max(y + rects[k, 0], 0)
+                yb = min(y + rects[k, 1], H - 1) + 1
+                xa = max(x + rects[k, 2], 0)
+                xb = min(x + rects[k, 3], W - 1) + 1
+                ii = integrals[s]
+                total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+                c = scale * total / ((yb - ya) * (xb - xa) * counts[s]) + pen
+                if c < best:
+                    best = c
+                    best_k = k
+            out[y, x] = best
+            out_k[y, x] = best_k
+
+
+def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
+                      windows: list[tuple[int, int]], penalty: np.ndarray,
+                      use_shape_set: np.ndarray, intensity_scale: float,
+                      view_mask: np.ndarray | None = None):
+    """Joint minimisation of Eq. 7 over disparity and window.
+
+    For every pixel and candidate ``d`` the objective is
+    ``min_w  intensity_scale * cost(d, w, Phi_w) + penalty[w]`` with ``penalty = -lambda * E(w)``
+    (``inf`` for windows not allowed); the disparity is the arg-min over ``d`` (parabola-refined on
+    that lower envelope) and the window the minimiser at that ``d``.
+
+    Parameters
+    ----------
+    windows
+        ``K`` pairs ``(shape, size)``.
+    penalty
+        ``(H, W, K)`` float32.
+    use_shape_set
+        ``(H, W)`` bool: match over the window shape's visible set (occluded pixels) instead of all
+        views.
+    intensity_scale
+        Factor on the mean absolute difference of ``[0, 1]`` grey values (255: 8-bit levels).
+
+    Returns
+    -------
+    ``(disparity, objective, window_index)``: ``(H, W)`` float32, float32, int64.
+    """
+    U, V, H, W = gray.shape
+    counts = set_view_counts((U, V), view_mask).astype(np.float64)
+    rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
+    shapes = np.array([s for s, _ in windows], np.int64)
+    gray = np.ascontiguousarray(gray, dtype=np.float32)
+    penalty = np.ascontiguousarray(penalty, dtype=np.float32)
+    pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
+    buf = np.empty((N_BLOCKS, H, W), np.float32)
+    integrals = None
+    all_sets = np.arange(N_BLOCKS)
+    costs = np.empty((len(candidates), H, W), np.float32)
+    which = np.empty((len(candidates), H, W), np.int16)
+    k_tmp = np.empty((H, W), np.int64)
+    for i, d in enumerate(candidates):
+        block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
+        integrals = set_integrals(buf, all_sets, out=integrals)
+        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty,
+                           float(intensity_scale), costs[i], k_tmp)
+        which[i] = k_tmp
+    disparity, best = subpixel_argmin(costs, candidates)
+    k = np.argmin(costs, axis=0)
+    window_index = np.take_along_axis(which, k[None], 0)[0].astype(np.int64)
+    return disparity, best, window_index
+
+
+def disparity_candidates(d_min: float, d_max: float, step: float) -> np.ndarray:
+    """Evenly spaced candidates from ``d_min`` to at least ``d_max`` (float64)."""
+    n = int(np.ceil((d_max - d_min) / step - 1e-9)) + 1
+    return d_min + step * np.arange(n)
+
+
+def line_search(gray: np.ndarray, candidates: np.ndarray, *, shape_map: np.ndarray,
+                size_map: np.ndarray, set_map: np.ndarray, view_mask: np.ndarray | None = None,
+                return_costs: bool = False):
+    """Minimise Eq. 5 over the candidates per pixel, with parabolic sub-step refinement.
+
+    Returns ``(disparity, min_cost)`` as ``(H, W)`` float32 (and the ``(D, H, W)`` cost volume when
+    ``return_costs``). The parabola through the minimum and its two neighbours moves the estimate by
+    at most half a step; minima at either end of the range are not refined.
+    """
+    U, V, H, W = gray.shape
+    counts = set_view_counts((U, V), view_mask)
+    cost_of = WindowCost(shape_map, size_map, set_map, counts)
+    gray = np.ascontiguousarray(gray, dtype=np.float32)
+    buf = np.empty((N_BLOCKS, H, W), np.float32)
+    costs = np.empty((len(candidates), H, W), np.float32)
+    for i, d in enumerate(candidates):
+        block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
+        cost_of(buf, out=costs[i])
+    disparity, best = subpixel_argmin(costs, candidates)
+    if return_costs:
+        return disparity, best, costs
+    return disparity, best
+
+
+def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel arg-min of a ``(D, H, W)`` cost volume refined by a parabola; ``(H, W)`` float32."""
+    D = costs.shape[0]
+    k = np.argmin(costs, axis=0)
+    c0 = np.take_along_axis(costs, k[None], 0)[0].astype(np.float64)
+    km, kp = np.clip(k - 1, 0, D - 1), np.clip(k + 1, 0, D - 1)
+    cm = np.take_along_axis(costs, km[None], 0)[0].astype(np.float64)
+    cp = np.take_along_axis(costs, kp[None], 0)[0].astype(np.float64)
+    denom = cm - 2 * c0 + cp
+    inner = (k > 0) & (k < D - 1) & (denom > 0)
+    offset = np.where(inner, 0.5 * (cm - cp) / np.where(denom > 0, denom, 1.0), 0.0)
+    offset = np.clip(offset, -0.5, 0.5)
+    step = candidates[1] - candidates[0] if D > 1 else 0.0
+    disparity = candidates[k] + offset * step
+    return disparity.astype(np.float32), c0.astype(np.float32)

@@ -1,0 +1,203 @@
+"""Region types of Section 4.1: occluding (0), occluded (1), texture (2), smooth (3) (Eq. 8).
+
+Segmentation (Eq. 9). The paper segments the nine views by alpha matting so that closer objects get
+larger values of ``M``. Here the depth-ordered layers are the initial disparity itself, median
+filtered (``M = median(d0)``: larger is closer, as the paper requires), and two pixels are in
+*different layers* when their ``M`` differ by more than ``layer_gap`` pixels per view step (default
+0.25: a depth step that moves one surface over the other by at least one pixel between the centre
+and the farthest view of a 9x9 grid). This gives what the matting is used for, a depth order, without
+a second, unrelated segmentation whose boundaries would not agree with the disparity, and a slanted
+surface stays one layer because only neighbours *landing on the same pixel* are compared.
+
+The segmentation of a side view ``(ui, vj)`` is the centre segmentation forward-warped into it with
+the initial disparity (each centre pixel lands at ``(y - du d0, x - dv d0)``, rounded): at each
+pixel of the side view we keep the largest layer that lands there (what that view sees) and the
+smallest (what is hidden behind it). Eq. 9 compares ``M_centre(p)`` with the side view *where p
+lands* (the README's reading of the shift ``(x + du, y + dv)``):
+
+- occluded (Eq. 10): a closer layer lands on p's spot in at least one view
+  (``sum_ij min(0, M_c(p) - M_ij^max(p_ij) + gap) < 0``),
+- occluding (Eq. 11): p lands on a farther layer in at least one view and p is not occluded,
+- smooth (Eq. 12): ``psi(p) < tau = N / 2`` where ``psi`` counts the ``N`` neighbours (a square of
+  side ``smooth_neighbourhood`` without its centre) whose grey value differs from p's by more than a
+  tolerance ``smooth_tolerance * sigma_noise`` (sigma estimated from the centre view, Immerkaer 1996),
+- texture: the rest.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from recon.entropy.initial import initial_view_mask
+
+OCCLUDING, OCCLUDED, TEXTURE, SMOOTH = 0, 1, 2, 3
+REGION_NAMES = ("occluding", "occluded", "texture", "smooth")
+#: Paper colours (Fig. 5), RGB: occluding red, occluded blue, texture yellow, smooth green.
+REGION_COLOURS = np.array([(255, 0, 0), (0, 0, 255), (255, 255, 0), (0, 160, 0)], np.uint8)
+
+
+def layer_map(d0: np.ndarray, *, median_size: int) -> np.ndarray:
+    """Depth-ordered layer value ``M`` of the centre view: the median-filtered initial disparity."""
+    if median_size <= 1:
+        return d0.astype(np.float32)
+    return ndimage.median_filter(d0.astype(np.float32), size=median_size, mode="nearest")
+
+
+def occlusion_diffs_reference(layers: np.ndarray, offsets: list[tuple[int, int]], *,
+                              layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 9 split by sign (readable reference).
+
+    Parameters
+    ----------
+    layers
+        ``(H, W)`` float32 layer value ``M`` (disparity-like: larger is closer).
+    offsets
+        ``(du, dv)`` of the side views compared with the centre.
+    layer_gap
+        Layers closer than this count as equal.
+
+    Returns
+    -------
+    ``(diff_occluded, diff_occluding)``, ``(H, W)`` float32: the sum over views of the negative parts
+    (something closer lands on the pixel's spot) and of the positive parts (the pixel covers something
+    farther) of ``M_c(p) - M_ij(p_ij)``, each counted only beyond ``layer_gap``.
+    """
+    H, W = layers.shape
+    neg = np.zeros((H, W), np.float64)
+    pos = np.zeros((H, W), np.float64)
+    for du, dv in offsets:
+        top = np.full((H, W), -np.inf)
+        bottom = np.full((H, W), np.inf)
+        land = np.empty((H, W, 2), np.int64)
+        for y in range(H):
+            for x in range(W):
+                ly = int(np.floor(y - du * layers[y, x] + 0.5))
+                lx = int(np.floor(x - dv * layers[y, x] + 0.5))
+                land[y, x] = ly, lx
+                if 0 <= ly < H and 0 <= lx < W:
+                    top[ly, lx] = max(top[ly, lx], layers[y, x])
+                    bottom[ly, lx] = min(bottom[ly, lx], layers[y, x])
+        for y in range(H):
+            for x in range(W):
+                ly, lx = land[y, x]
+                if 0 <= ly < H and 0 <= lx < W:
+                    m = layers[y, x]
+                    if top[ly, lx] - m > layer_gap:
+                        neg[y, x] += m - top[ly, lx]
+                    if m - bottom[ly, lx] > layer_gap:
+                        pos[y, x] += m - bottom[ly, lx]
+    return neg.astype(np.float32), pos.astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _occlusion_kernel(layers, offsets, layer_gap, neg, pos):
+    H, W = layers.shape
+    top = np.empty((H, W), np.float32)
+    bottom = np.empty((H, W), np.float32)
+    land_y = np.empty((H, W), np.int64)
+    land_x = np.empty((H, W), np.int64)
+    for k in range(offsets.shape[0]):
+        du = offsets[k, 0]
+        dv = offsets[k, 1]
+        top[:] = -np.inf
+        bottom[:] = np.inf
+        for y in range(H):
+            for x in range(W):
+                m = layers[y, x]
+                ly = int(np.floor(y - du * m + 0.5))
+                lx = int(np.floor(x - dv * m + 0.5))
+                land_y[y, x] = ly
+                land_x[y, x] = lx
+                if 0 <= ly < H and 0 <= lx < W:
+                    if m > top[ly, lx]:
+                        top[ly, lx] = m
+                    if m < bottom[ly, lx]:
+                        bottom[ly, lx] = m
+        for y in range(H):
+            for x in range(W):
+                ly = land_y[y, x]
+                lx = land_x[y, x]
+                if 0 <= ly < H and 0 <= lx < W:
+                    m = layers[y, x]
+                    if top[ly, lx] - m > layer_gap:
+                        neg[y, x] += m - top[ly, lx]
+                    if m - bottom[ly, lx] > layer_gap:
+                        pos[y, x] += m - bottom[ly, lx]
+
+
+def occlusion_diffs_fast(layers: np.ndarray, offsets: list[tuple[int, int]], *,
+                         layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Compiled twin of :func:`occlusion_diffs_reference`."""
+    H, W = layers.shape
+    neg = np.zeros((H, W), np.float32)
+    pos = np.zeros((H, W), np.float32)
+    _occlusion_kernel(np.ascontiguousarray(layers, np.float32),
+                      np.asarray(offsets, np.float64).reshape(-1, 2), np.float32(layer_gap), neg, pos)
+    return neg, pos
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """Standard deviation of additive white noise in a grey image (Immerkaer 1996), same units."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
+    response = ndimage.convolve(image.astype(np.float64), kernel, mode="reflect")[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2) * np.abs(response).mean() / 6.0)
+
+
+def different_neighbours(image: np.ndarray, *, size: int, tolerance: float) -> np.ndarray:
+    """``psi`` of Eq. 12: per pixel, the number of neighbours in the ``size x size`` square (centre
+    excluded, image edge repeated) whose value differs by more than ``tolerance``. ``(H, W)`` int."""
+    r = size // 2
+    padded = np.pad(image, r, mode="edge")
+    H, W = image.shape
+    psi = np.zeros((H, W), np.int64)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dy == 0 and dx == 0:
+                continue
+            shifted = padded[r + dy:r + dy + H, r + dx:r + dx + W]
+            psi += np.abs(shifted - image) > tolerance
+    return psi
+
+
+def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_median: int,
+                  smooth_neighbourhood: int, smooth_tolerance: float,
+                  fast: bool = True) -> tuple[np.ndarray, dict]:
+    """Region map of Eq. 8 for the centre view.
+
+    Parameters
+    ----------
+    gray
+        ``(U, V, H, W)`` float32 light field (only the centre view's grey values are used; the side
+        views enter through the initial disparity ``d0``, which was matched on them).
+    d0
+        ``(H, W)`` initial disparity, pixels per view step.
+    layer_gap, layer_median, smooth_neighbourhood, smooth_tolerance
+        See the module docstring.
+
+    Returns
+    -------
+    ``(labels, info)``: ``(H, W)`` uint8 labels 0..3, and a dict with ``diff_occluded``,
+    ``diff_occluding`` (``(H, W)`` float32), ``psi`` and ``noise_sigma``.
+    """
+    U, V = gray.shape[:2]
+    u0, v0 = U // 2, V // 2
+    mask = initial_view_mask((U, V))
+    offsets = [(u - u0, v - v0) for u, v in zip(*np.nonzero(mask)) if (u, v) != (u0, v0)]
+    layers = layer_map(d0, median_size=layer_median)
+    diffs = occlusion_diffs_fast if fast else occlusion_diffs_reference
+    neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
+    centre = gray[u0, v0].astype(np.float32)
+    sigma = noise_sigma(centre)
+    tolerance = max(smooth_tolerance * sigma, 0.5 / 255)
+    psi = different_neighbours(centre, size=smooth_neighbourhood, tolerance=tolerance)
+    n = smooth_neighbourhood ** 2 - 1
+    labels = np.full(d0.shape, TEXTURE, np.uint8)
+    labels[psi < n / 2] = SMOOTH
+    occluded = neg < 0
+    labels[(pos > 0) & ~occluded] = OCCLUDING
+    labels[occluded] = OCCLUDED
+    info = {"diff_occluded": neg, "diff_occluding": pos, "psi": psi, "noise_sigma": sigma,
+            "smooth_tolerance_abs": tolerance, "layers": layers}
+    return labels, info

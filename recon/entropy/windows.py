@@ -1,0 +1,90 @@
+"""The window shapes W1..W8 (Fig. 6), the sizes 3x3..15x15 and the visible-viewpoint sets (Fig. 9).
+
+Reading (``/work/shared/paper/README.md``, ``docs/entropy-method.md``): the eight shapes are the side
+windows of the ``size x size`` square that contain the centre pixel on their border: the left, right,
+upper and lower half-windows and the four quadrant windows. Shape 0 is the full square, used in
+textured and smooth regions where only the size is chosen.
+
+``shape  extends to   rows        cols        visible views (du = u - u0, dv = v - v0)``
+
+====== ============= =========== =========== ==========================================
+0      everywhere    [-r, r]     [-r, r]     all
+1 W1   left  (-x)    [-r, r]     [-r, 0]     dv <= 0
+2 W2   right (+x)    [-r, r]     [0, r]      dv >= 0
+3 W3   up    (-y)    [-r, 0]     [-r, r]     du <= 0
+4 W4   down  (+y)    [0, r]      [-r, r]     du >= 0
+5 W5   up-left       [-r, 0]     [-r, 0]     du <= 0 and dv <= 0
+6 W6   up-right      [-r, 0]     [0, r]      du <= 0 and dv >= 0
+7 W7   down-left     [0, r]      [-r, 0]     du >= 0 and dv <= 0
+8 W8   down-right    [0, r]      [0, r]      du >= 0 and dv >= 0
+====== ============= =========== =========== ==========================================
+
+with ``r = (size - 1) // 2``. Why these views: a window that extends to the left is chosen when the
+occluder (closer, larger ``d``) sits to the right. In view ``(u, v)`` a point of disparity ``d``
+moves by ``-dv * d`` in x (``docs/conventions.md``), so the occluder moves relative to the
+background by ``-dv * (d_front - d_back)``: away from the pixel (to +x) exactly when ``dv < 0``, not
+at all when ``dv == 0``. So the views that see the pixel are ``dv <= 0``: the views on the side the
+window extends to. The same argument per axis gives every row; ``tests/test_entropy_windows.py``
+checks it on a rendered occluder.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Number of shapes including the full square (index 0).
+N_SHAPES = 9
+#: Window sizes the paper searches (side of the square, pixels).
+DEFAULT_SIZES = (3, 5, 7, 9, 11, 13, 15)
+#: ``(dy, dx)`` direction each shape extends to; (0, 0) for the full square.
+SHAPE_DIRECTIONS = np.array(
+    [(0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)], np.int64
+)
+#: Names used in docs and output legends.
+SHAPE_NAMES = ("square", "W1 left", "W2 right", "W3 up", "W4 down",
+               "W5 up-left", "W6 up-right", "W7 down-left", "W8 down-right")
+
+
+def window_rect(shape: int, size: int) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` inclusive offsets of window ``shape`` (0..8) of side ``size`` (odd)."""
+    if not 0 <= shape < N_SHAPES:
+        raise ValueError(f"window shape must be 0..8, got {shape}")
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"window size must be odd and positive, got {size}")
+    r = (size - 1) // 2
+    dy, dx = SHAPE_DIRECTIONS[shape]
+    y0, y1 = (-r, 0) if dy < 0 else (0, r) if dy > 0 else (-r, r)
+    x0, x1 = (-r, 0) if dx < 0 else (0, r) if dx > 0 else (-r, r)
+    return y0, y1, x0, x1
+
+
+def window_mask(shape: int, size: int) -> np.ndarray:
+    """``(size, size)`` bool footprint of the window inside its square (centre at ``[r, r]``)."""
+    r = (size - 1) // 2
+    y0, y1, x0, x1 = window_rect(shape, size)
+    mask = np.zeros((size, size), bool)
+    mask[r + y0:r + y1 + 1, r + x0:r + x1 + 1] = True
+    return mask
+
+
+def visible_view_mask(shape: int, grid_shape: tuple[int, int]) -> np.ndarray:
+    """``(U, V)`` bool: the visible-viewpoint set of ``shape`` (all views for shape 0)."""
+    U, V = grid_shape
+    du, dv = np.meshgrid(np.arange(U) - U // 2, np.arange(V) - V // 2, indexing="ij")
+    sy, sx = SHAPE_DIRECTIONS[shape]
+    return (du * sy >= 0) & (dv * sx >= 0)
+
+
+def _set_blocks() -> np.ndarray:
+    # Block b = 3 * (sign(du) + 1) + (sign(dv) + 1); a set holds a block when the block's signs pass.
+    table = np.zeros((N_SHAPES, 9), bool)
+    for shape in range(N_SHAPES):
+        sy, sx = SHAPE_DIRECTIONS[shape]
+        for su in (-1, 0, 1):
+            for sv in (-1, 0, 1):
+                table[shape, 3 * (su + 1) + (sv + 1)] = (su * sy >= 0) and (sv * sx >= 0)
+    return table
+
+
+#: ``(9 sets, 9 blocks)`` bool: which view blocks make up the visible set of each shape.
+SET_BLOCKS = _set_blocks()
