@@ -37,7 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from recon.depth import depth_error_scores, disparity_to_depth
+from recon.depth import depth_error_scores, depth_to_disparity, disparity_to_depth
 from recon.lightfield import to_float
 
 #: Region labels as ``recon.entropy.regions`` numbers them (0..3) and the paper's colours (RGB).
@@ -494,6 +494,7 @@ def write_report(
     title: str = "lfrig reconstruction",
     subtitle: str = "",
     truth_disparity_px: np.ndarray | None = None,
+    truth_depth_mm: np.ndarray | None = None,
     camera: Mapping[str, float] | None = None,
     region_map: np.ndarray | None = None,
     region_names: Sequence[str] = REGION_NAMES,
@@ -520,6 +521,8 @@ def write_report(
     truth_disparity_px
         ``(H, W)`` true disparity, or ``None``: enables the error map, BadPix map, scores and the
         truth curves of the profiles.
+    truth_depth_mm
+        ``(H, W)`` true depth in mm instead (e.g. a simulated scene's); needs ``camera``.
     camera
         ``{"focal_px", "pitch_mm", "disparity_offset"}`` for metric depth (depth figure, depth
         profiles and depth-error scores), or ``None``.
@@ -553,6 +556,10 @@ def write_report(
     view = _as_rgb8(centre_view)
     if view.shape[:2] != shape:
         raise ValueError(f"centre_view is {view.shape[:2]} but disparity_px is {shape}; they must match")
+    if truth_depth_mm is not None:
+        if truth_disparity_px is not None or camera is None:
+            raise ValueError("truth_depth_mm needs camera= and replaces truth_disparity_px; give one truth")
+        truth_disparity_px = depth_to_disparity(np.asarray(truth_depth_mm, dtype=np.float64), **camera)
     truth = None if truth_disparity_px is None else np.asarray(truth_disparity_px, dtype=np.float64)
     if truth is not None and truth.shape != shape:
         raise ValueError(f"truth_disparity_px is {truth.shape} but disparity_px is {shape}")

@@ -140,3 +140,17 @@ def test_shaded_relief_lights_planes_evenly_and_marks_holes():
     flat, slanted = picture[10, 2:12, 0], picture[10, 18:28, 0]
     assert np.ptp(flat) == 0 and np.ptp(slanted) <= 1
     assert flat[0] != slanted[0]
+
+
+def test_truth_as_depth_gives_the_same_page_numbers(tmp_path):
+    from recon.depth import disparity_to_depth
+
+    image, estimate, truth, *_ = scene()
+    by_disparity = write_report(tmp_path / "a", centre_view=image, disparity_px=estimate,
+                                truth_disparity_px=truth, camera=CAMERA).read_text()
+    by_depth = write_report(tmp_path / "b", centre_view=image, disparity_px=estimate,
+                            truth_depth_mm=disparity_to_depth(truth, **CAMERA), camera=CAMERA).read_text()
+    badges = lambda text: re.findall(r'<div class="value">([^<]+)</div>', text)  # noqa: E731
+    assert badges(by_disparity) == badges(by_depth) and len(badges(by_depth)) >= 4
+    with pytest.raises(ValueError, match="camera"):
+        write_report(tmp_path / "c", centre_view=image, disparity_px=estimate, truth_depth_mm=truth)
