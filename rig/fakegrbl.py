@@ -275,9 +275,10 @@ class FakeGrbl:
         self.advance()
         if self._motion is None:
             return self.state == "Home"
-        if self._motion.stop_at_s is not None and self._motion.profile.at(self._t)[0] >= self._motion.stop_at_s:
-            return False
-        return self._motion.profile.at(self._t)[1] > 0.0
+        m = self._motion
+        if m.stop_at_s is not None and m.profile.at(self._t)[0] >= m.stop_at_s:
+            return False  # stalled: stopped part-way (the controller still says Run)
+        return self._t < m.profile.t_end
 
     def next_event_time(self) -> float | None:
         """When the simulation next changes by itself (a move ends, a dwell ends...), or ``None``."""
