@@ -750,7 +750,7 @@ def write_report(
 
 def _figure(name: str, title: str, caption: str, *, extra: str = "") -> str:
     text = f"<b>{html.escape(title)}</b>" + (f" — {html.escape(caption)}" if caption else "")
-    return f'<figure><img src="{name}" alt="{html.escape(title)}">{extra}<figcaption>{text}</figcaption></figure>'
+    return f'<figure><img src="{name}" alt="{html.escape(title)}"><figcaption>{text}</figcaption>{extra}</figure>'
 
 
 # --------------------------------------------------------------------------------------------------

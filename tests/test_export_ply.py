@@ -148,3 +148,23 @@ def test_export_result_errors_name_the_file(tmp_path):
     (folder / "result.json").unlink()
     with pytest.raises(ExportError, match="result.json"):
         read_result(folder)
+
+
+def test_binary_mesh_is_plain_ply_that_any_reader_can_parse(tmp_path):
+    """Read the file with nothing but its header, as MeshLab or CloudCompare would."""
+    disparity, image = step_scene()
+    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, **CAMERA)
+    data = summary.path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode("ascii").splitlines()
+    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
+    properties = [line.split()[-1] for line in lines if line.startswith("property ") and "list" not in line]
+    assert properties == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    assert "property list uchar uint vertex_indices" in lines
+    vertex = np.dtype([(n, "<f8") for n in properties[:6]] + [(n, "u1") for n in properties[6:]])
+    face = np.dtype([("n", "u1"), ("v", "<u4", 3)])
+    vertices = np.frombuffer(data, vertex, count=summary.points, offset=end)
+    faces = np.frombuffer(data, face, count=summary.triangles, offset=end + vertex.itemsize * summary.points)
+    assert end + vertex.itemsize * summary.points + face.itemsize * summary.triangles == len(data)
+    assert np.all(faces["n"] == 3) and faces["v"].max() < summary.points
+    assert set(np.unique(vertices["red"])) == {0, 255} and np.all(vertices["green"] == 200)
