@@ -30,6 +30,7 @@ from __future__ import annotations
 import datetime as _dt
 import html
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -388,10 +389,10 @@ def _default_rows(height: int, truth: np.ndarray | None, border: int) -> list[in
         if truth is not None:
             lo, hi = max(border, row - height // 10), min(height - border, row + height // 10 + 1)
             if hi > lo:
-                window = truth[lo:hi]
-                with np.errstate(invalid="ignore"):
-                    spread = np.nanpercentile(np.where(np.isfinite(window), window, np.nan), 95, axis=1) - \
-                        np.nanpercentile(np.where(np.isfinite(window), window, np.nan), 5, axis=1)
+                window = np.where(np.isfinite(truth[lo:hi]), truth[lo:hi], np.nan)
+                with warnings.catch_warnings():  # rows without any truth are all-NaN slices
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    spread = np.nanpercentile(window, 95, axis=1) - np.nanpercentile(window, 5, axis=1)
                 if np.isfinite(spread).any():
                     row = lo + int(np.nanargmax(spread))
         rows.append(row)
