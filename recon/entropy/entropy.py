@@ -20,7 +20,8 @@ larger window and then to the lower shape index.
 
 The entropies of all sizes of one shape are computed incrementally: the windows of one shape are
 nested, so each size only adds the ring of new pixels to the histograms and ``sum c log c`` is
-updated per added pixel (``E`` then follows from ``N`` and the running sums).
+updated per added pixel (``E`` then follows from ``N`` and the running sums). With ``strips`` the two strip windows of
+``recon.entropy.windows`` (lfrig's extension) are offered in occlusion regions as well.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def matching_entropy_reference(grey_q: np.ndarray, disp_q: np.ndarray, labels: n
 
 
 def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_occlusion,
-                             alpha2_other):
+                             alpha2_other, strips=True):
     """Arg-max of Eq. 1 per pixel (readable reference of :func:`select_windows`)."""
     H, W = grey_q.shape
     shape_map = np.zeros((H, W), np.int64)
@@ -78,7 +79,7 @@ def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_oc
     for y in range(H):
         for x in range(W):
             occl = labels[y, x] in (OCCLUDED, OCCLUDING)
-            shapes = range(1, N_SHAPES) if occl else (0,)
+            shapes = range(1, N_SHAPES if strips else 9) if occl else (0,)
             a2 = alpha2_occlusion if occl else alpha2_other
             for shape in shapes:
                 for size in sizes:
@@ -168,7 +169,7 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
 
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
-                   alpha2_other: float, return_all: bool = False):
+                   alpha2_other: float, strips: bool = True, return_all: bool = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -183,6 +184,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
         Window sizes (odd), ascending.
     alpha1, alpha2_occlusion, alpha2_other
         Weights of Eq. 1 (``alpha2`` in occlusion regions and elsewhere).
+    strips
+        Also offer the strip windows (shapes 9, 10) in occlusion regions.
 
     Returns
     -------
@@ -192,7 +195,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     """
     sizes = tuple(sorted(int(s) for s in sizes))
     H, W = grey_q.shape
-    rects = np.array([[window_rect(s, z) for z in sizes] for s in range(N_SHAPES)], np.int64)
+    n_shapes = N_SHAPES if strips else 9
+    rects = np.array([[window_rect(s, z) for z in sizes] for s in range(n_shapes)], np.int64)
     grey_q = np.ascontiguousarray(grey_q, np.int64)
     disp_q = np.ascontiguousarray(disp_q, np.int64)
     n_grey = int(grey_q.max()) + 1
@@ -202,7 +206,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     shape_map = np.zeros((H, W), np.int64)
     size_map = np.zeros((H, W), np.int64)
     best_e = np.zeros((H, W), np.float64)
-    all_e = np.full((H, W, N_SHAPES * len(sizes)), -np.inf, np.float32)
+    all_e = np.full((H, W, n_shapes * len(sizes)), -np.inf, np.float32)
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
                    np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
                    float(alpha2_other), n_grey, n_disp, xlogx, shape_map, size_map, best_e, all_e)

@@ -68,6 +68,9 @@ class EntropyOptions:
     alpha1: float = _opt(1.0, "weight of the disparity-consistency term (Eq. 1)")
     alpha2_occlusion: float = _opt(1.0, "weight of the anti-occlusion term in occlusion regions")
     alpha2_other: float = _opt(0.0, "weight of the anti-occlusion term elsewhere")
+    strip_windows: bool = _opt(
+        True, "also offer one-pixel strips along the rows/columns with the views in line with them "
+              "(lfrig's extension for gaps between two occluders)")
     visible_sets: bool = _opt(True, "use the shape's visible-viewpoint set for occluded pixels")
     joint: bool = _opt(
         True, "minimise Eq. 7 jointly over disparity and window (else: window by largest entropy "
@@ -198,7 +201,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     if known is not None:  # search a little beyond a known range: edges of the range are refined
         initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
     d0, _ = initial_disparity(gray, disparity_range=initial_rng, step=opts.initial_step,
-                              window=opts.initial_window, shiftable=opts.initial_shiftable)
+                              window=opts.initial_window, shiftable=opts.initial_shiftable,
+                              strips=opts.strip_windows)
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -218,14 +222,15 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     sizes = tuple(sorted(opts.window_sizes))
     shape_map, size_map, entropy, all_entropy = select_windows(
         grey_q, disp_q, labels, sizes=sizes, alpha1=opts.alpha1,
-        alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other, return_all=True)
+        alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other,
+        strips=opts.strip_windows, return_all=True)
     lap("windows")
 
     say(f"line search over [{rng[0]:.2f}, {rng[1]:.2f}] step {opts.step}")
     candidates = disparity_candidates(rng[0], rng[1], opts.step)
     occluded = (labels == OCCLUDED) & opts.visible_sets
     if opts.joint:
-        windows = [(s, z) for s in range(N_SHAPES) for z in sizes]
+        windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
         penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
         matched, cost, k = joint_line_search(
             gray, candidates, windows=windows, penalty=penalty.astype(np.float32),

@@ -30,7 +30,7 @@ def initial_view_mask(grid_shape: tuple[int, int]) -> np.ndarray:
 
 
 def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float], step: float,
-                      window: int, shiftable: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                      window: int, shiftable: bool = True, strips: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Line search over the nine views of :func:`initial_view_mask` (see the module docstring).
 
     Parameters
@@ -45,6 +45,8 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
         Side of the square window in pixels (odd).
     shiftable
         Least cost over the square and W1..W8 with their visible sets (default) or the square alone.
+    strips
+        With ``shiftable``, also the two strip windows with their sets (lfrig's extension).
 
     Returns
     -------
@@ -52,7 +54,7 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
     """
     U, V = gray.shape[:2]
     candidates = disparity_candidates(disparity_range[0], disparity_range[1], step)
-    shapes = range(N_SHAPES) if shiftable else (0,)
+    shapes = range(N_SHAPES if strips else 9) if shiftable else (0,)
     return min_window_line_search(gray, candidates, windows=[(s, window, s) for s in shapes],
                                   view_mask=initial_view_mask((U, V)))
 

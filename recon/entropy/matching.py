@@ -153,7 +153,7 @@ def set_view_counts(grid_shape: tuple[int, int], view_mask: np.ndarray | None = 
     blocks = view_blocks(grid_shape)
     mask = np.ones(grid_shape, bool) if view_mask is None else np.asarray(view_mask, bool)
     per_block = np.bincount(blocks[mask], minlength=N_BLOCKS)
-    return (SET_BLOCKS.astype(np.int64) @ per_block).astype(np.int64)
+    return (SET_BLOCKS.astype(np.int64) @ per_block).astype(np.int64)  # (N_SHAPES,)
 
 
 def integral_image(image: np.ndarray) -> np.ndarray:
@@ -263,7 +263,7 @@ class WindowCost:
                 rects[sel] = window_rect(int(shape), int(size))
         self.rects = rects
         self.sets = np.unique(set_map)
-        lookup = np.full(N_BLOCKS, -1, np.int64)
+        lookup = np.full(SET_BLOCKS.shape[0], -1, np.int64)
         lookup[self.sets] = np.arange(len(self.sets))
         self.set_index = lookup[set_map]
         self.pixel_counts = set_counts[set_map].astype(np.float64)
@@ -392,7 +392,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
-    all_sets = np.arange(N_BLOCKS)
+    all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)
     which = np.empty((len(candidates), H, W), np.int16)
     k_tmp = np.empty((H, W), np.int64)

@@ -19,7 +19,13 @@ textured and smooth regions where only the size is chosen.
 8 W8   down-right    [0, r]      [0, r]      du >= 0 and dv >= 0
 ====== ============= =========== =========== ==========================================
 
-with ``r = (size - 1) // 2``. Why these views: a window that extends to the left is chosen when the
+9      row strip  [0, 0]      [-r, r]     du == 0       (lfrig's extension)
+10     col strip  [-r, r]     [0, 0]      dv == 0       (lfrig's extension)
+
+with ``r = (size - 1) // 2``. The strips are not in the paper: a pixel seen through a gap between
+two closer surfaces (above and below, or left and right) is hidden in both halves of the grid, and
+only the views in line with the gap see it; its window must then lie along the gap.
+Why these views: a window that extends to the left is chosen when the
 occluder (closer, larger ``d``) sits to the right. In view ``(u, v)`` a point of disparity ``d``
 moves by ``-dv * d`` in x (``docs/conventions.md``), so the occluder moves relative to the
 background by ``-dv * (d_front - d_back)``: away from the pixel (to +x) exactly when ``dv < 0``, not
@@ -32,26 +38,36 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Number of shapes including the full square (index 0).
-N_SHAPES = 9
+#: Number of shapes: the full square (0), the paper's W1..W8 (1..8) and two strips (9, 10).
+N_SHAPES = 11
+#: The paper's shapes W1..W8.
+PAPER_SHAPES = tuple(range(1, 9))
+#: lfrig's extension: one-pixel-high horizontal (9) and one-pixel-wide vertical (10) strips.
+STRIP_SHAPES = (9, 10)
 #: Window sizes the paper searches (side of the square, pixels).
 DEFAULT_SIZES = (3, 5, 7, 9, 11, 13, 15)
 #: ``(dy, dx)`` direction each shape extends to; (0, 0) for the full square.
 SHAPE_DIRECTIONS = np.array(
-    [(0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)], np.int64
+    [(0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1), (0, 0), (0, 0)],
+    np.int64,
 )
 #: Names used in docs and output legends.
 SHAPE_NAMES = ("square", "W1 left", "W2 right", "W3 up", "W4 down",
-               "W5 up-left", "W6 up-right", "W7 down-left", "W8 down-right")
+               "W5 up-left", "W6 up-right", "W7 down-left", "W8 down-right",
+               "horizontal strip", "vertical strip")
 
 
 def window_rect(shape: int, size: int) -> tuple[int, int, int, int]:
     """``(y0, y1, x0, x1)`` inclusive offsets of window ``shape`` (0..8) of side ``size`` (odd)."""
     if not 0 <= shape < N_SHAPES:
-        raise ValueError(f"window shape must be 0..8, got {shape}")
+        raise ValueError(f"window shape must be 0..{N_SHAPES - 1}, got {shape}")
     if size < 1 or size % 2 == 0:
         raise ValueError(f"window size must be odd and positive, got {size}")
     r = (size - 1) // 2
+    if shape == 9:
+        return 0, 0, -r, r
+    if shape == 10:
+        return -r, r, 0, 0
     dy, dx = SHAPE_DIRECTIONS[shape]
     y0, y1 = (-r, 0) if dy < 0 else (0, r) if dy > 0 else (-r, r)
     x0, x1 = (-r, 0) if dx < 0 else (0, r) if dx > 0 else (-r, r)
@@ -71,6 +87,8 @@ def visible_view_mask(shape: int, grid_shape: tuple[int, int]) -> np.ndarray:
     """``(U, V)`` bool: the visible-viewpoint set of ``shape`` (all views for shape 0)."""
     U, V = grid_shape
     du, dv = np.meshgrid(np.arange(U) - U // 2, np.arange(V) - V // 2, indexing="ij")
+    if shape in STRIP_SHAPES:
+        return du == 0 if shape == 9 else dv == 0
     sy, sx = SHAPE_DIRECTIONS[shape]
     return (du * sy >= 0) & (dv * sx >= 0)
 
@@ -82,9 +100,15 @@ def _set_blocks() -> np.ndarray:
         sy, sx = SHAPE_DIRECTIONS[shape]
         for su in (-1, 0, 1):
             for sv in (-1, 0, 1):
-                table[shape, 3 * (su + 1) + (sv + 1)] = (su * sy >= 0) and (sv * sx >= 0)
+                if shape == 9:
+                    ok = su == 0
+                elif shape == 10:
+                    ok = sv == 0
+                else:
+                    ok = (su * sy >= 0) and (sv * sx >= 0)
+                table[shape, 3 * (su + 1) + (sv + 1)] = ok
     return table
 
 
-#: ``(9 sets, 9 blocks)`` bool: which view blocks make up the visible set of each shape.
+#: ``(N_SHAPES sets, 9 blocks)`` bool: which view blocks make up the visible set of each shape.
 SET_BLOCKS = _set_blocks()
