@@ -41,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="disparities to search, pixels per view step (default: the light field's, else -4 4)")
     rec.add_argument("--step", type=float, default=0.02, help="spacing of candidate disparities (baseline)")
     rec.add_argument("--window", type=int, default=7, help="square window side in pixels (baseline)")
+    rec.add_argument("--ply", type=Path, metavar="OUT.ply",
+                     help="also export a PLY mesh (or point cloud with --points) of the metric depth")
+    rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
     rec.set_defaults(handler=_reconstruct)
 
@@ -148,6 +151,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
     write_pfm(args.output / "disparity.pfm", disparity)
     picture, shown = colourise(disparity, value_range=lf.disparity_range)
     write_png(args.output / "disparity.png", picture)
+    write_png(args.output / "centre_view.png", lf.centre_view())
     result: dict[str, Any] = {
         "method": args.method, "options": options, "source": str(lf.source.resolve()) if lf.source else None,
         "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
@@ -161,6 +165,10 @@ def _reconstruct(args: argparse.Namespace) -> None:
     print(f"wrote {args.output / 'disparity.pfm'} and disparity.png in {seconds:.1f} s")
     if "scores" in result:
         print(_format_scores(result["scores"]))
+    if args.ply is not None:
+        from recon.export import export_result
+
+        print(f"wrote {export_result(args.output, args.ply, kind='points' if args.points else 'mesh')}")
 
 
 def _format_scores(scores: dict[str, float]) -> str:
