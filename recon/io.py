@@ -69,15 +69,15 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
             numbered[int(m[1])] = p
     if not numbered:
         raise LightFieldFormatError(f"{path}: no input_CamNNN.png views")
-    camera = {"num_cams": None, "pitch_mm": None, "focal_px": None, "disparity_offset": 0.0, "disparity_range": None}
+    num_cams, camera = None, {}
     metadata: dict = {"layout": "benchmark"}
     cfg = path / "parameters.cfg"
     if cfg.is_file():
         parameters = read_parameters(cfg)
         metadata["parameters"] = parameters
-        camera = camera_from_parameters(parameters, path=cfg)
-    if camera["num_cams"] is not None:
-        rows, cols = camera["num_cams"]
+        num_cams, camera = camera_from_parameters(parameters, path=cfg)
+    if num_cams is not None:
+        rows, cols = num_cams
     else:
         side = math.isqrt(max(numbered) + 1)
         if side * side != max(numbered) + 1:
@@ -97,15 +97,7 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
     views = images.reshape((rows, cols) + images.shape[1:])
     if (path / GROUND_TRUTH).is_file():
         metadata["ground_truth"] = str(path / GROUND_TRUTH)
-    return LightField(
-        views=views,
-        pitch_mm=camera["pitch_mm"],
-        focal_px=camera["focal_px"],
-        disparity_range=camera["disparity_range"],
-        disparity_offset=camera["disparity_offset"],
-        metadata=metadata,
-        source=path,
-    )
+    return LightField(views=views, metadata=metadata, source=path, **camera)
 
 
 def ground_truth_path(lf: LightField) -> Path | None:

@@ -74,11 +74,13 @@ def _number(parameters: Parameters, section: str, key: str, path: Path) -> float
     return float(value)
 
 
-def camera_from_parameters(parameters: Parameters, *, path: Path) -> dict[str, Any]:
+def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple[int, int] | None, dict[str, Any]]:
     """What lfrig needs from a ``parameters.cfg``: grid, pitch, focal length, disparity range.
 
-    Returns a dict with ``num_cams`` ``(rows, cols)`` or ``None``, ``pitch_mm``, ``focal_px``,
-    ``disparity_offset`` (pixels per view step, 0 when unknown) and ``disparity_range`` (or ``None``).
+    Returns ``(num_cams, camera)``: the grid ``(rows, cols)`` or ``None``, and the keyword arguments
+    of :class:`recon.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
+    ``disparity_offset`` (pixels per view step, 0 when unknown) and ``disparity_range`` (each may be
+    ``None``).
     The benchmark's focal length in pixels is ``focal_length_mm / sensor_size_mm * max(res_x, res_y)``
     and its views are refocused at ``focus_distance_m``, so ``d0 = focal_px * baseline_mm / focus_mm``.
     """
@@ -110,8 +112,7 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> dict[str, A
                 f"{path}: [extrinsics] num_cams_x = {cols!r}, num_cams_y = {rows!r} must be positive integers"
             )
         num_cams = (rows, cols)
-    return {
-        "num_cams": num_cams,
+    return num_cams, {
         "pitch_mm": pitch_mm,
         "focal_px": focal_px,
         "disparity_offset": offset,

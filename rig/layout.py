@@ -176,31 +176,12 @@ class CaptureWriter:
     def is_complete(self) -> bool:
         return len(self.completed) == self.rows * self.cols
 
-    def write_parameters(
-        self,
-        *,
-        image_shape: tuple[int, int],
-        pitch_mm: float,
-        focal_px: float | None = None,
-        focal_length_mm: float | None = None,
-        sensor_size_mm: float | None = None,
-        disparity_range: tuple[float, float] | None = None,
-        disparity_offset: float = 0.0,
-    ) -> None:
-        """Write ``parameters.cfg`` in the benchmark's format (plus an ``[lfrig]`` section)."""
-        write_parameters(
-            self.path / PARAMETERS,
-            parameters_for(
-                grid=(self.rows, self.cols),
-                image_shape=image_shape,
-                pitch_mm=pitch_mm,
-                focal_px=focal_px,
-                focal_length_mm=focal_length_mm,
-                sensor_size_mm=sensor_size_mm,
-                disparity_range=disparity_range,
-                disparity_offset=disparity_offset,
-            ),
-        )
+    def write_parameters(self, **camera: Any) -> None:
+        """Write ``parameters.cfg`` in the benchmark's format (plus an ``[lfrig]`` section).
+
+        ``camera`` are the keyword arguments of :func:`parameters_for` other than ``grid``.
+        """
+        write_parameters(self.path / PARAMETERS, parameters_for(grid=(self.rows, self.cols), **camera))
 
     def mark_complete(self) -> None:
         """Journal that every view is present. Raises when some are missing."""
@@ -292,24 +273,15 @@ def read_capture(path: str | os.PathLike) -> LightField:
             raise CaptureLayoutError(f"{p}: journalled view is missing on disk; resume the capture to take it again")
     images = read_images(paths)
     views = images.reshape((rows, cols) + images.shape[1:])
-    camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm"), "focal_px": None,
-                              "disparity_offset": 0.0, "disparity_range": None}
+    camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
     metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
                                 "views": [entries[(u, v)] for u in range(rows) for v in range(cols)]}
     if (path / PARAMETERS).is_file():
         parameters = read_parameters(path / PARAMETERS)
         metadata["parameters"] = parameters
-        found = camera_from_parameters(parameters, path=path / PARAMETERS)
-        camera.update({k: v for k, v in found.items() if k != "num_cams" and v is not None})
-    return LightField(
-        views=views,
-        pitch_mm=camera["pitch_mm"],
-        focal_px=camera["focal_px"],
-        disparity_range=camera["disparity_range"],
-        disparity_offset=camera["disparity_offset"],
-        metadata=metadata,
-        source=path,
-    )
+        _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
+        camera.update({k: v for k, v in found.items() if v is not None})
+    return LightField(views=views, metadata=metadata, source=path, **camera)
 
 
 def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict[str, Any] | None = None) -> None:

@@ -116,7 +116,7 @@ def test_benchmark_camera_agrees_with_lightfield_reader(tmp_path):
     cfg = tmp_path / "parameters.cfg"
     cfg.write_text(BACKGAMMON_CFG)
     parameters = read_parameters(cfg)
-    theirs = camera_from_parameters(parameters, path=cfg)
+    _, theirs = camera_from_parameters(parameters, path=cfg)
     ours = benchmark_camera(parameters)
     assert ours.focal_px == pytest.approx(theirs["focal_px"])
     assert ours.disparity_offset == pytest.approx(theirs["disparity_offset"])
