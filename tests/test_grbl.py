@@ -20,7 +20,6 @@ from rig.grbl import (
     Message,
     Ok,
     Setting,
-    Status,
     Unknown,
     Welcome,
     describe_alarm,
@@ -202,14 +201,12 @@ def test_soft_limit_alarm_from_the_controller(fake):
         with pytest.raises(GrblAlarmError, match=r"ALARM:2 .*soft limit"):
             stage.command("G0 X5")
         assert controller.critical
-        mark = len(controller.rx_log)
         controller.receive(b"?")
         assert controller.take_output() == b""  # no reports during a critical alarm
         stage.reset()
         assert stage.status()["state"] == "Alarm"
         stage.unlock()
         assert stage.status()["state"] == "Idle"
-        del mark
 
 
 def test_pyserial_url_handler():

@@ -11,8 +11,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import pytest
-
 from recon.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
