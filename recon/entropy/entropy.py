@@ -101,7 +101,7 @@ def _add(counts, k, s, xlogx):
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, shape_map, size_map, best_e, all_e):
+                   n_disp, xlogx, everywhere, shape_map, size_map, best_e, all_e):
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -115,7 +115,7 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             opposite = 1 if lab == 0 else 0
             a2 = a2_occl if occl else a2_other
             s_first = 1 if occl else 0
-            s_last = n_shapes if occl else 1
+            s_last = n_shapes if (occl or everywhere) else 1
             best = -1e300
             best_shape = 0
             best_size = 0
@@ -169,7 +169,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
 
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
-                   alpha2_other: float, strips: bool = True, return_all: bool = False):
+                   alpha2_other: float, strips: bool = True, shapes_everywhere: bool = False,
+                   return_all: bool = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -186,6 +187,9 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
         Weights of Eq. 1 (``alpha2`` in occlusion regions and elsewhere).
     strips
         Also offer the strip windows (shapes 9, 10) in occlusion regions.
+    shapes_everywhere
+        Offer the square and all side windows in texture and smooth regions too (the paper: square
+        only there).
 
     Returns
     -------
@@ -209,7 +213,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     all_e = np.full((H, W, n_shapes * len(sizes)), -np.inf, np.float32)
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
                    np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
-                   float(alpha2_other), n_grey, n_disp, xlogx, shape_map, size_map, best_e, all_e)
+                   float(alpha2_other), n_grey, n_disp, xlogx, bool(shapes_everywhere), shape_map,
+                   size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e
     return shape_map, size_map, best_e.astype(np.float32)

@@ -71,6 +71,9 @@ class EntropyOptions:
     strip_windows: bool = _opt(
         True, "also offer one-pixel strips along the rows/columns with the views in line with them "
               "(lfrig's extension for gaps between two occluders)")
+    shapes_everywhere: bool = _opt(
+        True, "offer the side windows in texture and smooth regions too (the paper: square only; "
+              "lfrig default on: near an edge a square straddles it, see docs/entropy-method.md)")
     visible_sets: bool = _opt(True, "use the shape's visible-viewpoint set for occluded pixels")
     joint: bool = _opt(
         True, "minimise Eq. 7 jointly over disparity and window (else: window by largest entropy "
@@ -223,7 +226,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     shape_map, size_map, entropy, all_entropy = select_windows(
         grey_q, disp_q, labels, sizes=sizes, alpha1=opts.alpha1,
         alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other,
-        strips=opts.strip_windows, return_all=True)
+        strips=opts.strip_windows, shapes_everywhere=opts.shapes_everywhere, return_all=True)
     lap("windows")
 
     say(f"line search over [{rng[0]:.2f}, {rng[1]:.2f}] step {opts.step}")
