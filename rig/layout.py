@@ -109,6 +109,8 @@ class CaptureWriter:
         if "settings" not in header or "grid" not in header:
             raise ValueError("the capture header needs 'grid' and 'settings'")
         self.completed: dict[tuple[int, int], dict[str, Any]] = {}
+        #: Whether the journal ends with the "complete" record (no view was retaken after it).
+        self.marked_complete = False
         if is_capture(self.path):
             self.header, records = _read_journal(self.path)
             self._check_settings(header["settings"])
@@ -141,6 +143,7 @@ class CaptureWriter:
             )
 
     def _load_completed(self, records: list[dict[str, Any]]) -> None:
+        self.marked_complete = bool(records) and records[-1].get("kind") == "complete"
         for record in records:
             if record.get("kind") != "view":
                 continue
@@ -165,6 +168,7 @@ class CaptureWriter:
         entry.setdefault("time", now_iso())
         self._append(entry)
         self.completed[(u, v)] = entry
+        self.marked_complete = False
         return entry
 
     def _append(self, record: dict[str, Any]) -> None:
@@ -184,12 +188,15 @@ class CaptureWriter:
         write_parameters(self.path / PARAMETERS, parameters_for(grid=(self.rows, self.cols), **camera))
 
     def mark_complete(self) -> None:
-        """Journal that every view is present. Raises when some are missing."""
+        """Journal that every view is present (once). Raises when some are missing."""
+        if self.marked_complete:
+            return
         if not self.is_complete:
             raise CaptureLayoutError(
                 f"{self.path}: {len(self.completed)} of {self.rows * self.cols} views written; cannot mark complete"
             )
         self._append({"kind": "complete", "time": now_iso()})
+        self.marked_complete = True
 
     def close(self) -> None:
         self._journal.close()

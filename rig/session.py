@@ -22,12 +22,12 @@ import json
 import signal
 import sys
 import threading
-import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
+from recon.progress import Progress
 from rig.errors import RigError
 from rig.grbl import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
@@ -77,60 +77,6 @@ class SessionLog:
 
     def close(self) -> None:
         self._file.close()
-
-
-class Progress:
-    """A one-line progress bar with ETA: redrawn in place on a terminal, otherwise a line at most every
-    ``interval_s`` seconds (and at the end), so logs stay short."""
-
-    def __init__(self, *, total: int, done: int, stream: TextIO | None, width: int = 24, interval_s: float = 5.0) -> None:
-        self.total = total
-        self.start_done = done
-        self.stream = stream
-        self.width = width
-        self.t0 = time.monotonic()
-        self._tty = bool(stream is not None and getattr(stream, "isatty", lambda: False)())
-        self.interval_s = 0.0 if self._tty else interval_s
-        self._last = -1e9
-
-    def eta_s(self, done: int) -> float | None:
-        """Wall-clock seconds left, from this run's mean time per view (a simulated session's virtual
-        time would say nothing about when the user gets the result)."""
-        taken = done - self.start_done
-        if taken <= 0:
-            return None
-        per_view = (time.monotonic() - self.t0) / taken
-        return per_view * (self.total - done)
-
-    def update(self, done: int, label: str) -> None:
-        if self.stream is None:
-            return
-        now = time.monotonic()
-        if now - self._last < self.interval_s and done < self.total:
-            return
-        self._last = now
-        filled = int(self.width * done / max(self.total, 1))
-        eta = self.eta_s(done)
-        eta_text = "--:--" if eta is None else _hms(eta)
-        text = (
-            f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total} "
-            f"{100.0 * done / max(self.total, 1):5.1f}%  {label}  ETA {eta_text}"
-        )
-        if self._tty:
-            self.stream.write("\r" + text + ("\n" if done >= self.total else ""))
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
-
-    def finish(self) -> None:
-        if self.stream is not None and self._tty:
-            self.stream.write("\n")
-            self.stream.flush()
-
-
-def _hms(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
 
 
 class _HardStop(BaseException):
@@ -185,14 +131,6 @@ class _Interrupts:
         if self.pending:
             self.pending = False
             raise _HardStop()
-
-
-def _has_complete_marker(path: Path) -> bool:
-    try:
-        lines = [line for line in (path / MANIFEST).read_text(encoding="utf-8").splitlines() if line.strip()]
-        return bool(lines) and json.loads(lines[-1]).get("kind") == "complete"
-    except (OSError, ValueError):
-        return False
 
 
 def build_header(
@@ -314,7 +252,7 @@ def run_capture(
         check_limits(moves, limits_mm)
         if handle_sigint:
             interrupts.install()
-        bar = Progress(total=total, done=done_before, stream=progress)
+        bar = Progress("capture", total, done=done_before, stream=progress, quiet=progress is None)
         try:
             _attach_wire_log(stage, log)
             if home:
@@ -352,7 +290,7 @@ def run_capture(
                 interrupts.end_write()
                 taken += 1
                 log(f"view u={u:02d} v={v:02d} at {_fmt(position)} (commanded {_fmt(move.target_mm)})")
-                bar.update(len(writer.completed), f"u{u:02d} v{v:02d}")
+                bar.update(len(writer.completed), note=f"u{u:02d} v{v:02d}")
                 if should_stop is not None and should_stop():
                     interrupts.count = max(interrupts.count, 1)
         except _HardStop:
@@ -361,21 +299,21 @@ def run_capture(
                 stage.stop()
             except RigError as error:
                 log(f"stopping the stage failed: {error}")
-            bar.finish()
+            bar.close()
             raise CaptureInterrupted(
                 f"stopped at once by a second Ctrl-C (feed hold + soft reset sent); {len(writer.completed)} of "
                 f"{total} views are in {path}. Home the stage and run the same command again to resume"
             ) from None
         except RigError as error:
             log(f"error: {error}")
-            bar.finish()
+            bar.close()
             raise CaptureAborted(
                 f"{error} [capture stopped with {len(writer.completed)} of {total} views in {path}; "
                 "fix the cause and run the same command again to resume]"
             ) from error
         finally:
             interrupts.uninstall()
-        bar.finish()
+        bar.close()
         completed = len(writer.completed)
         interrupted = completed < total
         if interrupted:
@@ -394,7 +332,7 @@ def _all_views(grid: GridSpec) -> list[tuple[int, int]]:
 
 def _finish(writer: CaptureWriter, grid: GridSpec, camera: Camera, log: Callable[[str], None], path: Path) -> None:
     """Write ``parameters.cfg`` and the completion marker (once)."""
-    if _has_complete_marker(path):
+    if writer.marked_complete:
         log("capture already complete")
         return
     first = next(iter(writer.completed.values()))

@@ -173,3 +173,19 @@ def test_broken_pfm_through_evaluate(tmp_path, capsys):
 def test_not_a_light_field(tmp_path):
     with pytest.raises(LfrigError, match="no light field here"):
         read_lightfield(tmp_path)
+
+
+def test_complete_marker_is_written_once_and_cleared_by_a_retake(tmp_path):
+    image = np.zeros((4, 5), np.uint8)
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        for u in range(2):
+            for v in range(2):
+                w.write_view(u, v, image)
+        w.mark_complete()
+        w.mark_complete()
+    kinds = [json.loads(line)["kind"] for line in (tmp_path / "c/manifest.jsonl").read_text().splitlines()]
+    assert kinds.count("complete") == 1
+    with CaptureWriter(tmp_path / "c", header=header()) as w:
+        assert w.marked_complete
+        w.write_view(0, 0, image)
+        assert not w.marked_complete
