@@ -370,6 +370,52 @@ def chessboard_scene(*, inner: tuple[int, int] = (10, 7), square_mm: float = 10.
     return Scene((rect,), background=background, ambient=1.0)
 
 
+def calibration_poses(camera: "FakeCamera", *, count: int, inner: tuple[int, int] = (10, 7),
+                      square_mm: float = 10.0, distance_mm: tuple[float, float] = (800.0, 1100.0),
+                      tilt_deg: float = 30.0, seed: int = 0,
+                      position_mm: Sequence[float] | None = None) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """Board poses ``(centre_mm, rotation_deg)`` for :func:`chessboard_scene` that a calibration
+    would use: the board whole in the picture (2 % border), its centre visiting a 3x3 grid of image
+    positions in turn (so the corners of the imager are covered), at random distances in
+    ``distance_mm`` and tilted by up to ``tilt_deg`` about the board's axes (alternating sign), with
+    a little in-plane rotation. Seeded and deterministic.
+    """
+    import mrcal
+
+    rng = np.random.default_rng(seed)
+    position = camera.rig.ref_mm if position_mm is None else position_mm
+    w, h = camera.image_size
+    targets = [(fx, fy) for fy in (0.3, 0.5, 0.7) for fx in (0.3, 0.5, 0.7)]
+    targets = targets[4:5] + targets[:4] + targets[5:]  # centre first
+    poses = []
+    for k in range(count):
+        fx, fy = targets[k % len(targets)]
+        for attempt in range(200):
+            shrink = min(attempt // 40, 4) * 0.05  # move towards the centre if it keeps not fitting
+            q = np.array([(0.5 + (fx - 0.5) * (1 - 4 * shrink)) * (w - 1), (0.5 + (fy - 0.5) * (1 - 4 * shrink)) * (h - 1)])
+            z = rng.uniform(*distance_mm)
+            ray = mrcal.unproject(q, camera.lensmodel, camera.intrinsics, normalize=True)
+            centre = camera.rig.camera_centre(position) + camera.R_cam_stage.T @ (ray * z / ray[2])
+            sign = 1.0 if k % 2 == 0 else -1.0
+            rot = (sign * rng.uniform(0.3, 1.0) * tilt_deg, -sign * rng.uniform(0.3, 1.0) * tilt_deg,
+                   rng.uniform(-10.0, 10.0))
+            scene = chessboard_scene(inner=inner, square_mm=square_mm, centre_mm=centre, rotation_deg=rot)
+            rect = scene.rects[0]
+            ha, hb = rect.half_size_mm
+            outline = rect.world_from_local(np.array([[-ha, -hb], [ha, -hb], [ha, hb], [-ha, hb]]))
+            p = camera.camera_points(outline, position)
+            if np.any(p[:, 2] <= 0):
+                continue
+            qo = camera.project(outline, position)
+            if np.all((qo[:, 0] > 0.02 * w) & (qo[:, 0] < 0.98 * w) & (qo[:, 1] > 0.02 * h) & (qo[:, 1] < 0.98 * h)):
+                poses.append((tuple(float(c) for c in centre), tuple(float(r) for r in rot)))
+                break
+        else:
+            raise ValueError(f"no board pose fits the {w}x{h} image at {distance_mm} mm; use a smaller board "
+                             "or larger distances")
+    return poses
+
+
 def board_corners_world(scene: Scene, *, name: str = "board") -> np.ndarray:
     """``(rows, cols, 3)`` world positions (mm) of the inner corners of a chessboard rectangle,
     ordered row by row from the corner at negative ``a`` and ``b`` (mrcal's board layout)."""
@@ -494,30 +540,50 @@ def _square_wave_filtered(x: np.ndarray, square: float, width: np.ndarray) -> np
     return sign * np.clip(e / (0.5 * width), -1.0, 1.0)
 
 
-def shade_numpy(index: np.ndarray, a: np.ndarray, b: np.ndarray, footprint: np.ndarray, packed: _Packed) -> np.ndarray:
-    """Colour ``(N, 3)`` in ``[0, 1]`` of hits (reference engine); ``footprint`` is the box-filter
-    width in mm on the surface per ray."""
+def _edge_filtered(x: np.ndarray, square: float, width: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The square wave of :func:`_square_wave_filtered` seen through a box of ``width`` and a
+    Gaussian of ``sigma`` (both mm): each edge an ``erf`` of the combined standard deviation
+    ``sqrt(sigma^2 + width^2 / 12)``; the plain box-filter ramp where ``sigma == 0``."""
+    from scipy.special import erf
+
+    k = np.floor(x / square + 0.5)
+    e = x - k * square
+    sign = 1.0 - 2.0 * (np.abs(k) % 2)
+    total = np.sqrt(sigma**2 + width**2 / 12.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        smooth = erf(e / (math.sqrt(2.0) * total))
+    return sign * np.where(sigma > 0, smooth, np.clip(e / (0.5 * width), -1.0, 1.0))
+
+
+def shade_numpy(index: np.ndarray, a: np.ndarray, b: np.ndarray, footprint: np.ndarray, packed: _Packed,
+                sigma: np.ndarray | None = None) -> np.ndarray:
+    """Colour ``(N, 3)`` in ``[0, 1]`` of hits (reference engine). ``footprint`` is the box-filter
+    width and ``sigma`` the standard deviation of the Gaussian blur (lens PSF), both in mm on the
+    surface per ray."""
+    if sigma is None:
+        sigma = np.zeros_like(footprint)
     out = np.empty((index.size, 3))
     out[:] = packed.background
     for i in range(packed.geom.shape[0]):
         sel = index == i
         if not np.any(sel):
             continue
-        ai, bi, wi = a[sel], b[sel], footprint[sel]
+        ai, bi, wi, si = a[sel], b[sel], footprint[sel], sigma[sel]
         kind = packed.kind[i]
         if kind == TEXTURE_NOISE:
             value = np.full(ai.shape, 0.5)
             for fa, fb, phase, amp, f in packed.waves[i]:
                 if amp == 0.0:
                     continue
-                value += amp * _sinc(f * wi) * np.cos(2 * math.pi * (fa * ai + fb * bi) + phase)
+                value += (amp * _sinc(f * wi) * np.exp(-2.0 * (math.pi * f * si) ** 2)
+                          * np.cos(2 * math.pi * (fa * ai + fb * bi) + phase))
             value = np.clip(value, 0.0, 1.0)
         elif kind == TEXTURE_CHECKER:
             square, cols, rows, dark, light = packed.checker[i]
             xa = ai + (cols + 1) * square / 2
             xb = bi + (rows + 1) * square / 2
             inside = (xa >= 0) & (xa <= (cols + 1) * square) & (xb >= 0) & (xb <= (rows + 1) * square)
-            prod = _square_wave_filtered(xa, square, wi) * _square_wave_filtered(xb, square, wi)
+            prod = _edge_filtered(xa, square, wi, si) * _edge_filtered(xb, square, wi, si)
             value = np.where(inside, 0.5 - 0.5 * prod, 1.0)
         else:
             value = np.zeros(ai.shape)
@@ -526,11 +592,13 @@ def shade_numpy(index: np.ndarray, a: np.ndarray, b: np.ndarray, footprint: np.n
     return out
 
 
-def render_rays_numpy(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, packed: _Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_rays_numpy(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, packed: _Packed,
+                      blur_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Shade unit rays ``(N, 3)`` (world frame) from ``origin`` (reference engine).
 
-    ``pixel_angle`` (radians) is the angular size of one sample; the texture filter is that angle's
-    footprint on the hit surface, ``t * pixel_angle / sqrt(|cos incidence|)``.
+    ``pixel_angle`` (radians) is the angular size of one sample and ``blur_angle`` the standard
+    deviation of the lens's Gaussian PSF (radians); textures are filtered by their footprints on the
+    hit surface, ``t * angle / sqrt(|cos incidence|)``.
 
     Returns colour ``(N, 3)`` in ``[0, 1]``, hit distance ``(N,)`` in mm (``inf`` for none) and the
     index ``(N,)`` of the rectangle hit (-1 for none).
@@ -540,7 +608,8 @@ def render_rays_numpy(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, 
     hit = index >= 0
     cos_i = np.abs(np.einsum("ij,ij->i", dirs[hit], packed.geom[index[hit], 9:12]))
     footprint[hit] = t[hit] * pixel_angle / np.sqrt(np.maximum(cos_i, 1e-3))
-    return shade_numpy(index, a, b, footprint, packed), t, index
+    sigma = footprint * (blur_angle / pixel_angle)
+    return shade_numpy(index, a, b, footprint, packed, sigma), t, index
 
 
 try:  # numba is a dependency, but keep the module importable without its compiler
@@ -551,7 +620,8 @@ except ImportError:  # pragma: no cover
 
 def _make_numba_kernel():
     @numba.njit(cache=True)
-    def kernel(origin, dirs, pixel_angle, geom, kind, colours, waves, checker, shade, background, out, out_t, out_i):
+    def kernel(origin, dirs, pixel_angle, blur_angle, geom, kind, colours, waves, checker, shade, background,
+               out, out_t, out_i):
         n = dirs.shape[0]
         nr = geom.shape[0]
         two_pi = 2.0 * math.pi
@@ -589,6 +659,8 @@ def _make_numba_kernel():
             i = best_i
             cos_i = abs(dx * geom[i, 9] + dy * geom[i, 10] + dz * geom[i, 11])
             w = best_t * pixel_angle / math.sqrt(max(cos_i, 1e-3))
+            sig = w * (blur_angle / pixel_angle)
+            total = math.sqrt(sig * sig + w * w / 12.0)
             k = kind[i]
             if k == 1:
                 value = 0.5
@@ -602,7 +674,8 @@ def _make_numba_kernel():
                         s = 1.0 - y / 6.0 + y * y / 120.0 - y * y * y / 5040.0
                     else:
                         s = math.sin(math.pi * x) / (math.pi * x)
-                    value += amp * s * math.cos(two_pi * (waves[i, j, 0] * best_a + waves[i, j, 1] * best_b) + waves[i, j, 2])
+                    g = math.exp(-2.0 * (math.pi * waves[i, j, 4] * sig) ** 2)
+                    value += amp * s * g * math.cos(two_pi * (waves[i, j, 0] * best_a + waves[i, j, 1] * best_b) + waves[i, j, 2])
                 value = min(max(value, 0.0), 1.0)
             elif k == 2:
                 square = checker[i, 0]
@@ -612,9 +685,17 @@ def _make_numba_kernel():
                 xb = best_b + (rows + 1) * square / 2
                 if xa >= 0 and xa <= (cols + 1) * square and xb >= 0 and xb <= (rows + 1) * square:
                     ka = math.floor(xa / square + 0.5)
-                    sa = (1.0 - 2.0 * (abs(ka) % 2)) * min(max((xa - ka * square) / (0.5 * w), -1.0), 1.0)
                     kb = math.floor(xb / square + 0.5)
-                    sb = (1.0 - 2.0 * (abs(kb) % 2)) * min(max((xb - kb * square) / (0.5 * w), -1.0), 1.0)
+                    ea = xa - ka * square
+                    eb = xb - kb * square
+                    if sig > 0:
+                        sa = math.erf(ea / (math.sqrt(2.0) * total))
+                        sb = math.erf(eb / (math.sqrt(2.0) * total))
+                    else:
+                        sa = min(max(ea / (0.5 * w), -1.0), 1.0)
+                        sb = min(max(eb / (0.5 * w), -1.0), 1.0)
+                    sa *= 1.0 - 2.0 * (abs(ka) % 2)
+                    sb *= 1.0 - 2.0 * (abs(kb) % 2)
                     value = 0.5 - 0.5 * sa * sb
                 else:
                     value = 1.0
@@ -630,11 +711,12 @@ def _make_numba_kernel():
 _numba_kernel = None
 
 
-def render_rays_numba(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, packed: _Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_rays_numba(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, packed: _Packed,
+                      blur_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fast twin of :func:`render_rays_numpy` (same inputs and outputs)."""
     global _numba_kernel
     if numba is None:  # pragma: no cover
-        return render_rays_numpy(origin, dirs, pixel_angle, packed)
+        return render_rays_numpy(origin, dirs, pixel_angle, packed, blur_angle)
     if _numba_kernel is None:
         _numba_kernel = _make_numba_kernel()
     n = dirs.shape[0]
@@ -642,7 +724,7 @@ def render_rays_numba(origin: np.ndarray, dirs: np.ndarray, pixel_angle: float, 
     out_t = np.empty(n)
     out_i = np.empty(n, dtype=np.int64)
     _numba_kernel(np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(dirs, dtype=float),
-                  float(pixel_angle), packed.geom, packed.kind, packed.colours, packed.waves,
+                  float(pixel_angle), float(blur_angle), packed.geom, packed.kind, packed.colours, packed.waves,
                   packed.checker, packed.shade, packed.background, out, out_t, out_i)
     return out, out_t, out_i
 
@@ -662,7 +744,8 @@ def _edge_pixels(index: np.ndarray) -> np.ndarray:
 
 
 def render_image(origin: np.ndarray, centre_dirs: np.ndarray, sub_dirs: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                 *, pixel_angle: float, supersample: int, packed: _Packed, engine: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+                 *, pixel_angle: float, supersample: int, packed: _Packed, blur_px: float = 0.0,
+                 engine: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     """Render an image with adaptive supersampling.
 
     Every pixel is first shaded from its centre ray with the texture filtered over the whole pixel
@@ -681,6 +764,9 @@ def render_image(origin: np.ndarray, centre_dirs: np.ndarray, sub_dirs: Callable
         pixels ``(ys[m], xs[m])``.
     pixel_angle
         Angular size of a pixel in radians (``1 / focal_px``).
+    blur_px
+        Standard deviation of the lens's Gaussian point spread in pixels, applied to the textures
+        analytically (band-limits them so that corner and edge positions are unbiased).
 
     Returns
     -------
@@ -689,14 +775,15 @@ def render_image(origin: np.ndarray, centre_dirs: np.ndarray, sub_dirs: Callable
     """
     render = _ENGINES[engine]
     h, w = centre_dirs.shape[:2]
-    rgb, t, index = render(origin, centre_dirs.reshape(-1, 3), pixel_angle, packed)
+    blur_angle = blur_px * pixel_angle
+    rgb, t, index = render(origin, centre_dirs.reshape(-1, 3), pixel_angle, packed, blur_angle)
     rgb = rgb.reshape(h, w, 3)
     s = supersample
     if s > 1:
         ys, xs = np.nonzero(_edge_pixels(index.reshape(h, w)))
         if ys.size:
             dirs = sub_dirs(ys, xs).reshape(-1, 3)
-            sub_rgb, _, _ = render(origin, dirs, pixel_angle / s, packed)
+            sub_rgb, _, _ = render(origin, dirs, pixel_angle / s, packed, blur_angle)
             rgb[ys, xs] = sub_rgb.reshape(ys.size, s * s, 3).mean(axis=1)
     return rgb, t.reshape(h, w)
 
@@ -774,7 +861,12 @@ class FakeCamera:
     roi
         ``(x0, y0, width, height)`` in binned pixels, or ``None`` for the full (binned) detector.
     supersample
-        Samples per pixel along each axis (anti-aliasing of occlusion edges).
+        Samples per pixel along each axis at edges between surfaces (anti-aliasing of occlusions).
+    blur_px
+        Standard deviation (pixels) of the lens's Gaussian point spread function, applied to the
+        textures analytically. Some blur is what real lenses have, and it band-limits the image so
+        that sub-pixel corner detectors are unbiased (with 0, edges are one-pixel ramps and
+        gradient-based corner refinement has phase errors of ~0.08 px).
     noise_sigma
         Standard deviation of additive Gaussian noise in units of full scale (0 = noise-free).
     seed
@@ -795,7 +887,7 @@ class FakeCamera:
 
     def __init__(self, position_mm: Callable[[], Sequence[float]] | None = None, *,
                  rig: FakeRig | None = None, scene: Scene | None = None, binning: int = 1,
-                 roi: tuple[int, int, int, int] | None = None, supersample: int = 2,
+                 roi: tuple[int, int, int, int] | None = None, supersample: int = 2, blur_px: float = 0.5,
                  noise_sigma: float = 0.0, seed: int = 0, bit_depth: int = 8, colour: bool = True,
                  exposure_us: float = 10000.0, gain: float = 1.0,
                  is_moving: Callable[[], bool] | None = None, engine: str = "numba") -> None:
@@ -822,6 +914,9 @@ class FakeCamera:
         self.binning = int(binning)
         self.roi = roi
         self.supersample = int(supersample)
+        if not blur_px >= 0:
+            raise ValueError(f"blur_px must be >= 0; got {blur_px!r}")
+        self.blur_px = float(blur_px)
         self.noise_sigma = float(noise_sigma)
         self.seed = int(seed)
         self.bit_depth = int(bit_depth)
@@ -959,7 +1054,7 @@ class FakeCamera:
                 pos = (centre + (u - U // 2) * pitch_mm * np.asarray(u_axis, dtype=float)
                        + (v - V // 2) * pitch_mm * np.asarray(v_axis, dtype=float))
                 rgb, _ = render_image(self.rig.camera_centre(pos), centre_dirs, sub_dirs,
-                                      pixel_angle=1.0 / truth["focal_px"], supersample=s,
+                                      pixel_angle=1.0 / truth["focal_px"], supersample=s, blur_px=self.blur_px,
                                       packed=self._packed(self.scene), engine=self.engine)
                 views[u, v] = rgb
         return views, truth
@@ -1016,7 +1111,7 @@ class FakeCamera:
         (before exposure scaling, noise and quantisation); see :func:`render_image`."""
         scene = self.scene if scene is None else scene
         rgb, _ = render_image(self.rig.camera_centre(position_mm), self._centre_dirs_world(),
-                              self._sub_dirs_world, pixel_angle=1.0 / self.focal_px,
+                              self._sub_dirs_world, pixel_angle=1.0 / self.focal_px, blur_px=self.blur_px,
                               supersample=self.supersample, packed=self._packed(scene), engine=self.engine)
         return rgb
 
@@ -1066,6 +1161,7 @@ class FakeCamera:
             "bit_depth": self.bit_depth,
             "colour": self.colour,
             "supersample": self.supersample,
+            "blur_px": self.blur_px,
             "noise_sigma": self.noise_sigma,
             "seed": self.seed,
             "lensmodel": self.lensmodel,
@@ -1092,6 +1188,6 @@ class FakeCamera:
 
 __all__ = [
     "FakeCamera", "FakeRig", "Scene", "Rect", "NoiseTexture", "CheckerTexture", "FlatTexture",
-    "default_scene", "chessboard_scene", "board_corners_world", "box", "rectified_geometry",
+    "default_scene", "chessboard_scene", "calibration_poses", "board_corners_world", "box", "rectified_geometry",
     "RectifiedGeometry", "cast_rays_numpy", "render_rays_numpy", "render_rays_numba", "render_image",
 ]

@@ -222,11 +222,12 @@ def test_numba_and_numpy_engines_agree(cam4):
     rng = np.random.default_rng(0)
     dirs = cam4._centre_dirs_world().reshape(-1, 3)[rng.choice(320 * 245, 4000, replace=False)]
     origin = np.array([0.3, -0.2, 0.0])
-    ref = render_rays_numpy(origin, dirs, 1e-3, packed)
-    fast = render_rays_numba(origin, dirs, 1e-3, packed)
-    np.testing.assert_array_equal(ref[2], fast[2])
-    np.testing.assert_allclose(ref[1], fast[1], rtol=1e-12)
-    np.testing.assert_allclose(ref[0], fast[0], atol=1e-9)
+    for blur_angle in (0.0, 2e-4):
+        ref = render_rays_numpy(origin, dirs, 1e-3, packed, blur_angle)
+        fast = render_rays_numba(origin, dirs, 1e-3, packed, blur_angle)
+        np.testing.assert_array_equal(ref[2], fast[2])
+        np.testing.assert_allclose(ref[1], fast[1], rtol=1e-12)
+        np.testing.assert_allclose(ref[0], fast[0], atol=1e-9)
     slow_cam = FakeCamera(binning=8, engine="numpy")
     fast_cam = FakeCamera(binning=8)
     np.testing.assert_allclose(slow_cam.render((1, 2, 0)), fast_cam.render((1, 2, 0)), atol=1e-9)
