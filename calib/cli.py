@@ -1,0 +1,156 @@
+"""``lfrig calibrate intrinsics``, ``lfrig calibrate stage`` and ``lfrig rectify``: parse, call the
+library (``calib.intrinsics``, ``calib.stage``, ``calib.rectify``), write files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def _board_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", required=True, metavar="COLSxROWS",
+                   help="inner corners per row x per column, e.g. 10x7 for a board of 11x8 squares")
+    p.add_argument("--square-mm", type=float, required=True, metavar="S", help="side of one square, mm")
+    p.add_argument("--charuco", metavar="DICT",
+                   help="the board is a ChArUco board with this ArUco dictionary (e.g. DICT_5X5_100)")
+    p.add_argument("--marker-mm", type=float, help="ChArUco marker side, mm (default 0.7 squares)")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    cal = subparsers.add_parser(
+        "calibrate",
+        help="calibrate the camera (intrinsics) or the stage geometry",
+        description="Camera and stage calibration; see docs/calibration.md for the lab procedure.",
+    )
+    sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
+
+    intr = sub.add_parser(
+        "intrinsics",
+        help="camera model from images of a calibration board (mrcal)",
+        description=(
+            "Find the board's corners in every image (OpenCV; images without a board are listed and skipped), "
+            "solve the camera model with mrcal (staged, with outlier rejection) and write an mrcal .cameramodel. "
+            "Prints the RMS reprojection error, the outliers and the projection uncertainty at the working "
+            "distance, and writes a residual picture next to the model."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    intr.add_argument("images", nargs="+", type=Path, metavar="IMAGES", help="board images (PNG, JPEG, TIFF)")
+    _board_args(intr)
+    intr.add_argument("-o", "--output", type=Path, required=True, metavar="CAM.cameramodel")
+    intr.add_argument("--lensmodel", default="LENSMODEL_OPENCV8",
+                      help="mrcal lens model (LENSMODEL_OPENCV4/5/8, LENSMODEL_SPLINED_STEREOGRAPHIC_...)")
+    intr.add_argument("--focal-px", type=float, help="seed for the focal length (default: estimated)")
+    intr.add_argument("--working-distance-mm", type=float, default=1000.0,
+                      help="distance at which the projection uncertainty is reported")
+    intr.add_argument("--residuals", type=Path, metavar="PNG",
+                      help="residual picture (default: next to the model, .residuals.png)")
+    intr.add_argument("--quiet", action="store_true", help="no progress output")
+    intr.set_defaults(handler=_intrinsics)
+
+    st = sub.add_parser(
+        "stage",
+        help="true pitch, skew and rotation of the stage from a capture of a board",
+        description=(
+            "From a capture (lfrig capture) of a board that is whole in every view, fit one camera rotation, "
+            "the board's position and the two step vectors of the grid jointly (least squares on the "
+            "reprojection error through the camera model). Writes the stage calibration as JSON."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    st.add_argument("capture", type=Path, metavar="CAPTURE_DIR")
+    st.add_argument("--model", type=Path, required=True, metavar="CAM.cameramodel")
+    _board_args(st)
+    st.add_argument("-o", "--output", type=Path, required=True, metavar="STAGE.json")
+    st.add_argument("--quiet", action="store_true", help="no progress output")
+    st.set_defaults(handler=_stage)
+
+    rect = subparsers.add_parser(
+        "rectify",
+        help="undistort and rectify a capture into a pure-translation light field",
+        description=(
+            "Resample every view of CAPTURE_DIR with one map built from the camera model and the stage "
+            "calibration, so that a scene point moves by exactly (u-u0)*d, (v-v0)*d between views. The output "
+            "is a capture folder whose parameters record the rectified focal length (px) and the true pitch (mm)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    rect.add_argument("capture", type=Path, metavar="CAPTURE_DIR")
+    rect.add_argument("--model", type=Path, required=True, metavar="CAM.cameramodel")
+    rect.add_argument("--stage", type=Path, required=True, metavar="STAGE.json")
+    rect.add_argument("-o", "--output", type=Path, required=True, metavar="RECT_DIR")
+    rect.add_argument("--focal-px", type=float, help="focal length of the rectified views (default: the camera's)")
+    rect.set_defaults(handler=_rectify)
+
+
+def _board(args: argparse.Namespace):
+    from calib.intrinsics import parse_board
+
+    return parse_board(args.board, square_mm=args.square_mm, charuco=args.charuco, marker_mm=args.marker_mm)
+
+
+def _progress(label: str, quiet: bool):
+    from recon.progress import Progress
+
+    state: dict = {}
+
+    def update(done: int, total: int, *_: object) -> None:
+        if "bar" not in state:
+            state["bar"] = Progress(label, total, quiet=quiet)
+        state["bar"].update(done)
+
+    def close() -> None:
+        if "bar" in state:
+            state["bar"].close()
+
+    return update, close
+
+
+def _intrinsics(args: argparse.Namespace) -> int:
+    from calib.errors import CalibError
+    from calib.intrinsics import calibrate_intrinsics_from_images, write_residual_picture
+
+    board = _board(args)
+    if not args.output.parent.is_dir():
+        raise CalibError(f"{args.output.parent}: no such folder for the camera model")
+    update, close = _progress("finding corners", args.quiet)
+    try:
+        result = calibrate_intrinsics_from_images(args.images, board=board, lensmodel=args.lensmodel,
+                                                  focal_estimate_px=args.focal_px,
+                                                  working_distance_mm=args.working_distance_mm, progress=update)
+    finally:
+        close()
+    note = "lfrig calibrate intrinsics\n" + result.report()
+    result.model.write(str(args.output), note=note)
+    picture = args.residuals or args.output.with_suffix(".residuals.png")
+    write_residual_picture(result, picture)
+    print(result.report())
+    print(f"wrote {args.output} and {picture}")
+    return 0
+
+
+def _stage(args: argparse.Namespace) -> int:
+    from calib.stage import calibrate_stage_from_capture, load_model
+
+    model = load_model(args.model)
+    board = _board(args)
+    update, close = _progress("finding corners", args.quiet)
+    try:
+        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=update)
+    finally:
+        close()
+    stage.save(args.output)
+    print(stage.report())
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _rectify(args: argparse.Namespace) -> int:
+    from calib.rectify import rectify_capture
+
+    rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
+                           focal_px=args.focal_px)
+    print(json.dumps({"output": str(args.output), "focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
+                      "image_size": list(rect.image_size)}))
+    return 0
