@@ -8,9 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from recon.methods import METHODS
-
-DEFAULT_METHOD = "baseline"
+from recon.methods import DEFAULT_METHOD, METHODS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,12 +33,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")
     rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
-    rec.add_argument("--method", choices=sorted(METHODS), default=DEFAULT_METHOD,
-                     help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()))
+    rec.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
+                     help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     rec.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
-                     help="disparities to search, pixels per view step (default: the light field's, else -4 4)")
-    rec.add_argument("--step", type=float, default=0.02, help="spacing of candidate disparities (baseline)")
-    rec.add_argument("--window", type=int, default=7, help="square window side in pixels (baseline)")
+                     help="disparities to search, pixels per view step (default: the light field's; else "
+                          "entropy finds it from its initial estimate and baseline searches -4 4)")
+    rec.add_argument("--step", type=float, default=None,
+                     help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
+    base = rec.add_argument_group("baseline method")
+    base.add_argument("--window", type=int, default=None, help="square window side in pixels (default 7)")
+    _add_entropy_options(rec.add_argument_group(
+        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
     rec.add_argument("--ply", type=Path, metavar="OUT.ply",
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
@@ -60,6 +63,66 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--border", type=int, default=15, help="pixels left out on every side (default 15)")
     ev.add_argument("--json", action="store_true", help="print the scores as JSON")
     ev.set_defaults(handler=_evaluate)
+
+
+#: Entropy options that have a shared flag above, or are not useful from the command line.
+_SHARED_OPTIONS = {"disparity_range", "step"}
+
+
+def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
+    """One flag per field of :class:`recon.entropy.EntropyOptions`, from its type, default and help.
+
+    Flags default to ``None``, so only what the user sets overrides the estimator's own defaults.
+    """
+    import dataclasses
+
+    from recon.entropy.estimate import DEFAULTS, EntropyOptions
+
+    for f in dataclasses.fields(EntropyOptions):
+        if f.name in _SHARED_OPTIONS:
+            continue
+        default = getattr(DEFAULTS, f.name)
+        flag = "--" + f.name.replace("_", "-")
+        text = f"{f.metadata.get('help', '')} (default {default})".replace("%", "%%")
+        if isinstance(default, bool):
+            group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
+        elif isinstance(default, tuple):
+            kind = type(default[0]) if default else float
+            group.add_argument(flag, type=kind, nargs="+", default=None, metavar="N", help=text)
+        else:
+            group.add_argument(flag, type=type(default), default=None, help=text)
+
+
+def _method_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options the user set for the chosen method (others keep the method's defaults)."""
+    import dataclasses
+
+    from recon.errors import ReconError
+
+    chosen: dict[str, Any] = {}
+    if args.disparity_range is not None:
+        if not args.disparity_range[0] < args.disparity_range[1]:
+            raise ReconError(f"--disparity-range {args.disparity_range[0]} {args.disparity_range[1]}: "
+                             "MIN must be less than MAX")
+        chosen["disparity_range"] = tuple(args.disparity_range)
+    if args.step is not None:
+        if not args.step > 0:
+            raise ReconError(f"--step {args.step}: give a positive spacing, e.g. 0.02")
+        chosen["step"] = args.step
+    if args.method == "baseline":
+        if args.window is not None:
+            chosen["window"] = args.window
+        return chosen
+    from recon.entropy.estimate import EntropyOptions
+
+    for f in dataclasses.fields(EntropyOptions):
+        value = getattr(args, f.name, None)
+        if f.name not in _SHARED_OPTIONS and value is not None:
+            chosen[f.name] = tuple(value) if isinstance(value, list) else value
+    if args.window is not None:
+        raise ReconError("--window belongs to the baseline method; the entropy method chooses its windows "
+                         "(see --window-sizes)")
+    return chosen
 
 
 def describe(path: Path) -> dict[str, Any]:
@@ -137,23 +200,25 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from recon.pfm import write_pfm
     from recon.progress import Progress
 
+    options = _method_options(args)
     lf = read_lightfield(args.lf_dir)
-    if args.disparity_range is not None and not args.disparity_range[0] < args.disparity_range[1]:
-        raise ReconError(f"--disparity-range {args.disparity_range[0]} {args.disparity_range[1]}: MIN must be less than MAX")
     args.output.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    options: dict[str, Any] = {"disparity_range": tuple(args.disparity_range) if args.disparity_range else None}
-    if args.method == "baseline":
-        options.update(window=args.window, step=args.step)
-    with Progress(args.method, 1, quiet=args.quiet) as bar:
-        disparity = run_method(args.method, lf, progress=bar.update, **options).disparity
+    try:
+        with Progress(args.method, 1, quiet=args.quiet) as bar:
+            method = run_method(args.method, lf, progress=bar, **options)
+    except ValueError as error:  # an option value the method cannot use
+        raise ReconError(f"{args.method}: {error}") from None
+    disparity = method.disparity
     seconds = time.perf_counter() - started
     write_pfm(args.output / "disparity.pfm", disparity)
     picture, shown = colourise(disparity, value_range=lf.disparity_range)
     write_png(args.output / "disparity.png", picture)
     write_png(args.output / "centre_view.png", lf.centre_view())
+    if method.write_extras is not None:
+        method.write_extras(args.output)
     result: dict[str, Any] = {
-        "method": args.method, "options": options, "source": str(lf.source.resolve()) if lf.source else None,
+        "method": args.method, "options": _jsonable(method.options), "source": str(lf.source.resolve()) if lf.source else None,
         "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
         "focal_px": lf.focal_px, "pitch_mm": lf.pitch_mm, "disparity_offset": lf.disparity_offset,
         "disparity_png_range": list(shown), "seconds": round(seconds, 3),
@@ -169,6 +234,10 @@ def _reconstruct(args: argparse.Namespace) -> None:
         from recon.export import export_result
 
         print(f"wrote {export_result(args.output, args.ply, kind='points' if args.points else 'mesh')}")
+
+
+def _jsonable(options: dict[str, Any]) -> dict[str, Any]:
+    return json.loads(json.dumps(options, default=str))
 
 
 def _format_scores(scores: dict[str, float]) -> str:

@@ -1,9 +1,17 @@
-"""The reconstruction methods by name, with one calling convention for the CLI, benchmark and batch."""
+"""The reconstruction methods by name, with one calling convention for the CLI, benchmark and batch.
+
+A runner takes the light field, an optional progress object (:class:`recon.progress.Progress` or
+anything with ``update(done, total, note=...)``) and the method's keyword options, and returns a
+:class:`MethodResult`: the disparity of the centre view and, where the method has them, the maps
+that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_extras`.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,28 +21,55 @@ from recon.lightfield import LightField
 
 @dataclass
 class MethodResult:
-    """``disparity`` ``(H, W)`` float32 of the centre view, plus whatever maps the method explains itself with."""
+    """``disparity`` ``(H, W)`` float32 of the centre view, plus whatever the method explains itself with."""
 
     disparity: np.ndarray
     extras: Any = None
     options: dict[str, Any] = field(default_factory=dict)
+    #: Writes the method's own maps into a result folder; returns the paths written.
+    write_extras: Callable[[Path], list[Path]] | None = None
 
 
-def _baseline(lf: LightField, progress: Callable[[int, int], None] | None, **options: Any) -> MethodResult:
+def _baseline(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.baseline import estimate_baseline
 
-    result = estimate_baseline(lf, progress=progress, **options)
+    update = (lambda done, total: progress.update(done, total, note="disparity candidates")) if progress else None
+    result = estimate_baseline(lf, progress=update, **options)
     return MethodResult(disparity=result.disparity, extras=result, options=options)
 
 
-#: name -> (runner, one-line description)
+#: The steps the entropy estimator announces, in order (for a progress bar with a total).
+_ENTROPY_STEPS = 5
+
+
+def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
+    from recon.entropy import estimate_disparity, write_outputs
+
+    step = 0
+
+    def say(message: str) -> None:
+        nonlocal step
+        if progress:
+            progress.update(step, _ENTROPY_STEPS, note=message)
+        step += 1
+
+    result = estimate_disparity(lf, progress=say, **options)
+    if progress:
+        progress.update(_ENTROPY_STEPS, _ENTROPY_STEPS, note="done")
+    used = dataclasses.asdict(result.options) if dataclasses.is_dataclass(getattr(result, "options", None)) else options
+    return MethodResult(disparity=result.disparity, extras=result, options=used,
+                        write_extras=lambda folder: write_outputs(result, folder))
+
+
+#: name -> (runner, one-line description). The first is the default.
 METHODS: dict[str, tuple[Callable[..., MethodResult], str]] = {
+    "entropy": (_entropy, "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions"),
     "baseline": (_baseline, "fixed square window, SAD over all views, parabolic sub-pixel refinement"),
 }
+DEFAULT_METHOD = next(iter(METHODS))
 
 
-def run_method(name: str, lf: LightField, *, progress: Callable[[int, int], None] | None = None,
-               **options: Any) -> MethodResult:
+def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:
     """Run the method ``name`` on ``lf`` with keyword ``options`` (the method's own defaults otherwise)."""
     try:
         runner = METHODS[name][0]
