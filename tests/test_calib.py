@@ -220,3 +220,20 @@ def test_stage_file_errors_name_the_file(tmp_path):
         StageCalibration.load(bad)
     with pytest.raises(CalibError, match="no such stage calibration"):
         StageCalibration.load(tmp_path / "missing.json")
+
+
+def test_charuco_corners_are_identified_by_their_markers():
+    """A flat ChArUco board image (OpenCV's own drawing): every corner found, in mrcal's layout."""
+    board = Board(6, 4, 40.0, charuco_dictionary="DICT_5X5_100")
+    from calib.intrinsics import charuco_board
+
+    margin, square = 40, 40  # pixels: 1 px per mm
+    image = charuco_board(board).generateImage((7 * square + 2 * margin, 5 * square + 2 * margin), marginSize=margin)
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+    corners = detect_corners(image, board)
+    assert corners is not None and np.all(corners[..., 2] > 0)
+    cols, rows = np.meshgrid(np.arange(6), np.arange(4))
+    expected = np.stack([margin + (cols + 1) * square - 0.5, margin + (rows + 1) * square - 0.5], axis=-1)
+    np.testing.assert_allclose(corners[..., :2], expected, atol=0.1)
+    with pytest.raises(CalibError, match="not an OpenCV ArUco dictionary"):
+        detect_corners(image, Board(6, 4, 40.0, charuco_dictionary="DICT_NOPE"))
