@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "recon.commands",
     "recon.export_cli",
     "rig.cli",
+    "recon.scale_cli",
     "calib.cli",
 ]
 

@@ -1,0 +1,182 @@
+"""One light field in, one result folder out: what ``lfrig reconstruct`` and ``lfrig batch`` both do.
+
+:func:`reconstruct_to_folder` reads a light-field folder, estimates the centre view's disparity and
+writes the result folder:
+
+- ``disparity.pfm``: ``(H, W)`` float32 disparity, pixels per view step (``docs/conventions.md``),
+- ``disparity.png``: the same, colour-mapped,
+- ``centre_view.png``: the centre view as stored,
+- the method's own maps, if it has any (:attr:`recon.methods.MethodResult.write_extras`),
+- ``result.json``: method, options (as the method reports them), source, image ``[W, H]``, grid ``[U, V]``, ``focal_px``,
+  ``pitch_mm``, ``disparity_offset``, ``disparity_png_range``, ``seconds`` (the estimate alone) and,
+  when the light field has ground truth, ``scores`` (:func:`recon.evaluate.score`),
+
+and, on request, a PLY mesh or point cloud through :func:`recon.export.export_result`.
+
+``result.json`` is written last and atomically (a temporary file renamed over it), so a folder with a
+readable ``result.json`` holds the disparity maps it describes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from recon.lightfield import LightField
+from recon.methods import DEFAULT_METHOD, MethodResult
+RESULT_JSON = "result.json"
+DISPARITY_PFM = "disparity.pfm"
+DISPARITY_PNG = "disparity.png"
+CENTRE_VIEW_PNG = "centre_view.png"
+
+#: ``estimate(lf, method, options, progress) -> MethodResult``: how the disparity is computed. The
+#: default runs :func:`recon.methods.run_method` in this process; tiled runs on a cluster plug in
+#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or an object with
+#: ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
+
+
+@dataclass
+class FolderResult:
+    """What :func:`reconstruct_to_folder` wrote: the folder, ``result.json``'s content, the PLY (if any)."""
+
+    out_dir: Path
+    result: dict[str, Any]
+    ply: Path | None = None
+    export: Any = None  # recon.export.ExportSummary when a PLY was written
+    files: list[str] = field(default_factory=list)
+
+
+def run_in_process(lf: LightField, method: str, options: dict[str, Any], progress: Any) -> MethodResult:
+    """The default :data:`Estimator`: :func:`recon.methods.run_method` here and now; an option value
+    the method rejects (``ValueError``) becomes a :class:`recon.errors.ReconError` naming the method."""
+    from recon.errors import ReconError
+    from recon.methods import run_method
+
+    try:
+        return run_method(method, lf, progress=progress, **options)
+    except ValueError as error:
+        raise ReconError(f"{method}: {error}") from None
+
+
+def jsonable(options: Mapping[str, Any]) -> dict[str, Any]:
+    """``options`` as JSON would give them back (tuples become lists, anything odd a string)."""
+    return json.loads(json.dumps(dict(options), default=str))
+
+
+def check_options(options: Mapping[str, Any]) -> None:
+    """Reject option values every method would reject, naming the value (a :class:`ReconError`)."""
+    from recon.errors import ReconError
+
+    rng = options.get("disparity_range")
+    if rng is not None and not (len(rng) == 2 and float(rng[0]) < float(rng[1])):
+        raise ReconError(f"disparity range {tuple(rng)}: MIN must be less than MAX")
+
+
+def write_json_atomic(path: Path, record: Any) -> None:
+    """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps(record, indent=2) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def reconstruct_to_folder(
+    lf_dir: str | os.PathLike | LightField,
+    out_dir: str | os.PathLike,
+    *,
+    method: str = DEFAULT_METHOD,
+    options: Mapping[str, Any] | None = None,
+    ply: str | os.PathLike | None = None,
+    ply_kind: Literal["mesh", "points"] = "mesh",
+    progress: Any = None,
+    estimate: Estimator | None = None,
+    source: str | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> FolderResult:
+    """Reconstruct one light field into ``out_dir`` (created if needed); see the module docstring.
+
+    Parameters
+    ----------
+    lf_dir
+        Light-field folder (benchmark or capture layout), or an already read :class:`LightField`.
+    out_dir
+        Result folder.
+    method, options
+        Method name (``recon.methods.METHODS``) and its keyword options, recorded in ``result.json``.
+        ``options["disparity_range"]`` is ``None`` or ``(min, max)`` with ``min < max``.
+    ply, ply_kind
+        Also export a PLY ``"mesh"`` or ``"points"`` to this path (after ``result.json``).
+    progress
+        ``None`` or an object with ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+    estimate
+        How the disparity is computed (:data:`Estimator`); default :func:`run_in_process`.
+    source
+        What ``result.json`` records as the source (default: the light field's resolved folder). A
+        batch that ships the views to a worker passes the folder the views came from.
+    extra
+        More keys for ``result.json`` (e.g. how the work was tiled); they must not clash.
+
+    Raises
+    ------
+    recon.errors.LfrigError
+        For an unreadable light field, a bad disparity range, or a failed export.
+    """
+    from recon.colour import colourise
+    from recon.evaluate import score
+    from recon.imageio import write_png
+    from recon.io import read_ground_truth, read_lightfield
+    from recon.pfm import write_pfm
+
+    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
+    opts: dict[str, Any] = dict(options or {})
+    check_options(opts)
+    if opts.get("disparity_range") is not None:
+        opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # A stale result.json must not describe the new maps while they are being written: it goes first,
+    # and the new one is renamed in last.
+    (out / RESULT_JSON).unlink(missing_ok=True)
+    started = time.perf_counter()
+    method_result = (estimate or run_in_process)(lf, method, opts, progress)
+    disparity = method_result.disparity
+    seconds = time.perf_counter() - started
+    write_pfm(out / DISPARITY_PFM, disparity)
+    picture, shown = colourise(disparity, value_range=lf.disparity_range)
+    write_png(out / DISPARITY_PNG, picture)
+    write_png(out / CENTRE_VIEW_PNG, lf.centre_view())
+    files = [DISPARITY_PFM, DISPARITY_PNG, CENTRE_VIEW_PNG]
+    if method_result.write_extras is not None:
+        files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
+    if source is None:
+        source = str(lf.source.resolve()) if lf.source else None
+    result: dict[str, Any] = {
+        "method": method, "options": jsonable(method_result.options), "source": source,
+        "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
+        "focal_px": lf.focal_px, "pitch_mm": lf.pitch_mm, "disparity_offset": lf.disparity_offset,
+        "disparity_png_range": list(shown), "seconds": round(seconds, 3),
+    }
+    gt = read_ground_truth(lf)
+    if gt is not None:
+        result["scores"] = score(disparity, gt)
+    for key, value in (extra or {}).items():
+        if key in result:
+            raise ValueError(f"extra key {key!r} would overwrite result.json's own {key!r}")
+        result[key] = value
+    write_json_atomic(out / RESULT_JSON, result)
+    files.append(RESULT_JSON)
+    folder = FolderResult(out_dir=out, result=result, files=files)
+    if ply is not None:
+        from recon.export import export_result
+
+        folder.export = export_result(out, ply, kind=ply_kind)
+        folder.ply = Path(ply)
+    return folder

@@ -1,0 +1,324 @@
+"""One large light field as tiles of the centre view, each with a halo, run anywhere and stitched.
+
+A tile is a rectangle of the centre view (its **core**); the light field is cropped to the core grown
+by a **halo** on every side (clipped to the image) in *every* view at the same rectangle, so a
+pixel ``(y, x)`` of the crop is the pixel ``(y + top, x + left)`` of the whole image in every view and
+the sign convention of ``docs/conventions.md`` holds inside the crop unchanged. The method runs on
+the crop; only the core of its result is kept; the cores partition the image.
+
+How wide the halo must be is the method's business: :data:`TILE_RULES` holds, per method, a rule
+that fills in the options every tile must share (the disparity range: it bounds the halo and must not
+be re-derived per tile) and returns the halo in pixels.
+
+- **baseline**: tile-local, exactly. Its disparity at a pixel depends on the per-pixel cost inside
+  the ``window x window`` box around it, and the cost at a pixel on the other views sampled
+  (bilinearly) at most ``max|d| * max(|u - u0|, |v - v0|)`` pixels away. So
+  ``halo = window // 2 + ceil(max|d| * max view offset) + 1`` (one more pixel for the bilinear
+  neighbour, so no sample inside the core's reach is clamped at the crop's edge). The stitched map
+  equals the untiled one bit for bit (``tests/test_scale_tiles.py``).
+- **entropy**: *not* tile-local as written (``docs/scale-out.md`` measures the difference): the
+  smooth-region tolerance uses the noise sigma of the whole centre view, the disparity histogram's
+  bins start at the minimum of the whole layer map, and the TV refinement (Eq. 13) diffuses over up
+  to ``tv_iterations`` pixels. Its halo covers the chain of local steps (initial estimate, layer
+  median, occlusion warp, largest window, line search), so tiles agree away from those global
+  effects.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from recon.lightfield import LightField
+from recon.scale import ScaleError
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile: ``core`` and ``crop`` are ``(top, bottom, left, right)`` half-open pixel bounds in
+    the whole centre view; ``crop`` contains ``core``."""
+
+    index: int
+    core: tuple[int, int, int, int]
+    crop: tuple[int, int, int, int]
+
+    @property
+    def inner(self) -> tuple[slice, slice]:
+        """``(rows, cols)`` slices of the core inside the crop."""
+        top, bottom, left, right = self.core
+        return slice(top - self.crop[0], bottom - self.crop[0]), slice(left - self.crop[2], right - self.crop[2])
+
+
+def _bounds(length: int, tile: int) -> list[tuple[int, int]]:
+    count = max(1, math.ceil(length / tile))
+    edges = [round(k * length / count) for k in range(count + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def plan_tiles(image_shape: tuple[int, int], *, tile: int, halo: int) -> list[Tile]:
+    """Split an ``(H, W)`` image into tiles of at most ``tile x tile`` core pixels (sizes balanced so
+    no tile is a sliver), each cropped with ``halo`` pixels around it, clipped to the image.
+
+    The cores partition the image; tiles are listed row by row.
+    """
+    if tile < 1:
+        raise ValueError(f"tile size must be at least 1 pixel; got {tile}")
+    if halo < 0:
+        raise ValueError(f"halo must be >= 0 pixels; got {halo}")
+    height, width = image_shape
+    tiles = []
+    for top, bottom in _bounds(height, tile):
+        for left, right in _bounds(width, tile):
+            crop = (max(top - halo, 0), min(bottom + halo, height), max(left - halo, 0), min(right + halo, width))
+            tiles.append(Tile(index=len(tiles), core=(top, bottom, left, right), crop=crop))
+    return tiles
+
+
+def crop_lightfield(lf: LightField, tile: Tile) -> LightField:
+    """The light field cut to ``tile.crop`` in every view (a contiguous copy, nothing else shared)."""
+    top, bottom, left, right = tile.crop
+    return LightField(
+        views=np.ascontiguousarray(lf.views[:, :, top:bottom, left:right]),
+        pitch_mm=lf.pitch_mm, focal_px=lf.focal_px, disparity_range=lf.disparity_range,
+        disparity_offset=lf.disparity_offset, metadata={"tile": tile.index, "crop": list(tile.crop)},
+        source=None,
+    )
+
+
+def stitch(image_shape: tuple[int, int], tiles: list[Tile], results: list[np.ndarray]) -> np.ndarray:
+    """Put the core of each tile's ``(crop H, crop W)`` result into one ``(H, W)`` float32 map."""
+    out = np.full(image_shape, np.nan, dtype=np.float32)
+    for tile, result in zip(tiles, results):
+        top, bottom, left, right = tile.crop
+        if result.shape != (bottom - top, right - left):
+            raise ScaleError(
+                f"tile {tile.index}: the method returned a {result.shape[1]}x{result.shape[0]} map for a "
+                f"{right - left}x{bottom - top} crop; a tiled method must keep the crop's size"
+            )
+        rows, cols = tile.inner
+        out[tile.core[0]:tile.core[1], tile.core[2]:tile.core[3]] = result[rows, cols]
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# what each method needs
+# --------------------------------------------------------------------------------------------------
+
+
+def max_view_offset(grid_shape: tuple[int, int]) -> int:
+    """``max |u - u0|, |v - v0|`` over the grid: how many view steps the farthest view is away."""
+    rows, cols = grid_shape
+    return max(rows // 2, rows - 1 - rows // 2, cols // 2, cols - 1 - cols // 2)
+
+
+def _shift_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
+    """``ceil(max|d| * max view offset)``: the farthest a view is sampled from a pixel."""
+    return math.ceil(max(abs(disparity_range[0]), abs(disparity_range[1])) * max_view_offset(grid_shape) - 1e-9)
+
+
+@dataclass(frozen=True)
+class TileRule:
+    """How to tile one method.
+
+    ``resolve(lf, options) -> options`` fills in what every tile must share (at least
+    ``disparity_range``); ``halo_px(lf, resolved_options) -> int``; ``exact`` says whether the
+    stitched result equals the untiled one; ``note`` says why not, when it does not.
+    """
+
+    resolve: Callable[[LightField, dict[str, Any]], dict[str, Any]]
+    halo_px: Callable[[LightField, dict[str, Any]], int]
+    exact: bool
+    note: str = ""
+
+
+def _baseline_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
+    from recon.baseline import DEFAULT_DISPARITY_RANGE
+
+    out = dict(options)
+    out["disparity_range"] = tuple(options.get("disparity_range") or lf.disparity_range or DEFAULT_DISPARITY_RANGE)
+    return out
+
+
+def _baseline_halo(lf: LightField, options: dict[str, Any]) -> int:
+    from recon.baseline import estimate_baseline
+
+    window = options.get("window", inspect.signature(estimate_baseline).parameters["window"].default)
+    return int(window) // 2 + _shift_px(options["disparity_range"], lf.grid_shape) + 1
+
+
+def _entropy_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
+    from recon.entropy import make_options
+
+    opts = make_options(**{k: v for k, v in options.items() if v is not None})
+    out = dict(options)
+    out["disparity_range"] = tuple(opts.disparity_range or lf.disparity_range or opts.initial_range)
+    return out
+
+
+def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
+    from recon.entropy import make_options
+
+    opts = make_options(**{k: v for k, v in options.items() if v is not None})
+    lo, hi = opts.disparity_range
+    # the initial search looks one initial_step beyond a known range
+    shift = _shift_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape) + 1
+    initial = shift + opts.initial_window // 2          # d0 at a pixel
+    layers = opts.layer_median // 2 + shift             # median of d0, then the occlusion warp
+    matching = max(opts.window_sizes) // 2 + shift      # windows over labels/entropy, then the views
+    return initial + layers + matching + opts.smooth_neighbourhood // 2
+
+
+#: Tiling rule per method name (the lead may move ``halo_px`` next to each runner in
+#: ``recon.methods.METHODS``; this table is the stand-in).
+TILE_RULES: dict[str, TileRule] = {
+    "baseline": TileRule(resolve=_baseline_resolve, halo_px=_baseline_halo, exact=True),
+    "entropy": TileRule(
+        resolve=_entropy_resolve, halo_px=_entropy_halo, exact=False,
+        note=("global steps: noise sigma of the whole centre view, disparity-histogram bins from the "
+              "whole layer map's minimum, TV refinement over tv_iterations pixels"),
+    ),
+}
+
+
+def tile_rule(method: str) -> TileRule:
+    try:
+        return TILE_RULES[method]
+    except KeyError:
+        raise ScaleError(
+            f"method {method!r} has no tiling rule (its halo is unknown); tile one of "
+            f"{', '.join(sorted(TILE_RULES))}, or run it untiled"
+        ) from None
+
+
+# --------------------------------------------------------------------------------------------------
+# running
+# --------------------------------------------------------------------------------------------------
+
+
+def run_tile(crop: LightField, method: str, options: dict[str, Any], threads: int | None = None) -> np.ndarray:
+    """One tile's disparity ``(crop H, crop W)`` float32 (a cluster task; ``threads`` caps numba/OpenCV)."""
+    from recon.methods import run_method
+    from recon.scale.cluster import limit_threads
+
+    limit_threads(threads)
+    return run_method(method, crop, **options).disparity
+
+
+@dataclass
+class TiledResult:
+    """The stitched ``(H, W)`` disparity, the tiles, the halo and the options every tile ran with."""
+
+    disparity: np.ndarray
+    tiles: list[Tile]
+    halo: int
+    options: dict[str, Any]
+    exact: bool
+
+    def describe(self) -> dict[str, Any]:
+        """What ``result.json`` records about the tiling."""
+        top, bottom, left, right = self.tiles[0].core
+        return {"tiles": len(self.tiles), "tile_px": [right - left, bottom - top], "halo_px": self.halo,
+                "exact": self.exact, "disparity_range": list(self.options["disparity_range"])}
+
+
+def tiled_disparity(
+    lf: LightField,
+    *,
+    method: str,
+    options: dict[str, Any] | None = None,
+    tile: int,
+    halo: int | None = None,
+    client: Any = None,
+    threads: int | None = None,
+    progress: Any = None,
+    runner: Callable[..., np.ndarray] = run_tile,
+) -> TiledResult:
+    """The centre view's disparity of ``lf``, computed tile by tile and stitched.
+
+    Parameters
+    ----------
+    lf
+        The whole light field (the caller holds it; each tile's crop is sent to a worker).
+    method, options
+        As for :func:`recon.methods.run_method`; the method's :class:`TileRule` fills in the disparity
+        range so all tiles search the same one.
+    tile
+        Core side in pixels.
+    halo
+        Pixels around each core; default the method's :attr:`TileRule.halo_px`. A smaller halo gives
+        wrong pixels along the tile seams.
+    client
+        A ``distributed.Client``: tiles run as tasks (as many at once as the cluster has threads).
+        ``None``: one after the other in this process.
+    threads
+        numba/OpenCV threads per tile task (``None``: the worker's setting).
+    progress
+        ``None`` or an object with ``update(done, total, note=...)``, told as tiles finish.
+    runner
+        ``runner(crop, method, options, threads) -> (crop H, crop W)``; default :func:`run_tile`.
+
+    Returns
+    -------
+    :class:`TiledResult`; ``disparity`` is ``(H, W)`` float32, pixels per view step.
+    """
+    rule = tile_rule(method)
+    resolved = rule.resolve(lf, dict(options or {}))
+    halo = rule.halo_px(lf, resolved) if halo is None else int(halo)
+    tiles = plan_tiles(lf.image_shape, tile=tile, halo=halo)
+    results: list[np.ndarray | None] = [None] * len(tiles)
+    if client is None:
+        for i, t in enumerate(tiles):
+            results[i] = runner(crop_lightfield(lf, t), method, resolved, threads)
+            if progress:
+                progress.update(i + 1, len(tiles), note="tiles")
+    else:
+        from distributed import as_completed
+
+        futures = {}
+        for t in tiles:
+            crop = client.scatter(crop_lightfield(lf, t), hash=False)
+            futures[client.submit(runner, crop, method, resolved, threads, pure=False)] = t.index
+        for done, future in enumerate(as_completed(futures), start=1):
+            results[futures[future]] = future.result()
+            if progress:
+                progress.update(done, len(tiles), note="tiles")
+    disparity = stitch(lf.image_shape, tiles, results)
+    return TiledResult(disparity=disparity, tiles=tiles, halo=halo, options=resolved, exact=rule.exact)
+
+
+def tiled_estimator(*, tile: int, halo: int | None = None, client: Any = None, threads: int | None = None,
+                    record: dict[str, Any] | None = None):
+    """A :data:`recon.pipeline.Estimator` that tiles: on ``client``; inside a cluster task, on that
+    task's cluster (the task steps aside while its tiles run); elsewhere, in this process.
+
+    ``record``, when given, receives :meth:`TiledResult.describe` (before ``result.json`` is
+    written). The method's own intermediate maps are not stitched: a tiled result has only the
+    disparity.
+    """
+    from recon.methods import MethodResult
+
+    def estimate(lf: LightField, method: str, options: dict[str, Any], progress: Any) -> MethodResult:
+        def run(c):
+            result = tiled_disparity(lf, method=method, options=options, tile=tile, halo=halo, client=c,
+                                     threads=threads, progress=progress)
+            if record is not None:
+                record.update(result.describe())
+            return MethodResult(disparity=result.disparity, options=result.options)
+
+        if client is not None:
+            return run(client)
+        try:
+            from distributed import get_worker, worker_client
+
+            get_worker()
+        except (ImportError, ValueError):
+            return run(None)
+        with worker_client() as c:
+            return run(c)
+
+    return estimate
