@@ -124,13 +124,43 @@ def _maps(model: Any, R: np.ndarray, K: np.ndarray, image_size: tuple[int, int])
     return q[..., 0].astype(np.float32), q[..., 1].astype(np.float32)
 
 
+def valid_crop(map_x: np.ndarray, map_y: np.ndarray, source_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` (inclusive) of a large rectangle of the output whose every pixel samples
+    inside the source image ``source_size = (W, H)``.
+
+    Peels whichever border row or column has the most invalid pixels until none is left: the result
+    is the rectangle a user expects (no black wedges from the rotation), close to the largest.
+    """
+    w, h = source_size
+    valid = (map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)
+    y0, x0, y1, x1 = 0, 0, valid.shape[0] - 1, valid.shape[1] - 1
+    while y0 < y1 and x0 < x1:
+        bad = {"top": int((~valid[y0, x0:x1 + 1]).sum()), "bottom": int((~valid[y1, x0:x1 + 1]).sum()),
+               "left": int((~valid[y0:y1 + 1, x0]).sum()), "right": int((~valid[y0:y1 + 1, x1]).sum())}
+        side = max(bad, key=bad.get)
+        if bad[side] == 0:
+            return x0, y0, x1, y1
+        if side == "top":
+            y0 += 1
+        elif side == "bottom":
+            y1 -= 1
+        elif side == "left":
+            x0 += 1
+        else:
+            x1 -= 1
+    raise CalibError("no part of the rectified image lies inside the camera's image; the stage calibration "
+                     "or the camera model is broken")
+
+
 def rectification(model: Any, stage: StageCalibration, *, pitch_mm: float | None = None,
                   focal_px: float | None = None, image_size: tuple[int, int] | None = None,
-                  centre_px: tuple[float, float] | None = None) -> Rectification:
+                  centre_px: tuple[float, float] | None = None, crop: bool = True) -> Rectification:
     """The rectification of a capture commanded at ``pitch_mm`` (default: the stage calibration's).
 
     ``focal_px`` defaults to the model's ``sqrt(fx fy)``, ``image_size`` to the model's imager and
-    ``centre_px`` to the centre of the output image.
+    ``centre_px`` to the centre of the output image. With ``crop`` (the default) the output is then
+    cut to the rectangle whose pixels all come from inside the camera image (:func:`valid_crop`), so
+    no view has black borders where matching would find nothing; the principal point moves with it.
     """
     lensmodel, intr = model.intrinsics()
     w, h = (int(v) for v in (image_size if image_size is not None else model.imagersize()))
@@ -141,6 +171,14 @@ def rectification(model: Any, stage: StageCalibration, *, pitch_mm: float | None
     su, sv = stage.steps_for(stage.pitch_mm if pitch_mm is None else pitch_mm)
     R, K, pitch = rectifying_frame(su, sv, focal_px=focal_px, centre_px=centre_px)
     map_x, map_y = _maps(model, R, K, (w, h))
+    if crop:
+        x0, y0, x1, y1 = valid_crop(map_x, map_y, tuple(int(v) for v in model.imagersize()))
+        K = K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        map_x = np.ascontiguousarray(map_x[y0:y1 + 1, x0:x1 + 1])
+        map_y = np.ascontiguousarray(map_y[y0:y1 + 1, x0:x1 + 1])
+        w, h = x1 - x0 + 1, y1 - y0 + 1
     return Rectification(R, K, float(focal_px), float(pitch), (w, h), map_x, map_y, lensmodel, np.asarray(intr))
 
 
@@ -235,7 +273,7 @@ def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
 
 
 def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model_path: str | os.PathLike,
-                    stage_path: str | os.PathLike, focal_px: float | None = None) -> Rectification:
+                    stage_path: str | os.PathLike, focal_px: float | None = None, crop: bool = True) -> Rectification:
     """Read a capture, rectify every view and write the result as a capture folder at ``out``.
 
     Raises
@@ -258,7 +296,7 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
         raise CalibError(f"{capture}: the capture records no pitch_mm; cannot scale the stage steps")
     if lf.disparity_offset:
         raise CalibError(f"{capture}: this light field is already shifted (refocused); rectify the raw capture")
-    rect = rectification(model, stage, pitch_mm=float(lf.pitch_mm), focal_px=focal_px)
+    rect = rectification(model, stage, pitch_mm=float(lf.pitch_mm), focal_px=focal_px, crop=crop)
     rectified = rectify_lightfield(lf, rect)
     rectified.metadata["rectification"].update(model=str(model_path), stage=str(stage_path),
                                                 capture_pitch_mm=float(lf.pitch_mm))

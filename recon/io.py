@@ -112,8 +112,8 @@ def read_ground_truth(lf: LightField) -> np.ndarray | None:
     return read_pfm(p) if p is not None else None
 
 
-def write_lightfield(path: str | os.PathLike, lf: LightField) -> None:
+def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict | None = None) -> None:
     """Write a light field in lfrig's capture layout (see :func:`rig.layout.write_lightfield`)."""
     from rig import layout
 
-    layout.write_lightfield(path, lf)
+    layout.write_lightfield(path, lf, header_extra=header_extra)

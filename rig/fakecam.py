@@ -1008,14 +1008,29 @@ class FakeCamera:
         su, sv = self.grid_steps_cam(pitch_mm=pitch_mm, u_axis=u_axis, v_axis=v_axis)
         geo = rectified_geometry(su, sv, focal_px=focal_px, centre_px=centre_px)
         centre = self.rig.ref_mm if centre_mm is None else centre_mm
-        d_rect = self._pinhole_dirs(geo.K_rect, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None])
-        d_world = d_rect @ geo.R_rect_cam @ self.R_cam_stage  # R_cam_stage^T R_rect_cam^T d
-        _, t, _ = _ENGINES[self.engine](self.rig.camera_centre(centre), d_world.reshape(-1, 3),
-                                        1.0 / focal_px, self._packed(self.scene))
-        depth = t.reshape(h, w) * d_rect[..., 2]
-        depth[~np.isfinite(depth)] = np.nan
+        depth = self.depth_in_rectified(geo.K_rect, geo.R_rect_cam, (w, h), centre)
         return {"geometry": geo, "depth_mm": depth, "disparity_px": focal_px * geo.pitch_mm / depth,
                 "focal_px": focal_px, "pitch_mm": geo.pitch_mm}
+
+    def depth_in_rectified(self, K_rect: np.ndarray, R_rect_cam: np.ndarray, image_size: tuple[int, int],
+                           position_mm: Sequence[float]) -> np.ndarray:
+        """True depth seen through any rectified camera: ``(H, W)`` mm, NaN where no surface.
+
+        The rectified camera has intrinsics ``K_rect`` ``(3, 3)`` and orientation ``R_rect_cam``
+        (camera frame -> rectified frame), is ``image_size = (W, H)`` pixels, and sits where this
+        camera is when the stage reads ``position_mm``. Depth is the rectified frame's z of the
+        nearest surface through each pixel centre: the truth for a light field rectified with an
+        *estimated* calibration (``calib.rectify.Rectification``), not only the ideal one.
+        """
+        w, h = image_size
+        d_rect = self._pinhole_dirs(np.asarray(K_rect, float), np.arange(w, dtype=float)[None, :],
+                                    np.arange(h, dtype=float)[:, None])
+        d_world = d_rect @ np.asarray(R_rect_cam, float) @ self.R_cam_stage  # R_cam_stage^T R_rect_cam^T d
+        _, t, _ = _ENGINES[self.engine](self.rig.camera_centre(position_mm), d_world.reshape(-1, 3),
+                                        1.0 / float(K_rect[0][0]), self._packed(self.scene))
+        depth = t.reshape(h, w) * d_rect[..., 2]
+        depth[~np.isfinite(depth)] = np.nan
+        return depth
 
     @staticmethod
     def _pinhole_dirs(K: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -184,7 +184,9 @@ def test_rectify_command_makes_a_pure_translation_light_field(camera, stage_file
     assert main(["rectify", str(tmp_path / "check"), "--model", str(model_path), "--stage", str(stage_path),
                  "-o", str(tmp_path / "rect")]) == 0
     lf = read_lightfield(tmp_path / "rect")
-    assert lf.grid_shape == (GRID, GRID) and lf.image_shape == (980, 1280)
+    # Cropped to where every pixel comes from inside the camera image: a little smaller, no black wedges.
+    assert lf.grid_shape == (GRID, GRID)
+    assert 0.9 * 980 < lf.image_shape[0] < 980 and 0.9 * 1280 < lf.image_shape[1] < 1280
     truth = camera.rectified_truth(pitch_mm=PITCH, image_size=(8, 8))
     assert lf.pitch_mm == pytest.approx(truth["pitch_mm"], rel=5e-4)
     assert lf.focal_px == pytest.approx(np.sqrt(np.prod(load_model(model_path).intrinsics()[1][:2])))
@@ -237,3 +239,19 @@ def test_charuco_corners_are_identified_by_their_markers():
     np.testing.assert_allclose(corners[..., :2], expected, atol=0.1)
     with pytest.raises(CalibError, match="not an OpenCV ArUco dictionary"):
         detect_corners(image, Board(6, 4, 40.0, charuco_dictionary="DICT_NOPE"))
+
+
+def test_crop_keeps_only_pixels_that_sample_inside_the_camera_image(camera, stage_files):
+    model_path, stage_path = stage_files
+    model, stage = load_model(model_path), StageCalibration.load(stage_path)
+    full = rectification(model, stage, crop=False)
+    cropped = rectification(model, stage)
+    w, h = camera.image_size
+    for rect in (full, cropped):
+        inside = (rect.map_x >= 0) & (rect.map_x <= w - 1) & (rect.map_y >= 0) & (rect.map_y <= h - 1)
+        assert inside.all() == (rect is cropped)
+    # The crop moves the principal point with it and keeps the focal length.
+    assert cropped.K_rect[0, 0] == full.K_rect[0, 0]
+    dx, dy = full.K_rect[0, 2] - cropped.K_rect[0, 2], full.K_rect[1, 2] - cropped.K_rect[1, 2]
+    np.testing.assert_allclose(cropped.map_x, full.map_x[int(dy):int(dy) + cropped.image_size[1],
+                                                        int(dx):int(dx) + cropped.image_size[0]])
