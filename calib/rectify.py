@@ -269,7 +269,9 @@ def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
     views = rectify_views(lf.views, rect)
     metadata = {"rectification": rect.metadata(), "source": str(lf.source) if lf.source else None}
     return LightField(views=views, pitch_mm=rect.pitch_mm, focal_px=rect.focal_px,
-                      disparity_range=None, disparity_offset=0.0, metadata=metadata, source=lf.source)
+                      disparity_range=None, disparity_offset=0.0,
+                      principal_point_px=(float(rect.K_rect[0, 2]), float(rect.K_rect[1, 2])),
+                      metadata=metadata, source=lf.source)
 
 
 def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model_path: str | os.PathLike,

@@ -39,6 +39,9 @@ class LightField:
     disparity_offset
         ``d0`` in pixels per view step: the views were shifted (refocused) so that a point at depth
         ``Z`` has disparity ``focal_px * pitch_mm / Z - d0``. 0 for an unshifted capture.
+    principal_point_px
+        ``(cx, cy)`` of the (rectified) views, x first as in a camera matrix; ``None`` means the image
+        centre ``((W - 1) / 2, (H - 1) / 2)``.
     metadata
         Everything else the source recorded (``parameters.cfg`` sections, capture manifest header).
     source
@@ -50,6 +53,7 @@ class LightField:
     focal_px: float | None = None
     disparity_range: tuple[float, float] | None = None
     disparity_offset: float = 0.0
+    principal_point_px: tuple[float, float] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     source: Path | None = None
 

@@ -79,8 +79,8 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
 
     Returns ``(num_cams, camera)``: the grid ``(rows, cols)`` or ``None``, and the keyword arguments
     of :class:`recon.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
-    ``disparity_offset`` (pixels per view step, 0 when unknown) and ``disparity_range`` (each may be
-    ``None``).
+    ``disparity_offset`` (pixels per view step, 0 when unknown), ``disparity_range`` and
+    ``principal_point_px`` (each may be ``None``).
     The benchmark's focal length in pixels is ``focal_length_mm / sensor_size_mm * max(res_x, res_y)``
     and its views are refocused at ``focus_distance_m``, so ``d0 = focal_px * baseline_mm / focus_mm``.
     """
@@ -99,6 +99,8 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         offset = 0.0
         if focus_m and focal_px and pitch_mm and "lfrig" not in parameters:
             offset = focal_px * pitch_mm / (focus_m * 1000.0)
+    cx = _number(parameters, "lfrig", "principal_x_px", path)
+    cy = _number(parameters, "lfrig", "principal_y_px", path)
     d_min = _number(parameters, "meta", "disp_min", path)
     d_max = _number(parameters, "meta", "disp_max", path)
     if d_min is not None and d_max is not None and not d_min < d_max:
@@ -117,4 +119,5 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         "focal_px": focal_px,
         "disparity_offset": offset,
         "disparity_range": (d_min, d_max) if d_min is not None and d_max is not None else None,
+        "principal_point_px": (cx, cy) if cx is not None and cy is not None else None,
     }

@@ -218,6 +218,7 @@ def parameters_for(
     sensor_size_mm: float | None = None,
     disparity_range: tuple[float, float] | None = None,
     disparity_offset: float = 0.0,
+    principal_point_px: tuple[float, float] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """The ``parameters.cfg`` sections describing a capture (see :mod:`recon.params`)."""
     height, width = image_shape
@@ -238,6 +239,8 @@ def parameters_for(
     lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}
     if focal_px is not None:
         lfrig["focal_px"] = focal_px
+    if principal_point_px is not None:
+        lfrig["principal_x_px"], lfrig["principal_y_px"] = (float(c) for c in principal_point_px)
     sections["lfrig"] = lfrig
     return sections
 
@@ -313,5 +316,6 @@ def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: d
             focal_px=lf.focal_px,
             disparity_range=lf.disparity_range,
             disparity_offset=lf.disparity_offset,
+            principal_point_px=lf.principal_point_px,
         )
         writer.mark_complete()

@@ -189,3 +189,9 @@ def test_complete_marker_is_written_once_and_cleared_by_a_retake(tmp_path):
         assert w.marked_complete
         w.write_view(0, 0, image)
         assert not w.marked_complete
+
+
+def test_principal_point_survives_the_capture_layout(tmp_path):
+    lf = LightField(views=random_views(), pitch_mm=0.5, focal_px=900.0, principal_point_px=(3.25, 2.5))
+    write_lightfield(tmp_path / "cap", lf)
+    assert read_lightfield(tmp_path / "cap").principal_point_px == (3.25, 2.5)
