@@ -72,15 +72,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Resample every view of CAPTURE_DIR with one map built from the camera model and the stage "
             "calibration, so that a scene point moves by exactly (u-u0)*d, (v-v0)*d between views. The output "
-            "is a capture folder whose parameters record the rectified focal length (px) and the true pitch (mm)."
+            "is a capture folder whose parameters record the rectified focal length (px), principal point and the "
+            "true pitch (mm). The views are cropped to the rectangle whose pixels all come from inside the camera "
+            "image (no black borders); --no-crop keeps the camera's image size."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     rect.add_argument("capture", type=Path, metavar="CAPTURE_DIR")
     rect.add_argument("--model", type=Path, required=True, metavar="CAM.cameramodel")
     rect.add_argument("--stage", type=Path, required=True, metavar="STAGE.json")
     rect.add_argument("-o", "--output", type=Path, required=True, metavar="RECT_DIR")
     rect.add_argument("--focal-px", type=float, help="focal length of the rectified views (default: the camera's)")
+    rect.add_argument("--no-crop", dest="crop", action="store_false",
+                      help="keep the camera's image size, with black where no camera pixel maps")
     rect.set_defaults(handler=_rectify)
 
 
@@ -150,7 +153,7 @@ def _rectify(args: argparse.Namespace) -> int:
     from calib.rectify import rectify_capture
 
     rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
-                           focal_px=args.focal_px)
+                           focal_px=args.focal_px, crop=args.crop)
     print(json.dumps({"output": str(args.output), "focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                       "image_size": list(rect.image_size)}))
     return 0
