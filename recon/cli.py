@@ -16,6 +16,7 @@ from recon.errors import LfrigError
 
 #: Modules whose ``register(subparsers)`` adds subcommands, in the order ``--help`` lists them.
 COMMAND_MODULES = [
+    "recon.demo",
     "recon.commands",
     "recon.export_cli",
     "rig.cli",

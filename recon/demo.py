@@ -1,0 +1,285 @@
+"""``lfrig demo``: a whole lab session, simulated, from calibration to PLY and a report.
+
+The simulated rig is the paper's (1280x980 detector binned 2x2 to 640x490, 35 mm lens, 9x9 grid at
+0.5 mm, objects 0.9-1.0 m away) with the imperfections of a real one: lens distortion, stage axes
+rotated and skewed against the camera, a pitch error. Every step runs the code a lab runs, on the
+simulated stage (GRBL's wire protocol on a virtual clock) and camera:
+
+1. ``boards/``: pictures of a chessboard in many poses -> ``camera.cameramodel`` (mrcal);
+2. ``stage_capture/``: a 9x9 capture of a board -> ``stage.json`` (one rotation, two step vectors);
+3. ``capture/``: the 9x9 capture of the scene;
+4. ``rectified/``: the capture undistorted and rectified with one map;
+5. ``result/``: disparity by the matching-entropy method, depth, PLY mesh and point cloud;
+6. ``report/index.html``: the figures and scores against the simulated scene's truth.
+
+``summary.json`` holds every number the session reports. The folder is made afresh on each run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MARKER = "summary.json"
+
+#: Boards: intrinsics board 10x7 squares of 8 mm (inner corners 9x6), stage board 11x8 of 10 mm.
+INTRINSICS_BOARD = (9, 6, 8.0)
+STAGE_BOARD = (10, 7, 10.0)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    demo = subparsers.add_parser(
+        "demo",
+        help="run a whole simulated lab session: calibrate, capture, rectify, reconstruct, export, report",
+        description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    demo.add_argument("-o", "--output", type=Path, default=Path("runs/demo"), metavar="DIR",
+                      help="folder for everything the session writes (made afresh)")
+    demo.add_argument("--binning", type=int, default=2, help="detector binning (1 = full 1280x980; slower)")
+    demo.add_argument("--boards", type=int, default=12, help="board pictures for the intrinsics")
+    demo.add_argument("--noise", type=float, default=0.002, help="camera noise, standard deviation in full scale")
+    demo.add_argument("--method", default="entropy", help="reconstruction method (see lfrig reconstruct --help)")
+    demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    demo.set_defaults(handler=_demo)
+
+
+@dataclass
+class Steps:
+    """Prints one line per step with its time, and keeps the times for the summary."""
+
+    quiet: bool
+    started: float = 0.0
+    times: dict[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        self.times = {}
+
+    def begin(self, name: str, text: str) -> None:
+        self.name = name
+        self.started = time.perf_counter()
+        print(f"[{len(self.times) + 1}/6] {text}", flush=True)
+
+    def end(self, text: str) -> None:
+        seconds = time.perf_counter() - self.started
+        self.times[self.name] = round(seconds, 2)
+        print(f"      {text} ({seconds:.1f} s)", flush=True)
+
+
+def _prepare(folder: Path) -> None:
+    """Make ``folder`` empty: remove an earlier demo's output, refuse to touch anything else."""
+    from recon.errors import LfrigError
+
+    if folder.exists():
+        if not folder.is_dir():
+            raise LfrigError(f"{folder}: exists and is not a folder; pass another -o")
+        if any(folder.iterdir()) and not (folder / MARKER).is_file():
+            raise LfrigError(f"{folder}: folder is not empty and was not written by lfrig demo; pass another -o")
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    summary = run_demo(args.output, binning=args.binning, boards=args.boards, noise=args.noise,
+                       method=args.method, quiet=args.quiet)
+    d = summary["depth_error"]["textured"]
+    print()
+    print(f"median depth error on textured surfaces: {d['median_abs_rel_pct']:.3f} % of the distance "
+          f"({d['within_pct']:.1f} % of pixels within 0.5 %)")
+    print(f"report: {summary['report']}")
+    print(f"PLY:    {summary['ply']['mesh']['path']}")
+    print(f"        {summary['ply']['points']['path']}")
+    return 0
+
+
+def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float = 0.002, method: str = "entropy",
+             quiet: bool = False) -> dict[str, Any]:
+    """Run the simulated session into ``folder``; returns (and writes) the summary."""
+    from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
+    from calib.rectify import rectify_capture
+    from calib.stage import calibrate_stage_from_capture
+    from recon.depth import depth_error_scores, disparity_to_depth, write_depth
+    from recon.export import export_result
+    from recon.imageio import write_png
+    from recon.io import read_lightfield
+    from recon.pfm import read_pfm, write_pfm
+    from recon.pipeline import reconstruct_to_folder
+    from recon.progress import Progress
+    from recon.report import write_report
+    from rig.fakecam import FakeCamera, FakeRig, calibration_poses, chessboard_scene, default_scene
+    from rig.session import run_capture
+
+    folder = Path(folder)
+    _prepare(folder)
+    steps = Steps(quiet)
+    stream = None if quiet else sys.stderr
+    centre_mm = _fake_centre_mm()
+    rig = FakeRig.misaligned(ref_mm=centre_mm)
+    summary: dict[str, Any] = {"folder": str(folder.resolve()), "rig": _rig_summary(rig, binning)}
+    camera_options = dict(rig=rig, binning=binning, noise_sigma=noise)
+
+    # 1. Intrinsics from board pictures.
+    steps.begin("intrinsics", f"calibrating the camera from {boards} board pictures (mrcal)")
+    board = Board(*INTRINSICS_BOARD)
+    still = FakeCamera(rig=rig, binning=binning, noise_sigma=noise, colour=False, supersample=1)
+    (folder / "boards").mkdir()
+    paths = []
+    poses = calibration_poses(still, count=boards, inner=(board.cols, board.rows), square_mm=board.square_mm,
+                              distance_mm=(650.0, 1050.0), tilt_deg=30.0, seed=1)
+    with Progress("rendering boards", len(poses), quiet=quiet) as bar:
+        for i, (centre, rotation) in enumerate(poses):
+            scene = chessboard_scene(inner=(board.cols, board.rows), square_mm=board.square_mm,
+                                     centre_mm=centre, rotation_deg=rotation)
+            path = folder / "boards" / f"board{i:02d}.png"
+            write_png(path, still.frame(rig.ref_mm, scene=scene))
+            paths.append(path)
+            bar.update(i + 1)
+    intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
+    intrinsics.model.write(str(folder / "camera.cameramodel"), note="lfrig demo\n" + intrinsics.report())
+    write_residual_picture(intrinsics, folder / "camera.residuals.png")
+    summary["intrinsics"] = _intrinsics_summary(intrinsics, still)
+    steps.end(f"RMS reprojection error {summary['intrinsics']['rms_px']:.3f} px; against the truth: projection "
+              f"{summary['intrinsics']['truth_error_px']:.3f} px RMS, focal {summary['intrinsics']['focal_error_pct']:+.3f} %")
+
+    # 2. Stage geometry from a capture of a board.
+    steps.begin("stage", "calibrating the stage from a 9x9 capture of a board")
+    stage_board = Board(*STAGE_BOARD)
+    board_scene = chessboard_scene(inner=(stage_board.cols, stage_board.rows), square_mm=stage_board.square_mm,
+                                   centre_mm=(0.0, 0.0, 950.0))
+    _capture(folder / "stage_capture", camera_options | {"scene": board_scene, "colour": False, "supersample": 1},
+             centre_mm, stream)
+    stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board)
+    stage.save(folder / "stage.json")
+    summary["stage"] = _stage_summary(stage, rig)
+    st = summary["stage"]
+    steps.end(f"steps {st['pitch_u_mm']:.5f} / {st['pitch_v_mm']:.5f} mm (true {st['true_pitch_u_mm']:.5f} / "
+              f"{st['true_pitch_v_mm']:.5f}), skew {st['skew_deg']:.3f} deg, residual {st['rms_px']:.3f} px RMS")
+
+    # 3. The scene.
+    steps.begin("capture", "capturing the scene: 81 views on the simulated GRBL stage")
+    scene_camera = _capture(folder / "capture", camera_options | {"scene": default_scene()}, centre_mm, stream)
+    steps.end(f"{folder / 'capture'}")
+
+    # 4. Rectification.
+    steps.begin("rectify", "undistorting and rectifying the 81 views with one map")
+    rect = rectify_capture(folder / "capture", folder / "rectified", model_path=folder / "camera.cameramodel",
+                           stage_path=folder / "stage.json")
+    summary["rectification"] = {"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
+                                "image_size": list(rect.image_size)}
+    steps.end(f"focal {rect.focal_px:.1f} px, step {rect.pitch_mm:.5f} mm")
+
+    # 5. Disparity, depth, PLY.
+    steps.begin("reconstruct", f"estimating disparity ({method}), depth and 3D models")
+    result_dir = folder / "result"
+    with Progress(method, 1, quiet=quiet) as bar:
+        done = reconstruct_to_folder(folder / "rectified", result_dir, method=method, progress=bar)
+    disparity = read_pfm(result_dir / "disparity.pfm")
+    depth = disparity_to_depth(disparity, focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
+    for suffix in ("pfm", "png", "npy"):
+        write_depth(result_dir / f"depth.{suffix}", depth)
+    ply = {kind: export_result(result_dir, folder / f"model_{kind}.ply", kind=kind).as_dict()
+           for kind in ("mesh", "points")}
+    summary["ply"] = ply
+    summary["method"] = {"name": method, "seconds": done.result.get("seconds")}
+    steps.end(f"{ply['mesh']['points']} vertices, {ply['mesh']['triangles']} triangles; "
+              f"{ply['points']['points']} points")
+
+    # 6. Truth, scores, report.
+    steps.begin("report", "scoring against the simulated scene's truth and writing the report")
+    truth_depth = scene_camera.depth_in_rectified(rect.K_rect, rect.R_rect_cam, rect.image_size, centre_mm)
+    write_pfm(folder / "result" / "truth_depth.pfm", truth_depth.astype(np.float32))
+    labels = _load_optional(result_dir / "regions.npy")
+    textured = labels == 2 if labels is not None else None
+    summary["depth_error"] = {
+        "all": depth_error_scores(depth, truth_depth, border_px=15),
+        "textured": depth_error_scores(depth, truth_depth, mask=textured, border_px=15),
+    }
+    truth_disparity = rect.focal_px * rect.pitch_mm / truth_depth
+    from recon.evaluate import score
+
+    summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
+    lf = read_lightfield(folder / "rectified")
+    report = write_report(
+        folder / "report", centre_view=lf.centre_view(), disparity_px=disparity,
+        title="lfrig demo: simulated lab session", subtitle=str(folder / "rectified"),
+        truth_depth_mm=truth_depth, camera={"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
+                                            "disparity_offset": 0.0},
+        region_map=labels, window_size_px=_load_optional(result_dir / "window_size.npy"),
+        scores=summary["disparity_scores"], info={"steps (s)": steps.times},
+    )
+    summary["report"] = str(report)
+    steps.end(f"median depth error {summary['depth_error']['all']['median_abs_rel_pct']:.3f} % (all pixels)")
+
+    summary["seconds"] = steps.times
+    (folder / MARKER).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
+    return summary
+
+
+def _fake_centre_mm() -> tuple[float, float, float]:
+    from rig.cli import FAKE_CENTRE_MM
+
+    return tuple(float(c) for c in FAKE_CENTRE_MM)
+
+
+def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], stream) -> Any:
+    """A 9x9 capture at 0.5 mm with the simulated GRBL stage and camera, through the real session."""
+    from rig.cli import open_stage
+    from rig.fakecam import FakeCamera
+    from rig.grid import GridSpec
+    from rig.session import run_capture
+
+    devices = open_stage("fake")
+    try:
+        camera = FakeCamera(devices.controller.physical_position, is_moving=devices.controller.is_moving,
+                            **camera_options)
+        grid = GridSpec(rows=9, cols=9, pitch_mm=0.5, centre_mm=centre_mm)
+        result = run_capture(path, stage=devices.stage, camera=camera, grid=grid, clock=devices.clock,
+                             progress=stream, handle_sigint=False,
+                             camera_request={"device": "fake", "binning": camera.binning})
+        if not result.complete:
+            from rig.errors import RigError
+
+            raise RigError(f"{path}: the simulated capture stopped early")
+        return camera
+    finally:
+        devices.close()
+
+
+def _load_optional(path: Path) -> np.ndarray | None:
+    return np.load(path) if path.is_file() else None
+
+
+def _rig_summary(rig: Any, binning: int) -> dict[str, Any]:
+    return {"sensor_px": list(rig.sensor_size_px), "binning": binning, "focal_mm": rig.focal_mm,
+            "pixel_um": rig.pixel_size_um, "rotation_deg": list(rig.rotation_deg),
+            "scale_error": list(rig.scale_error), "skew_deg": rig.skew_deg, "lensmodel": rig.lensmodel}
+
+
+def _intrinsics_summary(result: Any, camera: Any) -> dict[str, Any]:
+    """RMS, and how far the recovered model projects from the true one over the imager at the
+    working distance (up to the camera frame's orientation, which no calibration can see)."""
+    import mrcal
+
+    diff = mrcal.projection_diff((result.model, camera.model), gridn_width=32, distance=950.0,
+                                 use_uncertainties=False, focus_radius=1e6)[0]
+    fx, fy = result.model.intrinsics()[1][:2]
+    return {"rms_px": float(result.rms_px), "truth_error_px": float(np.sqrt(np.mean(diff**2))),
+            "focal_error_pct": float(100 * (np.sqrt(fx * fy) / camera.focal_px - 1)),
+            "uncertainty_px": result.uncertainty_px}
+
+
+def _stage_summary(stage: Any, rig: Any) -> dict[str, Any]:
+    """Recovered step lengths against the true ones (grid columns move stage x, rows stage y)."""
+    true_v, true_u = (float(np.linalg.norm(rig.stage_matrix[:, i])) * stage.pitch_mm for i in (0, 1))
+    return {"pitch_u_mm": stage.pitch_u_mm, "pitch_v_mm": stage.pitch_v_mm, "true_pitch_u_mm": true_u,
+            "true_pitch_v_mm": true_v, "skew_deg": stage.skew_deg, "true_skew_deg": rig.skew_deg,
+            "pitch_error_pct": 100 * max(abs(stage.pitch_u_mm / true_u - 1), abs(stage.pitch_v_mm / true_v - 1)),
+            "rms_px": float(stage.rms_px)}
