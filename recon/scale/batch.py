@@ -317,11 +317,11 @@ def _finish(job: CaptureJob, request: BatchRequest, fingerprint: str, report: di
         return outcome
     names = report["names"]
     if transfer == "ship":
-        job.out_dir.mkdir(parents=True, exist_ok=True)
-        for name in names:  # result.json last, as reconstruct_to_folder does
-            if name != RESULT_JSON:
-                (job.out_dir / name).write_bytes(report["files"][name])
-        (job.out_dir / RESULT_JSON).write_bytes(report["files"][RESULT_JSON])
+        from recon.imageio import write_bytes_atomic
+
+        for name in sorted(names, key=lambda n: n == RESULT_JSON):  # result.json last, as on the worker
+            (job.out_dir / name).parent.mkdir(parents=True, exist_ok=True)
+            write_bytes_atomic(job.out_dir / name, report["files"][name])
     missing = [name for name in names if not (job.out_dir / name).is_file()]
     if missing:
         outcome.error = (
