@@ -90,6 +90,17 @@ def test_baseline_halo_covers_window_and_largest_shift(scene):
     assert rule.exact and not TILE_RULES["entropy"].exact
 
 
+def test_entropy_halo_covers_its_largest_window_and_shift(scene):
+    """The entropy rule reads the estimator's own defaults (so it follows when they change)."""
+    from recon.entropy import DEFAULTS
+
+    rule = tile_rule("entropy")
+    options = rule.resolve(scene, {})
+    assert options["disparity_range"] == scene.disparity_range
+    shift = max(abs(v) for v in scene.disparity_range) * max_view_offset(scene.grid_shape)
+    assert rule.halo_px(scene, options) >= max(DEFAULTS.window_sizes) // 2 + 2 * shift
+
+
 def test_unknown_method_has_no_tiling_rule():
     with pytest.raises(ScaleError, match="no tiling rule"):
         tile_rule("no-such-method")
