@@ -70,19 +70,23 @@ def matching_entropy_reference(grey_q: np.ndarray, disp_q: np.ndarray, labels: n
 
 
 def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_occlusion,
-                             alpha2_other, strips=True):
+                             alpha2_other, strips=True, side_radius=None):
     """Arg-max of Eq. 1 per pixel (readable reference of :func:`select_windows`)."""
     H, W = grey_q.shape
     shape_map = np.zeros((H, W), np.int64)
     size_map = np.zeros((H, W), np.int64)
     best_e = np.full((H, W), -np.inf)
+    n_shapes = N_SHAPES if strips else 9
     for y in range(H):
         for x in range(W):
             occl = labels[y, x] in (OCCLUDED, OCCLUDING)
-            shapes = range(1, N_SHAPES if strips else 9) if occl else (0,)
+            shapes = range(1, n_shapes) if occl else range(n_shapes)
             a2 = alpha2_occlusion if occl else alpha2_other
             for shape in shapes:
                 for size in sizes:
+                    side_ok = side_radius is not None and (size - 1) // 2 >= side_radius[y, x]
+                    if not occl and shape != 0 and not side_ok:
+                        continue
                     e = matching_entropy_reference(grey_q, disp_q, labels, y, x, shape, size,
                                                    alpha1=alpha1, alpha2=a2)
                     better = e > best_e[y, x] + 1e-9
@@ -101,7 +105,7 @@ def _add(counts, k, s, xlogx):
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, everywhere, shape_map, size_map, best_e, all_e):
+                   n_disp, xlogx, side_radius, shape_map, size_map, best_e, all_e):
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -115,7 +119,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             opposite = 1 if lab == 0 else 0
             a2 = a2_occl if occl else a2_other
             s_first = 1 if occl else 0
-            s_last = n_shapes if (occl or everywhere) else 1
+            r_max = (sizes_n[n_sizes - 1] - 1) // 2
+            s_last = n_shapes if (occl or side_radius[y, x] <= r_max) else 1
             best = -1e300
             best_shape = 0
             best_size = 0
@@ -147,6 +152,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                                 sm = _add(hm, g, sm, xlogx)
                                 m += 1
                     py0, py1, px0, px1 = ya, yb, xa, xb
+                    if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
+                        continue  # side window not offered at this size (no layer jump within r)
                     logn = np.log(n)
                     e = (logn - sg / n) + alpha1 * (sd / n - logn)
                     if m > 0:
@@ -169,8 +176,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
 
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
-                   alpha2_other: float, strips: bool = True, shapes_everywhere: bool = False,
-                   return_all: bool = False):
+                   alpha2_other: float, strips: bool = True,
+                   side_radius: np.ndarray | None = None, return_all: bool = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -186,10 +193,12 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     alpha1, alpha2_occlusion, alpha2_other
         Weights of Eq. 1 (``alpha2`` in occlusion regions and elsewhere).
     strips
-        Also offer the strip windows (shapes 9, 10) in occlusion regions.
-    shapes_everywhere
-        Offer the square and all side windows in texture and smooth regions too (the paper: square
-        only there).
+        Also offer the strip windows (shapes 9, 10).
+    side_radius
+        ``(H, W)`` int, for texture and smooth pixels: the side windows (and strips) are offered at
+        the sizes whose half-width ``(size - 1) // 2`` is at least this (e.g. the chessboard distance
+        to the nearest jump of the layer map: only where the square would straddle the jump).
+        ``None``: never (the paper: the square only in texture and smooth regions); 0: always.
 
     Returns
     -------
@@ -211,9 +220,12 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     size_map = np.zeros((H, W), np.int64)
     best_e = np.zeros((H, W), np.float64)
     all_e = np.full((H, W, n_shapes * len(sizes)), -np.inf, np.float32)
+    if side_radius is None:
+        side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
                    np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
-                   float(alpha2_other), n_grey, n_disp, xlogx, bool(shapes_everywhere), shape_map,
+                   float(alpha2_other), n_grey, n_disp, xlogx,
+                   np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64), shape_map,
                    size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e

@@ -22,10 +22,13 @@ import numpy as np
 
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import initial_disparity, range_from_initial
-from recon.entropy.matching import disparity_candidates, joint_line_search, line_search
+from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
+                                    line_search)
 from recon.entropy.windows import N_SHAPES
-from recon.entropy.refine import tv_refine
-from recon.entropy.regions import OCCLUDED, SMOOTH, region_labels
+from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
+from recon.entropy.windows import window_rect
+from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, flat_pixels, jump_distance,
+                                   layer_jumps, region_labels)
 from recon.errors import ReconError
 from recon.lightfield import LightField
 
@@ -58,11 +61,14 @@ class EntropyOptions:
     step: float = _opt(0.02, "candidate spacing of the line search (refined by a parabola)")
     layer_gap: float = _opt(
         0.25, "layers (median-filtered initial disparity) closer than this count as one (Eq. 9)")
+    occlusion_views: str = _opt(
+        "all", "views whose warped layers Eq. 9 compares with the centre: 'nine' (the paper: the "
+               "farthest in each direction) or 'all' (also finds pixels hidden only in middle views)")
     layer_median: int = _opt(5, "median filter size applied to the initial disparity for the layers")
     smooth_neighbourhood: int = _opt(5, "side of the square neighbourhood of psi (Eq. 12)")
     smooth_tolerance: float = _opt(
         2.0, "grey values differ (Eq. 12) when they differ by more than this times the noise sigma")
-    grey_bins: int = _opt(256, "grey-level histogram bins of the matching entropy (Eq. 1)")
+    grey_bins: int = _opt(32, "grey-level histogram bins of the matching entropy (Eq. 1)")
     disparity_bin: float = _opt(0.1, "bin width of the initial-disparity histogram (Eq. 1)")
     window_sizes: tuple[int, ...] = _opt((3, 5, 7, 9, 11, 13, 15), "window sizes searched")
     alpha1: float = _opt(1.0, "weight of the disparity-consistency term (Eq. 1)")
@@ -71,17 +77,42 @@ class EntropyOptions:
     strip_windows: bool = _opt(
         True, "also offer one-pixel strips along the rows/columns with the views in line with them "
               "(lfrig's extension for gaps between two occluders)")
-    shapes_everywhere: bool = _opt(
-        True, "offer the side windows in texture and smooth regions too (the paper: square only; "
-              "lfrig default on: near an edge a square straddles it, see docs/entropy-method.md)")
-    visible_sets: bool = _opt(True, "use the shape's visible-viewpoint set for occluded pixels")
+    side_windows: str = _opt(
+        "edges", "where texture and smooth pixels are offered the side windows and strips besides "
+                 "the square: 'occlusion' (the paper: nowhere, square only), 'edges' (at the sizes "
+                 "whose square would reach a jump of the layer map) or 'everywhere'")
+    side_jump: float = _opt(
+        0.2, "for side_windows='edges': a difference of the layer map between neighbouring pixels "
+             "larger than this is a jump")
+    visible_sets: str = _opt(
+        "occluded", "which pixels match over their window shape's visible-viewpoint set (others use "
+                    "all views): 'none', 'occluded' (the paper), 'occlusion' (occluded and "
+                    "occluding) or 'all'")
     joint: bool = _opt(
         True, "minimise Eq. 7 jointly over disparity and window (else: window by largest entropy "
               "first, then the line search with it)")
     lambda_entropy: float = _opt(1.0, "lambda of Eq. 6 (weight of the matching entropy)")
     intensity_scale: float = _opt(
         255.0, "grey values enter the matching cost in these units (255: 8-bit levels)")
+    centroid_correction: bool = _opt(
+        True, "move each side window's estimate from the window's centroid back to the pixel with "
+              "the slope of a plane fitted to the matched disparity over the window")
+    centroid_max_residual: float = _opt(
+        0.05, "no centroid correction where that plane fits worse than this RMS (px/view)")
     gamma: float = _opt(0.2, "TV weight of the refinement (Eq. 13)")
+    fill_holes: bool = _opt(
+        True, "black holes (Eq. 12-flat pixels whose matching cost curve is flat) get no data term: "
+              "the initial estimate there is filled from its surroundings before the layers are "
+              "made, and the TV refinement fills them in the final map")
+    hole_width: float = _opt(
+        0.3, "a pixel's cost curve is flat (no information) when the candidates within hole_delta "
+             "of its least cost span more than this disparity width ...")
+    initial_hole_width: float = _opt(
+        0.6, "the same width for the initial nine-view search (its small windows and few views "
+             "give wider valleys)")
+    hole_delta: float = _opt(0.5, "... with hole_delta in grey levels ...")
+    hole_delta_noise: float = _opt(
+        0.2, "... or this times the noise sigma in grey levels, whichever is larger")
     tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
 
 
@@ -137,6 +168,12 @@ class EntropyResult:
         return self.disparity
 
 
+#: Values of :attr:`EntropyOptions.side_windows`.
+SIDE_WINDOW_SCOPES = ("occlusion", "edges", "everywhere")
+#: Values of :attr:`EntropyOptions.visible_sets`.
+VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
+
+
 def make_options(options: EntropyOptions | None = None, **overrides) -> EntropyOptions:
     """``options`` (default :data:`DEFAULTS`) with ``overrides`` applied; unknown names raise."""
     base = DEFAULTS if options is None else options
@@ -156,6 +193,10 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
         raise ValueError(f"window_sizes must be odd sizes >= 3, got {sizes}")
     if opts.step <= 0 or opts.initial_step <= 0:
         raise ValueError(f"step and initial_step must be > 0, got {opts.step}, {opts.initial_step}")
+    if opts.side_windows not in SIDE_WINDOW_SCOPES:
+        raise ValueError(f"side_windows must be one of {SIDE_WINDOW_SCOPES}, got {opts.side_windows!r}")
+    if opts.visible_sets not in VISIBLE_SET_SCOPES:
+        raise ValueError(f"visible_sets must be one of {VISIBLE_SET_SCOPES}, got {opts.visible_sets!r}")
     rng = opts.disparity_range
     if rng is not None and not rng[0] < rng[1]:
         raise ValueError(f"disparity_range must be (min, max) with min < max, got {rng}")
@@ -198,14 +239,24 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     U, V, H, W = gray.shape
     lap("load")
 
+    u0, v0 = U // 2, V // 2
+    flat, flat_info = flat_pixels(gray[u0, v0], size=opts.smooth_neighbourhood,
+                                  tolerance=opts.smooth_tolerance)
+    hole_delta = max(opts.hole_delta,
+                     opts.hole_delta_noise * flat_info["noise_sigma"] * opts.intensity_scale)
     known = opts.disparity_range or lf.disparity_range
     say("initial disparity (nine views)")
     initial_rng = known if known is not None else opts.initial_range
     if known is not None:  # search a little beyond a known range: edges of the range are refined
         initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
-    d0, _ = initial_disparity(gray, disparity_range=initial_rng, step=opts.initial_step,
-                              window=opts.initial_window, shiftable=opts.initial_shiftable,
-                              strips=opts.strip_windows)
+    d0, _, ambiguity0 = initial_disparity(
+        gray, disparity_range=initial_rng, step=opts.initial_step, window=opts.initial_window,
+        shiftable=opts.initial_shiftable, strips=opts.strip_windows,
+        ambiguity_delta=hole_delta / opts.intensity_scale)
+    holes0 = (flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
+              if opts.fill_holes else None)
+    if holes0 is not None and holes0.any():
+        d0 = harmonic_fill(d0, holes0)
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -216,40 +267,57 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     say("region types")
     labels, region_info = region_labels(
         gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
-        smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance)
+        smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance,
+        occlusion_views=opts.occlusion_views)
     lap("regions")
 
     say("window selection (matching entropy)")
     grey_q = quantise_grey(gray[U // 2, V // 2], opts.grey_bins)
     disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin)
     sizes = tuple(sorted(opts.window_sizes))
+    if opts.side_windows == "edges":
+        side_radius = jump_distance(layer_jumps(region_info["layers"], layer_gap=opts.side_jump))
+    else:
+        side_radius = None if opts.side_windows == "occlusion" else np.zeros((H, W), np.int64)
     shape_map, size_map, entropy, all_entropy = select_windows(
         grey_q, disp_q, labels, sizes=sizes, alpha1=opts.alpha1,
         alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other,
-        strips=opts.strip_windows, shapes_everywhere=opts.shapes_everywhere, return_all=True)
+        strips=opts.strip_windows, side_radius=side_radius, return_all=True)
     lap("windows")
 
     say(f"line search over [{rng[0]:.2f}, {rng[1]:.2f}] step {opts.step}")
     candidates = disparity_candidates(rng[0], rng[1], opts.step)
-    occluded = (labels == OCCLUDED) & opts.visible_sets
+    occluded = {"none": np.zeros(labels.shape, bool), "occluded": labels == OCCLUDED,
+                "occlusion": (labels == OCCLUDED) | (labels == OCCLUDING),
+                "all": np.ones(labels.shape, bool)}[opts.visible_sets]
     if opts.joint:
         windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
         penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
-        matched, cost, k = joint_line_search(
+        matched, cost, k, ambiguity = joint_line_search(
             gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
-            use_shape_set=occluded, intensity_scale=opts.intensity_scale)
+            use_shape_set=occluded, intensity_scale=opts.intensity_scale,
+            ambiguity_delta=hole_delta)
         shape_map = k // len(sizes)
         size_map = np.asarray(sizes)[k % len(sizes)]
         entropy = np.take_along_axis(all_entropy, k[..., None], 2)[..., 0]
     del all_entropy
     set_map = np.where(occluded, shape_map, 0)
     if not opts.joint:
-        matched, cost = line_search(gray, candidates, shape_map=shape_map, size_map=size_map,
-                                    set_map=set_map)
+        matched, cost, costs = line_search(gray, candidates, shape_map=shape_map,
+                                           size_map=size_map, set_map=set_map, return_costs=True)
+        ambiguity = cost_ambiguity(costs, hole_delta / opts.intensity_scale)
+        del costs
+    if opts.centroid_correction:
+        rect_table = np.array([[window_rect(sh, z) if z % 2 else (0, 0, 0, 0)
+                                for z in range(max(sizes) + 1)] for sh in range(N_SHAPES)], np.int64)
+        matched = centroid_correction(matched, rect_table[shape_map, size_map],
+                                      max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
     lap("matching")
 
     say("TV refinement of smooth regions")
-    refined = tv_refine(matched, labels == SMOOTH, gamma=opts.gamma, iterations=opts.tv_iterations)
+    holes = flat & (ambiguity * opts.step > opts.hole_width) if opts.fill_holes else None
+    refined = tv_refine(matched, labels == SMOOTH, gamma=opts.gamma, iterations=opts.tv_iterations,
+                        holes=holes)
     lap("refine")
 
     return EntropyResult(
@@ -258,5 +326,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         window_size=size_map.astype(np.uint8), window_shape=shape_map.astype(np.uint8),
         view_set=set_map.astype(np.uint8), entropy=entropy, cost=cost, disparity_range=rng,
         timings=timings, options=opts,
-        info={"noise_sigma": region_info["noise_sigma"],
+        info={"ambiguity": ambiguity, "initial_ambiguity": ambiguity0, "holes": holes,
+              "initial_holes": holes0, "hole_delta": hole_delta,
+              "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]})

@@ -30,7 +30,8 @@ def initial_view_mask(grid_shape: tuple[int, int]) -> np.ndarray:
 
 
 def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float], step: float,
-                      window: int, shiftable: bool = True, strips: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                      window: int, shiftable: bool = True, strips: bool = True,
+                      ambiguity_delta: float | None = None, progress=None):
     """Line search over the nine views of :func:`initial_view_mask` (see the module docstring).
 
     Parameters
@@ -51,12 +52,15 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
     Returns
     -------
     ``(disparity, cost)``: ``(H, W)`` float32 each; cost is the mean absolute difference at the minimum.
+    With ``ambiguity_delta`` (grey units of ``gray``) also ``matching.cost_ambiguity`` of the cost
+    curves. ``progress(fraction)`` is called after each candidate.
     """
     U, V = gray.shape[:2]
     candidates = disparity_candidates(disparity_range[0], disparity_range[1], step)
     shapes = range(N_SHAPES if strips else 9) if shiftable else (0,)
     return min_window_line_search(gray, candidates, windows=[(s, window, s) for s in shapes],
-                                  view_mask=initial_view_mask((U, V)))
+                                  view_mask=initial_view_mask((U, V)),
+                                  ambiguity_delta=ambiguity_delta, progress=progress)
 
 
 def range_from_initial(d0: np.ndarray, *, percentile: float, margin: float,

@@ -298,15 +298,27 @@ def _min_window_cost_kernel(integrals, window_set, rects, counts, out):
             out[y, x] = best
 
 
+def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
+    """``(H, W)`` int32: how many of the ``D`` candidates of a ``(D, H, W)`` cost volume come
+    within ``delta`` of the pixel's least cost. A few (a narrow valley) where the matching tells
+    disparities apart; many (a plateau) where it has no information, e.g. inside a textureless
+    patch, where the window matches itself at every small shift."""
+    best = costs.min(axis=0)
+    return np.count_nonzero(costs <= best[None] + np.float32(delta), axis=0).astype(np.int32)
+
+
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
                            windows: list[tuple[int, int, int]],
-                           view_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                           view_mask: np.ndarray | None = None,
+                           ambiguity_delta: float | None = None, progress=None):
     """Line search whose cost at each candidate is the least over several windows.
 
     ``windows`` lists ``(shape, size, view_set)``; at every candidate disparity each pixel takes the
     smallest mean absolute difference over them (a "shiftable window": near an edge one of the side
     windows with its visible views lies on the pixel's own surface). Returns ``(disparity, cost)``,
-    ``(H, W)`` float32, with the parabolic sub-step refinement of :func:`subpixel_argmin`.
+    ``(H, W)`` float32, with the parabolic sub-step refinement of :func:`subpixel_argmin`, and
+    with ``ambiguity_delta`` also :func:`cost_ambiguity` of the cost curves. ``progress(fraction)``
+    is called after each candidate.
     """
     U, V, H, W = gray.shape
     counts = set_view_counts((U, V), view_mask)
@@ -323,7 +335,12 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, sets, out=integrals)
         _min_window_cost_kernel(integrals, window_set, rects, wcounts, costs[i])
-    return subpixel_argmin(costs, candidates)
+        if progress is not None:
+            progress((i + 1) / len(candidates))
+    disparity, best = subpixel_argmin(costs, candidates)
+    if ambiguity_delta is not None:
+        return disparity, best, cost_ambiguity(costs, ambiguity_delta)
+    return disparity, best
 
 
 @numba.njit(cache=True, parallel=True)
@@ -359,7 +376,8 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
 def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
                       windows: list[tuple[int, int]], penalty: np.ndarray,
                       use_shape_set: np.ndarray, intensity_scale: float,
-                      view_mask: np.ndarray | None = None):
+                      view_mask: np.ndarray | None = None, ambiguity_delta: float = 0.0,
+                      progress=None):
     """Joint minimisation of Eq. 7 over disparity and window.
 
     For every pixel and candidate ``d`` the objective is
@@ -379,9 +397,15 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     intensity_scale
         Factor on the mean absolute difference of ``[0, 1]`` grey values (255: 8-bit levels).
 
+    ambiguity_delta
+        Tolerance of :func:`cost_ambiguity` (objective units).
+    progress
+        Called as ``progress(fraction)`` after each candidate.
+
     Returns
     -------
-    ``(disparity, objective, window_index)``: ``(H, W)`` float32, float32, int64.
+    ``(disparity, objective, window_index, ambiguity)``: ``(H, W)`` float32, float32, int64 and
+    int32 :func:`cost_ambiguity` of the objective's curve over the candidates.
     """
     U, V, H, W = gray.shape
     counts = set_view_counts((U, V), view_mask).astype(np.float64)
@@ -402,10 +426,12 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
         _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty,
                            float(intensity_scale), costs[i], k_tmp)
         which[i] = k_tmp
+        if progress is not None:
+            progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
     k = np.argmin(costs, axis=0)
     window_index = np.take_along_axis(which, k[None], 0)[0].astype(np.int64)
-    return disparity, best, window_index
+    return disparity, best, window_index, cost_ambiguity(costs, ambiguity_delta)
 
 
 def disparity_candidates(d_min: float, d_max: float, step: float) -> np.ndarray:

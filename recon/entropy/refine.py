@@ -1,17 +1,62 @@
 """TV refinement of Eq. 13 in smooth regions only.
 
-    mu = argmin_mu  sum_{smooth} (mu - d*)^2 + gamma * sum |grad mu|
+    mu = argmin_mu  sum_{smooth} w (mu - d*)^2 + gamma * sum |grad mu|
 
 with ``mu = d*`` held fixed outside the smooth region (so edges, which the paper keeps out of the
 refinement, stay sharp, and the smooth region is tied to its surroundings through the TV term).
 ``|grad mu|`` is the isotropic TV with forward differences (pixel units). Solved with the first-order
 primal-dual algorithm of Chambolle and Pock (2011); the pixel-wise prox of the data term is exact,
 and the fixed pixels are a projection, so the iteration converges to the constrained minimum.
+
+``w`` is 1 (the paper) except on *black holes* (lfrig): smooth pixels where the matching had no
+information (its cost curve is flat), whose ``d*`` is noise. There ``w = 0``: the hole is filled by the
+TV term alone from its surroundings, which is what the paper uses the refinement for ("the
+refinement can repair these black holes"). Holes wider than the largest window need a good start to
+converge in a few hundred iterations; :func:`harmonic_fill` gives it (exact on a plane).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+
+def harmonic_fill(values: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """``values`` with the ``holes`` pixels replaced by the solution of Laplace's equation whose
+    boundary values are the known neighbours (4-neighbourhood, image edges free). Linear functions
+    are reproduced exactly. ``(H, W)`` float32; returned unchanged when nothing is known."""
+    holes = np.asarray(holes, bool)
+    out = values.astype(np.float64).copy()
+    if not holes.any() or holes.all():
+        return out.astype(np.float32)
+    H, W = holes.shape
+    index = np.full((H, W), -1, np.int64)
+    ys, xs = np.nonzero(holes)
+    n = len(ys)
+    index[ys, xs] = np.arange(n)
+    rows, cols, data = [], [], []
+    rhs = np.zeros(n)
+    diag = np.zeros(n)
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ny, nx = ys + dy, xs + dx
+        ok = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
+        diag[ok] += 1
+        k = np.nonzero(ok)[0]
+        nb = index[ny[k], nx[k]]
+        unknown = nb >= 0
+        rows.append(k[unknown])
+        cols.append(nb[unknown])
+        data.append(-np.ones(unknown.sum()))
+        rhs[k[~unknown]] += out[ny[k[~unknown]], nx[k[~unknown]]]
+    A = scipy.sparse.csr_matrix((np.concatenate(data + [diag]),
+                                 (np.concatenate(rows + [np.arange(n)]),
+                                  np.concatenate(cols + [np.arange(n)]))), shape=(n, n))
+    # A hole component without a known neighbour has no boundary value: tie it weakly to 0 so that
+    # the system stays regular (cannot happen unless a component is cut off from every known pixel).
+    A = A + scipy.sparse.identity(n) * 1e-9
+    out[ys, xs] = scipy.sparse.linalg.spsolve(A.tocsc(), rhs)
+    return out.astype(np.float32)
 
 
 def _grad(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -41,7 +86,7 @@ def tv_energy(mu: np.ndarray, data: np.ndarray, mask: np.ndarray, gamma: float) 
 
 
 def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
-              iterations: int) -> np.ndarray:
+              iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
 
     Parameters
@@ -54,13 +99,22 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
         TV weight (the paper's 0.2).
     iterations
         Primal-dual iterations.
+    holes
+        ``(H, W)`` bool, optional: pixels (inside or outside ``mask``) whose data term is dropped,
+        filled from their surroundings; started from :func:`harmonic_fill`.
 
     Returns
     -------
     ``(H, W)`` float32 refined disparity ``mu``.
     """
-    f = disparity.astype(np.float64)
     mask = np.asarray(mask, bool)
+    weight = np.ones(mask.shape)
+    if holes is not None and np.any(holes):
+        holes = np.asarray(holes, bool)
+        disparity = harmonic_fill(disparity, holes)
+        mask = mask | holes
+        weight[holes] = 0.0
+    f = disparity.astype(np.float64)
     if gamma <= 0 or not mask.any() or iterations <= 0:
         return disparity.astype(np.float32)
     tau = sigma = 1.0 / np.sqrt(8.0)
@@ -76,7 +130,72 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
         py /= norm
         px /= norm
         v = mu + tau * _div(py, px)
-        new = np.where(mask, (v + 2 * tau * f) / (1 + 2 * tau), f)
+        new = np.where(mask, (v + 2 * tau * weight * f) / (1 + 2 * tau * weight), f)
         bar = 2 * new - mu
         mu = new
     return mu.astype(np.float32)
+
+
+def _box_sums(table: np.ndarray, ya, yb, xa, xb) -> np.ndarray:
+    # Sum over rows ya..yb-1 and columns xa..xb-1 from a (H + 1, W + 1) summed-area table.
+    return table[yb, xb] - table[ya, xb] - table[yb, xa] + table[ya, xa]
+
+
+def _sat(image: np.ndarray) -> np.ndarray:
+    out = np.zeros((image.shape[0] + 1, image.shape[1] + 1), np.float64)
+    np.cumsum(np.cumsum(image, axis=0, dtype=np.float64), axis=1, out=out[1:, 1:])
+    return out
+
+
+def centroid_correction(disparity: np.ndarray, rects: np.ndarray, *,
+                        max_residual: float, max_shift: float) -> np.ndarray:
+    """Move each pixel's disparity from its window's centroid back to the pixel.
+
+    A window matched with one disparity on a slanted surface finds (about) the disparity at the
+    window's centroid. A side window's centroid is ``r / 2`` off the pixel, so on a slant of ``g``
+    px/view per pixel its estimate is off by ``g r / 2``. Here the plane ``d(q) = a + g . (q - c)`` is
+    fitted by least squares to ``disparity`` over the pixel's own window ``R`` (clipped to the
+    image), and the pixel gets ``disparity(p) - g . (c - p)``. On a plane every pixel using the same
+    window is shifted alike, so the fitted slope is the true one and the correction exact.
+
+    Parameters
+    ----------
+    disparity
+        ``(H, W)`` matched disparity.
+    rects
+        ``(H, W, 4)`` int window offsets ``(y0, y1, x0, x1)`` (inclusive, ``windows.window_rect``).
+    max_residual
+        No correction where the plane fits worse than this RMS (px/view): not one surface.
+    max_shift
+        Corrections are clipped to ``+-max_shift``.
+
+    Returns
+    -------
+    ``(H, W)`` float32 corrected disparity.
+    """
+    d = disparity.astype(np.float64)
+    H, W = d.shape
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    ya = np.clip(yy + rects[..., 0], 0, H - 1).astype(np.int64)
+    yb = np.clip(yy + rects[..., 1], 0, H - 1).astype(np.int64) + 1
+    xa = np.clip(xx + rects[..., 2], 0, W - 1).astype(np.int64)
+    xb = np.clip(xx + rects[..., 3], 0, W - 1).astype(np.int64) + 1
+    n = (yb - ya) * (xb - xa)
+    cy = (ya + yb - 1) / 2.0  # centroid of the clipped rectangle
+    cx = (xa + xb - 1) / 2.0
+    ny, nx = yb - ya, xb - xa
+    var_y = (ny ** 2 - 1) / 12.0  # variance of consecutive integers
+    var_x = (nx ** 2 - 1) / 12.0
+    s1 = _box_sums(_sat(d), ya, yb, xa, xb)
+    sy = _box_sums(_sat(d * yy), ya, yb, xa, xb)
+    sx = _box_sums(_sat(d * xx), ya, yb, xa, xb)
+    s2 = _box_sums(_sat(d * d), ya, yb, xa, xb)
+    mean = s1 / n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gy = np.where(var_y > 0, (sy / n - cy * mean) / var_y, 0.0)
+        gx = np.where(var_x > 0, (sx / n - cx * mean) / var_x, 0.0)
+    residual = s2 / n - mean ** 2 - gy ** 2 * var_y - gx ** 2 * var_x
+    shift = gy * (cy - yy) + gx * (cx - xx)
+    ok = (residual <= max_residual ** 2) & ((cy != yy) | (cx != xx))
+    out = np.where(ok, d - np.clip(shift, -max_shift, max_shift), d)
+    return out.astype(np.float32)

@@ -138,6 +138,28 @@ def occlusion_diffs_fast(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     return neg, pos
 
 
+def layer_jumps(layers: np.ndarray, *, layer_gap: float) -> np.ndarray:
+    """``(H, W)`` bool: pixels at a jump of the layer map ``M``: where the two pixels either side
+    along a row or column differ by more than ``layer_gap`` (``|M(x + 1) - M(x - 1)|``; the pixel
+    between and both sides are marked). A slant of less than ``layer_gap / 2`` per pixel never
+    counts, and a jump the estimate spread over two pixels still does."""
+    m = layers.astype(np.float32)
+    out = np.zeros(m.shape, bool)
+    jy = np.abs(m[2:] - m[:-2]) > layer_gap
+    jx = np.abs(m[:, 2:] - m[:, :-2]) > layer_gap
+    for k in range(3):
+        out[k:m.shape[0] - 2 + k] |= jy
+        out[:, k:m.shape[1] - 2 + k] |= jx
+    return out
+
+
+def jump_distance(jumps: np.ndarray) -> np.ndarray:
+    """``(H, W)`` int64 chessboard distance to the nearest ``jumps`` pixel (0 on it; large if none)."""
+    if not jumps.any():
+        return np.full(jumps.shape, 1 << 30, np.int64)
+    return ndimage.distance_transform_cdt(~jumps, metric="chessboard").astype(np.int64)
+
+
 def noise_sigma(image: np.ndarray) -> float:
     """Standard deviation of additive white noise in a grey image (Immerkaer 1996), same units."""
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
@@ -161,8 +183,20 @@ def different_neighbours(image: np.ndarray, *, size: int, tolerance: float) -> n
     return psi
 
 
+def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float) -> tuple[np.ndarray, dict]:
+    """Eq. 12's test alone: ``psi < N / 2`` on the ``(H, W)`` centre view, whatever the occlusion
+    labels. ``tolerance`` is in units of the noise sigma (Immerkaer), floored at 0.5/255. Returns
+    ``(mask, info)`` with ``psi``, ``noise_sigma`` and ``smooth_tolerance_abs``."""
+    centre = centre.astype(np.float32)
+    sigma = noise_sigma(centre)
+    tol = max(tolerance * sigma, 0.5 / 255)
+    psi = different_neighbours(centre, size=size, tolerance=tol)
+    n = size ** 2 - 1
+    return psi < n / 2, {"psi": psi, "noise_sigma": sigma, "smooth_tolerance_abs": tol}
+
+
 def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_median: int,
-                  smooth_neighbourhood: int, smooth_tolerance: float,
+                  smooth_neighbourhood: int, smooth_tolerance: float, occlusion_views: str = "all",
                   fast: bool = True) -> tuple[np.ndarray, dict]:
     """Region map of Eq. 8 for the centre view.
 
@@ -175,6 +209,11 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
         ``(H, W)`` initial disparity, pixels per view step.
     layer_gap, layer_median, smooth_neighbourhood, smooth_tolerance
         See the module docstring.
+    occlusion_views
+        Views whose warped segmentation Eq. 9 compares with the centre: ``"nine"`` (the paper: the
+        farthest view in each of the eight directions) or ``"all"`` (every view of the grid; a
+        pixel between two close occluders, e.g. background 1 px from a thin bar, can be hidden in
+        the middle views only and visible again in the farthest ones).
 
     Returns
     -------
@@ -183,21 +222,18 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
     """
     U, V = gray.shape[:2]
     u0, v0 = U // 2, V // 2
-    mask = initial_view_mask((U, V))
+    if occlusion_views not in ("nine", "all"):
+        raise ValueError(f"occlusion_views must be 'nine' or 'all', got {occlusion_views!r}")
+    mask = initial_view_mask((U, V)) if occlusion_views == "nine" else np.ones((U, V), bool)
     offsets = [(u - u0, v - v0) for u, v in zip(*np.nonzero(mask)) if (u, v) != (u0, v0)]
     layers = layer_map(d0, median_size=layer_median)
     diffs = occlusion_diffs_fast if fast else occlusion_diffs_reference
     neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
-    centre = gray[u0, v0].astype(np.float32)
-    sigma = noise_sigma(centre)
-    tolerance = max(smooth_tolerance * sigma, 0.5 / 255)
-    psi = different_neighbours(centre, size=smooth_neighbourhood, tolerance=tolerance)
-    n = smooth_neighbourhood ** 2 - 1
+    flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance)
     labels = np.full(d0.shape, TEXTURE, np.uint8)
-    labels[psi < n / 2] = SMOOTH
+    labels[flat] = SMOOTH
     occluded = neg < 0
     labels[(pos > 0) & ~occluded] = OCCLUDING
     labels[occluded] = OCCLUDED
-    info = {"diff_occluded": neg, "diff_occluding": pos, "psi": psi, "noise_sigma": sigma,
-            "smooth_tolerance_abs": tolerance, "layers": layers}
+    info = {"diff_occluded": neg, "diff_occluding": pos, "layers": layers, **flat_info}
     return labels, info
