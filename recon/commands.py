@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 from typing import Any
 
@@ -29,21 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "OUT_DIR/disparity.pfm, a colour-mapped disparity.png and result.json. When the light field has "
             "ground truth (gt_disp_lowres.pfm), the scores are printed and recorded too."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")
     rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
-    rec.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
-                     help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
-    rec.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
-                     help="disparities to search, pixels per view step (default: the light field's; else "
-                          "entropy finds it from its initial estimate and baseline searches -4 4)")
-    rec.add_argument("--step", type=float, default=None,
-                     help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
-    base = rec.add_argument_group("baseline method")
-    base.add_argument("--window", type=int, default=None, help="square window side in pixels (default 7)")
-    _add_entropy_options(rec.add_argument_group(
-        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
+    add_method_arguments(rec)
     rec.add_argument("--ply", type=Path, metavar="OUT.ply",
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
@@ -67,6 +55,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Entropy options that have a shared flag above, or are not useful from the command line.
 _SHARED_OPTIONS = {"disparity_range", "step"}
+
+
+def add_method_arguments(parser: argparse.ArgumentParser) -> None:
+    """The method flags shared by ``lfrig reconstruct`` and ``lfrig batch reconstruct``: ``--method``,
+    ``--disparity-range``, ``--step``, the baseline's ``--window`` and one flag per entropy option.
+    :func:`method_options` turns the parsed flags into the chosen method's options."""
+    parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
+                        help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
+    parser.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
+                        help="disparities to search, pixels per view step (default: the light field's; else "
+                             "entropy finds it from its initial estimate and baseline searches -4 4)")
+    parser.add_argument("--step", type=float, default=None,
+                        help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
+    base = parser.add_argument_group("baseline method")
+    base.add_argument("--window", type=int, default=None, help="square window side in pixels (default 7)")
+    _add_entropy_options(parser.add_argument_group(
+        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
 
 
 def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
@@ -93,7 +98,7 @@ def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
             group.add_argument(flag, type=type(default), default=None, help=text)
 
 
-def _method_options(args: argparse.Namespace) -> dict[str, Any]:
+def method_options(args: argparse.Namespace) -> dict[str, Any]:
     """The options the user set for the chosen method (others keep the method's defaults)."""
     import dataclasses
 
@@ -191,53 +196,18 @@ def _or_unknown(value: float | None, fmt: str) -> str:
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
-    from recon.colour import colourise
-    from recon.errors import ReconError
-    from recon.evaluate import score
-    from recon.imageio import write_png
-    from recon.io import read_ground_truth, read_lightfield
-    from recon.methods import run_method
-    from recon.pfm import write_pfm
+    from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
 
-    options = _method_options(args)
-    lf = read_lightfield(args.lf_dir)
-    args.output.mkdir(parents=True, exist_ok=True)
-    started = time.perf_counter()
-    try:
-        with Progress(args.method, 1, quiet=args.quiet) as bar:
-            method = run_method(args.method, lf, progress=bar, **options)
-    except ValueError as error:  # an option value the method cannot use
-        raise ReconError(f"{args.method}: {error}") from None
-    disparity = method.disparity
-    seconds = time.perf_counter() - started
-    write_pfm(args.output / "disparity.pfm", disparity)
-    picture, shown = colourise(disparity, value_range=lf.disparity_range)
-    write_png(args.output / "disparity.png", picture)
-    write_png(args.output / "centre_view.png", lf.centre_view())
-    if method.write_extras is not None:
-        method.write_extras(args.output)
-    result: dict[str, Any] = {
-        "method": args.method, "options": _jsonable(method.options), "source": str(lf.source.resolve()) if lf.source else None,
-        "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
-        "focal_px": lf.focal_px, "pitch_mm": lf.pitch_mm, "disparity_offset": lf.disparity_offset,
-        "disparity_png_range": list(shown), "seconds": round(seconds, 3),
-    }
-    gt = read_ground_truth(lf)
-    if gt is not None:
-        result["scores"] = score(disparity, gt)
-    (args.output / "result.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.output / 'disparity.pfm'} and disparity.png in {seconds:.1f} s")
-    if "scores" in result:
-        print(_format_scores(result["scores"]))
-    if args.ply is not None:
-        from recon.export import export_result
-
-        print(f"wrote {export_result(args.output, args.ply, kind='points' if args.points else 'mesh')}")
-
-
-def _jsonable(options: dict[str, Any]) -> dict[str, Any]:
-    return json.loads(json.dumps(options, default=str))
+    options = method_options(args)
+    with Progress(args.method, 1, quiet=args.quiet) as bar:
+        folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
+                                       ply_kind="points" if args.points else "mesh", progress=bar)
+    print(f"wrote {args.output / 'disparity.pfm'} and disparity.png in {folder.result['seconds']:.1f} s")
+    if "scores" in folder.result:
+        print(_format_scores(folder.result["scores"]))
+    if folder.export is not None:
+        print(f"wrote {folder.export}")
 
 
 def _format_scores(scores: dict[str, float]) -> str:

@@ -115,7 +115,6 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.progress import Progress
     from recon.report import write_report
     from rig.fakecam import FakeCamera, FakeRig, calibration_poses, chessboard_scene, default_scene
-    from rig.session import run_capture
 
     folder = Path(folder)
     _prepare(folder)

@@ -162,6 +162,7 @@ def reconstruct_to_folder(
         "method": method, "options": jsonable(method_result.options), "source": source,
         "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
         "focal_px": lf.focal_px, "pitch_mm": lf.pitch_mm, "disparity_offset": lf.disparity_offset,
+        "principal_point_px": list(lf.principal_point_px) if lf.principal_point_px else None,
         "disparity_png_range": list(shown), "seconds": round(seconds, 3),
     }
     gt = read_ground_truth(lf)

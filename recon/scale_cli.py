@@ -9,8 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from recon.commands import _add_entropy_options
-from recon.methods import DEFAULT_METHOD, METHODS
+from recon.commands import add_method_arguments
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,18 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="shared: workers read CAPTURE_DIRs and write OUT_DIR at the same paths; ship: views "
                           "are sent with each task and results sent back; auto: shared for a local cluster, "
                           "ship with --scheduler (default auto)")
-    # The method flags of `lfrig reconstruct`, so the same flags give the same result folder.
-    rec.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
-                     help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
-    rec.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
-                     help="disparities to search, pixels per view step (default: each light field's; else "
-                          "entropy finds it from its initial estimate and baseline searches -4 4)")
-    rec.add_argument("--step", type=float, default=None,
-                     help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
-    rec.add_argument_group("baseline method").add_argument(
-        "--window", type=int, default=None, help="square window side in pixels (default 7)")
-    _add_entropy_options(rec.add_argument_group(
-        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
+    add_method_arguments(rec)  # the flags of `lfrig reconstruct`: the same flags give the same result folder
     rec.add_argument("--export", choices=("mesh", "points", "none"), default="mesh",
                      help="PLY written beside each result: mesh.ply, points.ply or none (default mesh)")
     rec.add_argument("--tile", type=int, metavar="SIZE",
@@ -68,12 +56,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _batch_reconstruct(args: argparse.Namespace) -> int:
-    from recon.commands import _method_options
+    from recon.commands import method_options
     from recon.scale import ScaleError
     from recon.scale.batch import BatchRequest, format_summary, prepare_batch, run_batch
     from recon.scale.cluster import connect
 
-    options = _method_options(args)
+    options = method_options(args)
     if args.tile is not None and args.tile < 8:
         raise ScaleError(f"--tile {args.tile}: tiles smaller than 8 pixels cost more in halo than they save")
     if args.halo is not None and args.tile is None:

@@ -31,7 +31,7 @@ from recon.progress import Progress
 from rig.errors import RigError
 from rig.grbl import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
-from rig.layout import MANIFEST, CaptureWriter
+from rig.layout import CaptureWriter
 from rig.protocols import Camera, Stage
 
 LOG_NAME = "session.log"
