@@ -257,7 +257,7 @@ def _load_optional(path: Path) -> np.ndarray | None:
 
 
 def _rig_summary(rig: Any, binning: int) -> dict[str, Any]:
-    return {"sensor_px": list(rig.sensor_size_px), "binning": binning, "focal_mm": rig.focal_mm,
+    return {"sensor_px": list(rig.sensor_size_px), "binning": binning, "centre_mm": list(rig.ref_mm), "focal_mm": rig.focal_mm,
             "pixel_um": rig.pixel_size_um, "rotation_deg": list(rig.rotation_deg),
             "scale_error": list(rig.scale_error), "skew_deg": rig.skew_deg, "lensmodel": rig.lensmodel}
 
