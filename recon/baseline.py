@@ -9,10 +9,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from recon.costvolume import pixel_cost, view_offsets
+from recon.costvolume import box_mean, pixel_cost, view_offsets
 from recon.lightfield import LightField
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
@@ -95,12 +94,8 @@ def estimate_baseline(
     offsets = view_offsets(lf.grid_shape)
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
     volume = np.empty((len(candidates),) + lf.image_shape, dtype=np.float32)
-    # A separable mean rather than cv2.boxFilter: boxFilter's running sums leave rounding that depends
-    # on where the sum started, so a tile of the image would not reproduce the whole image's result.
-    kernel = np.full(window, 1.0 / window, dtype=np.float32)
     for i, d in enumerate(candidates):
-        cost = pixel_cost(gray, d, offsets=offsets, indices=indices)
-        volume[i] = cv2.sepFilter2D(cost, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT)
+        volume[i] = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
         if progress:
             progress(i + 1, len(candidates))
     disparity, cost = parabolic_refine(volume, candidates)
