@@ -70,7 +70,8 @@ def matching_entropy_reference(grey_q: np.ndarray, disp_q: np.ndarray, labels: n
 
 
 def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_occlusion,
-                             alpha2_other, strips=True, side_radius=None):
+                             alpha2_other, strips=True, side_radius=None, layers=None,
+                             layer_gap=None):
     """Arg-max of Eq. 1 per pixel (readable reference of :func:`select_windows`)."""
     H, W = grey_q.shape
     shape_map = np.zeros((H, W), np.int64)
@@ -87,6 +88,12 @@ def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_oc
                     side_ok = side_radius is not None and (size - 1) // 2 >= side_radius[y, x]
                     if not occl and shape != 0 and not side_ok:
                         continue
+                    if not occl and layers is not None and layer_gap is not None and not (
+                            shape == 0 and size == min(sizes)):
+                        y0, y1, x0, x1 = window_rect(shape, size)
+                        patch = layers[max(y + y0, 0):y + y1 + 1, max(x + x0, 0):x + x1 + 1]
+                        if np.any(np.abs(patch - layers[y, x]) > layer_gap):
+                            continue
                     e = matching_entropy_reference(grey_q, disp_q, labels, y, x, shape, size,
                                                    alpha1=alpha1, alpha2=a2)
                     better = e > best_e[y, x] + 1e-9
@@ -105,7 +112,7 @@ def _add(counts, k, s, xlogx):
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, shape_map, size_map, best_e, all_e):
+                   n_disp, xlogx, side_radius, layers, gap, shape_map, size_map, best_e, all_e):
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -130,6 +137,7 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                 sm = 0.0
                 n = 0
                 m = 0
+                mixed = False
                 py0 = 0
                 py1 = -1
                 px0 = 0
@@ -151,9 +159,13 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                             if occl and labels[yy, xx] == opposite:
                                 sm = _add(hm, g, sm, xlogx)
                                 m += 1
+                            if gap >= 0 and abs(layers[yy, xx] - layers[y, x]) > gap:
+                                mixed = True
                     py0, py1, px0, px1 = ya, yb, xa, xb
                     if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
                         continue  # side window not offered at this size (no layer jump within r)
+                    if mixed and not occl and not (s == 0 and k == 0):
+                        continue  # the window reaches another layer (the smallest square stays)
                     logn = np.log(n)
                     e = (logn - sg / n) + alpha1 * (sd / n - logn)
                     if m > 0:
@@ -177,7 +189,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
                    alpha2_other: float, strips: bool = True,
-                   side_radius: np.ndarray | None = None, return_all: bool = False):
+                   side_radius: np.ndarray | None = None, layers: np.ndarray | None = None,
+                   layer_gap: float | None = None, return_all: bool = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -199,6 +212,10 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
         the sizes whose half-width ``(size - 1) // 2`` is at least this (e.g. the chessboard distance
         to the nearest jump of the layer map: only where the square would straddle the jump).
         ``None``: never (the paper: the square only in texture and smooth regions); 0: always.
+    layers, layer_gap
+        ``(H, W)`` layer map and gap: if given, texture and smooth pixels are not offered windows
+        that reach a pixel of another layer (``|M(q) - M(p)| > layer_gap``), except the smallest
+        square, which is always offered.
 
     Returns
     -------
@@ -225,8 +242,11 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
                    np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
                    float(alpha2_other), n_grey, n_disp, xlogx,
-                   np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64), shape_map,
-                   size_map, best_e, all_e)
+                   np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64),
+                   np.zeros((H, W), np.float32) if layers is None
+                   else np.ascontiguousarray(layers, np.float32),
+                   -1.0 if layer_gap is None or layers is None else float(layer_gap),
+                   shape_map, size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e
     return shape_map, size_map, best_e.astype(np.float32)

@@ -442,11 +442,11 @@ def disparity_candidates(d_min: float, d_max: float, step: float) -> np.ndarray:
 
 def line_search(gray: np.ndarray, candidates: np.ndarray, *, shape_map: np.ndarray,
                 size_map: np.ndarray, set_map: np.ndarray, view_mask: np.ndarray | None = None,
-                return_costs: bool = False):
+                return_costs: bool = False, progress=None):
     """Minimise Eq. 5 over the candidates per pixel, with parabolic sub-step refinement.
 
     Returns ``(disparity, min_cost)`` as ``(H, W)`` float32 (and the ``(D, H, W)`` cost volume when
-    ``return_costs``). The parabola through the minimum and its two neighbours moves the estimate by
+    ``return_costs``); ``progress(fraction)`` is called after each candidate. The parabola through the minimum and its two neighbours moves the estimate by
     at most half a step; minima at either end of the range are not refined.
     """
     U, V, H, W = gray.shape
@@ -458,6 +458,8 @@ def line_search(gray: np.ndarray, candidates: np.ndarray, *, shape_map: np.ndarr
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         cost_of(buf, out=costs[i])
+        if progress is not None:
+            progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
     if return_costs:
         return disparity, best, costs

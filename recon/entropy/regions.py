@@ -38,11 +38,24 @@ REGION_NAMES = ("occluding", "occluded", "texture", "smooth")
 REGION_COLOURS = np.array([(255, 0, 0), (0, 0, 255), (255, 255, 0), (0, 160, 0)], np.uint8)
 
 
-def layer_map(d0: np.ndarray, *, median_size: int) -> np.ndarray:
-    """Depth-ordered layer value ``M`` of the centre view: the median-filtered initial disparity."""
+def layer_map(d0: np.ndarray, *, median_size: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """Depth-ordered layer value ``M`` of the centre view: the median-filtered initial disparity,
+    except at the ``keep`` pixels (``(H, W)`` bool, e.g. where ``d0`` was matched unambiguously),
+    which keep ``d0`` itself, so that a structure thinner than the median (a slit, a wire) that was
+    matched well is not erased."""
     if median_size <= 1:
         return d0.astype(np.float32)
-    return ndimage.median_filter(d0.astype(np.float32), size=median_size, mode="nearest")
+    d0 = d0.astype(np.float32)
+    smooth = ndimage.median_filter(d0, size=median_size, mode="nearest")
+    if keep is None:
+        return smooth
+    # Only a pixel that lies on a line of like values (a row or a column of three) is kept: a
+    # one-pixel slit survives, an isolated outlier does not.
+    row = ndimage.median_filter(d0, size=(1, 3), mode="nearest")
+    col = ndimage.median_filter(d0, size=(3, 1), mode="nearest")
+    tol = 0.1
+    on_line = (np.abs(d0 - row) <= tol) | (np.abs(d0 - col) <= tol)
+    return np.where(keep & on_line, d0, smooth)
 
 
 def occlusion_diffs_reference(layers: np.ndarray, offsets: list[tuple[int, int]], *,
@@ -197,7 +210,7 @@ def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float) -> tuple[np.
 
 def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_median: int,
                   smooth_neighbourhood: int, smooth_tolerance: float, occlusion_views: str = "all",
-                  fast: bool = True) -> tuple[np.ndarray, dict]:
+                  keep: np.ndarray | None = None, fast: bool = True) -> tuple[np.ndarray, dict]:
     """Region map of Eq. 8 for the centre view.
 
     Parameters
@@ -214,6 +227,8 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
         farthest view in each of the eight directions) or ``"all"`` (every view of the grid; a
         pixel between two close occluders, e.g. background 1 px from a thin bar, can be hidden in
         the middle views only and visible again in the farthest ones).
+    keep
+        ``(H, W)`` bool: pixels whose ``d0`` enters the layer map unfiltered (:func:`layer_map`).
 
     Returns
     -------
@@ -226,7 +241,7 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
         raise ValueError(f"occlusion_views must be 'nine' or 'all', got {occlusion_views!r}")
     mask = initial_view_mask((U, V)) if occlusion_views == "nine" else np.ones((U, V), bool)
     offsets = [(u - u0, v - v0) for u, v in zip(*np.nonzero(mask)) if (u, v) != (u0, v0)]
-    layers = layer_map(d0, median_size=layer_median)
+    layers = layer_map(d0, median_size=layer_median, keep=keep)
     diffs = occlusion_diffs_fast if fast else occlusion_diffs_reference
     neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
     flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance)
