@@ -149,3 +149,23 @@ def test_tv_refine_invariants():
         trial = mu.copy()
         trial[mask] += 0.003 * rng.standard_normal(mask.sum())
         assert tv_energy(trial, f, mask, 0.2) >= best - 1e-4
+
+
+def test_joint_line_search_fast_matches_reference():
+    from recon.entropy.matching import joint_line_search, joint_line_search_reference
+
+    rng = _rng()
+    gray = rng.random((3, 3, 9, 10)).astype(np.float32)
+    windows = [(s, z) for s in range(11) for z in (3, 5)]
+    penalty = rng.normal(0, 1, (9, 10, len(windows))).astype(np.float32)
+    penalty[rng.random(penalty.shape) < 0.4] = np.inf
+    penalty[..., 0] = 0.0  # every pixel keeps at least the 3x3 square
+    occluded = rng.random((9, 10)) < 0.5
+    cands = np.array([-0.6, -0.2, 0.1, 0.5])
+    i_ref, obj_ref, k_ref = joint_line_search_reference(
+        gray, cands, windows=windows, penalty=penalty, use_shape_set=occluded, intensity_scale=255.0)
+    d, obj, k, _ = joint_line_search(gray, cands, windows=windows, penalty=penalty,
+                                     use_shape_set=occluded, intensity_scale=255.0)
+    np.testing.assert_allclose(obj, obj_ref, rtol=1e-4)
+    assert np.array_equal(k, k_ref)
+    assert (np.abs(d - cands[i_ref]) <= 0.5 * 0.4 + 1e-6).all()

@@ -85,15 +85,21 @@ def block_abs_diff_reference(gray: np.ndarray, disparity: float, *,
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
 def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
+    # One output row at a time: every view's row is interpolated (bilinear is separable: first
+    # between the two source rows, then along x with one fraction for the whole row, since the
+    # shift is the same for every x) and its absolute difference added to a row accumulator per
+    # block, which is written once. Clamping at the image edges as in the reference.
     H = gray.shape[2]
     W = gray.shape[3]
     u0 = gray.shape[0] // 2
     v0 = gray.shape[1] // 2
-    out[:] = 0.0
+    n_blocks = out.shape[0]
     for y in numba.prange(H):
+        acc = np.zeros((n_blocks, W), np.float32)
+        rv = np.empty(W, np.float32)
+        centre = gray[u0, v0, y]
         for k in range(vu.shape[0]):
-            u = vu[k]
-            v = vv[k]
+            img = gray[vu[k], vv[k]]
             b = vblock[k]
             sy = y - vdu[k] * disparity
             if sy < 0.0:
@@ -107,24 +113,25 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
                 y0 = 0
             fy = sy - y0
             y1 = min(y0 + 1, H - 1)
-            shift_x = vdv[k] * disparity
             for x in range(W):
-                sx = x - shift_x
-                if sx < 0.0:
-                    sx = 0.0
-                elif sx > W - 1.0:
-                    sx = W - 1.0
-                x0 = int(np.floor(sx))
-                if x0 > W - 2:
-                    x0 = W - 2
-                if x0 < 0:
-                    x0 = 0
-                fx = sx - x0
-                x1 = min(x0 + 1, W - 1)
-                img = gray[u, v]
-                s = ((1.0 - fy) * ((1.0 - fx) * img[y0, x0] + fx * img[y0, x1])
-                     + fy * ((1.0 - fx) * img[y1, x0] + fx * img[y1, x1]))
-                out[b, y, x] += abs(gray[u0, v0, y, x] - s)
+                rv[x] = (1.0 - fy) * img[y0, x] + fy * img[y1, x]
+            base = -vdv[k] * disparity
+            fl = np.floor(base)
+            fx = base - fl
+            o = int(fl)
+            row = acc[b]
+            for x in range(W):
+                xs = x + o
+                if xs < 0:
+                    s = rv[0]
+                elif xs >= W - 1:
+                    s = rv[W - 1]
+                else:
+                    s = (1.0 - fx) * rv[xs] + fx * rv[xs + 1]
+                row[x] += abs(centre[x] - s)
+        for bb in range(n_blocks):
+            for x in range(W):
+                out[bb, y, x] = acc[bb, x]
 
 
 def _view_lists(grid_shape, view_mask):
@@ -344,20 +351,20 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
 
 
 @numba.njit(cache=True, parallel=True)
-def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, scale, out,
-                       out_k):
+def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
+                       out, out_k):
+    # Each pixel's allowed windows are ks[starts[p]:starts[p + 1]] with penalties pens[...]
+    # (a compact list: far from edges only the squares are allowed).
     H = out.shape[0]
     W = out.shape[1]
-    K = rects.shape[0]
     for y in numba.prange(H):
         for x in range(W):
+            p = y * W + x
             best = 1e300
             best_k = -1
             occluded_set = pixel_set[y, x]
-            for k in range(K):
-                pen = penalty[y, x, k]
-                if pen == np.inf:
-                    continue
+            for j in range(starts[p], starts[p + 1]):
+                k = ks[j]
                 s = window_shape[k] if occluded_set else 0
                 ya = max(y + rects[k, 0], 0)
                 yb = min(y + rects[k, 1], H - 1) + 1
@@ -365,12 +372,51 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
                 xb = min(x + rects[k, 3], W - 1) + 1
                 ii = integrals[s]
                 total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
-                c = scale * total / ((yb - ya) * (xb - xa) * counts[s]) + pen
+                c = scale * total / ((yb - ya) * (xb - xa) * counts[s]) + pens[j]
                 if c < best:
                     best = c
                     best_k = k
             out[y, x] = best
             out_k[y, x] = best_k
+
+
+def _compact_penalty(penalty: np.ndarray):
+    """``(starts, ks, pens)``: the finite entries of ``(H, W, K)`` ``penalty`` per pixel, row-major."""
+    H, W, K = penalty.shape
+    flat = penalty.reshape(H * W, K)
+    allowed = np.isfinite(flat)
+    starts = np.zeros(H * W + 1, np.int64)
+    np.cumsum(allowed.sum(1), out=starts[1:])
+    pix, ks = np.nonzero(allowed)  # row-major: pixels in order, windows ascending
+    return starts, ks.astype(np.int64), flat[pix, ks].astype(np.float64)
+
+
+def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
+                                windows: list[tuple[int, int]], penalty: np.ndarray,
+                                use_shape_set: np.ndarray, intensity_scale: float):
+    """Readable reference of :func:`joint_line_search` (same arguments; no sub-step refinement):
+    ``(candidate index, objective, window index)`` per pixel, ``(H, W)`` each."""
+    U, V, H, W = gray.shape
+    counts = set_view_counts((U, V))
+    best = np.full((H, W), np.inf)
+    best_i = np.zeros((H, W), np.int64)
+    best_k = np.full((H, W), -1, np.int64)
+    for i, d in enumerate(candidates):
+        blocks = block_abs_diff_reference(gray, float(d))
+        for y in range(H):
+            for x in range(W):
+                for k, (shape, size) in enumerate(windows):
+                    if not np.isfinite(penalty[y, x, k]):
+                        continue
+                    s = shape if use_shape_set[y, x] else 0
+                    img = np.tensordot(SET_BLOCKS[s].astype(np.float64), blocks, axes=1)
+                    y0, y1, x0, x1 = window_rect(shape, size)
+                    patch = img[max(y + y0, 0):min(y + y1, H - 1) + 1,
+                                max(x + x0, 0):min(x + x1, W - 1) + 1]
+                    c = intensity_scale * patch.sum() / (patch.size * counts[s]) + penalty[y, x, k]
+                    if c < best[y, x]:
+                        best[y, x], best_i[y, x], best_k[y, x] = c, i, k
+    return best_i, best.astype(np.float32), best_k
 
 
 def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
@@ -396,7 +442,6 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
         views.
     intensity_scale
         Factor on the mean absolute difference of ``[0, 1]`` grey values (255: 8-bit levels).
-
     ambiguity_delta
         Tolerance of :func:`cost_ambiguity` (objective units).
     progress
@@ -412,7 +457,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
     shapes = np.array([s for s, _ in windows], np.int64)
     gray = np.ascontiguousarray(gray, dtype=np.float32)
-    penalty = np.ascontiguousarray(penalty, dtype=np.float32)
+    starts, ks, pens = _compact_penalty(np.asarray(penalty, dtype=np.float32))
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
@@ -423,7 +468,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, all_sets, out=integrals)
-        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty,
+        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, starts, ks, pens,
                            float(intensity_scale), costs[i], k_tmp)
         which[i] = k_tmp
         if progress is not None:
