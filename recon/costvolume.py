@@ -73,7 +73,10 @@ def pixel_cost_reference(
     return (total / len(offsets)).astype(np.float32)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+# Only the fast-math flags that cannot change a finite result (no NaN/inf, sign of zero): with
+# reassociation or FMA contraction, a freshly compiled kernel and its cached twin in another process
+# rounded differently, and a batch worker disagreed with `lfrig reconstruct` in the last bits.
+@numba.njit(parallel=True, fastmath={"nnan", "ninf", "nsz"}, cache=True)
 def _pixel_cost_kernel(gray, disparity, offsets, indices, out):
     n_views = offsets.shape[0]
     h, w = gray.shape[2], gray.shape[3]
