@@ -105,8 +105,8 @@ def test_textureless_patch_is_labelled_smooth(flat_patch):
 
 
 def test_textureless_patch_is_filled(flat_patch):
-    # Filled because side windows are offered in smooth regions too (the default); with the paper's
-    # square-only windows the flat patch is a "black hole" that TV with gamma = 0.2 does not fill.
+    # A 12-px patch: windows reaching its texture border, and the black-hole fill for what they
+    # cannot reach (test_entropy_general.py checks a patch wider than the largest window).
     _, truth, result = flat_patch
     assert np.median(np.abs(result.disparity - truth)[22:34, 22:34]) < 0.05
 
@@ -118,7 +118,7 @@ def test_write_outputs(square, tmp_path):
     paths = write_outputs(result, tmp_path / "out")
     names = {p.name for p in paths}
     for name in ("regions.png", "window_size.png", "window_shape.png", "window_size.npy",
-                 "window_shape.npy", "initial_disparity.pfm", "refined_disparity.pfm"):
+                 "window_shape.npy", "initial_disparity.pfm", "refined_disparity.pfm", "holes.png"):
         assert name in names and (tmp_path / "out" / name).is_file()
     regions = cv2.imread(str(tmp_path / "out" / "regions.png"))[..., ::-1]
     assert np.array_equal(regions, REGION_COLOURS[result.labels])

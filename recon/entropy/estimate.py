@@ -187,11 +187,11 @@ class _Reporter:
     Each step has a weight in "initial-candidate units" (the time one candidate of the nine-view
     search takes): a candidate of the full line search costs :data:`MATCH_CANDIDATE_WEIGHT` of them
     (81 views and up to 77 windows against 9 views and 11), and the fixed steps a measured share
-    (2-core machine, 512x512, backgammon: initial 4 s for 52 candidates, matching 27 s for 126,
-    regions + windows + TV 3 s). The fraction never goes back.
+    (2-core machine, 512x512, backgammon: initial 2.5 s for 52 candidates, matching 10 s for 121,
+    regions 0.2 s, windows 1.5 s, TV 1 s). The fraction never goes back.
     """
 
-    FIXED = {"regions": 3.0, "windows": 20.0, "refine": 15.0}
+    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 20.0}
 
     def __init__(self, say, report, n_initial: int, n_matching: int) -> None:
         self.say = say
@@ -231,7 +231,7 @@ class _Reporter:
 
 
 #: Time of one full line-search candidate in units of one nine-view candidate (see ``_Reporter``).
-MATCH_CANDIDATE_WEIGHT = 2.8
+MATCH_CANDIDATE_WEIGHT = 1.8
 
 
 def make_options(options: EntropyOptions | None = None, **overrides) -> EntropyOptions:

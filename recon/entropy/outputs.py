@@ -39,7 +39,8 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     (grey level = size / 15 * 255) and ``window_size.npy``; ``window_shape.png`` (one colour per shape,
     ``SHAPE_COLOURS``) and ``window_shape.npy`` (0 square, 1..8 = W1..W8, 9/10 strips);
     ``view_set.npy``; ``initial_disparity.pfm``, ``matched_disparity.pfm`` (before TV) and
-    ``refined_disparity.pfm``. Returns the paths written.
+    ``refined_disparity.pfm``; ``holes.png`` (white: black holes, filled from their surroundings
+    by the TV refinement). Returns the paths written.
     """
     out = Path(out_dir)
     try:
@@ -71,4 +72,7 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     pfm("initial_disparity.pfm", result.initial_disparity)
     pfm("matched_disparity.pfm", result.matched_disparity)
     pfm("refined_disparity.pfm", result.disparity)
+    holes = result.info.get("holes") if result.info else None
+    if holes is not None:  # black holes: filled by the TV refinement without a data term
+        png("holes.png", (np.asarray(holes, bool) * 255).astype(np.uint8))
     return written
