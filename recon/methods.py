@@ -38,24 +38,14 @@ def _baseline(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     return MethodResult(disparity=result.disparity, extras=result, options=options)
 
 
-#: The steps the entropy estimator announces, in order (for a progress bar with a total).
-_ENTROPY_STEPS = 5
-
-
 def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.entropy import estimate_disparity, write_outputs
 
-    step = 0
-
-    def say(message: str) -> None:
-        nonlocal step
+    def report(fraction: float, note: str) -> None:  # the estimator's share of its work done, never decreasing
         if progress:
-            progress.update(step, _ENTROPY_STEPS, note=message)
-        step += 1
+            progress.update(int(round(1000 * fraction)), 1000, note=note)
 
-    result = estimate_disparity(lf, progress=say, **options)
-    if progress:
-        progress.update(_ENTROPY_STEPS, _ENTROPY_STEPS, note="done")
+    result = estimate_disparity(lf, progress_fraction=report, **options)
     used = dataclasses.asdict(result.options) if dataclasses.is_dataclass(getattr(result, "options", None)) else options
     return MethodResult(disparity=result.disparity, extras=result, options=used,
                         write_extras=lambda folder: write_outputs(result, folder))

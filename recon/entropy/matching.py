@@ -83,7 +83,7 @@ def block_abs_diff_reference(gray: np.ndarray, disparity: float, *,
     return out.astype(np.float32)
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath={"nnan", "ninf", "nsz"})  # IEEE rounding: see recon/costvolume.py
 def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
     # One output row at a time: every view's row is interpolated (bilinear is separable: first
     # between the two source rows, then along x with one fraction for the whole row, since the

@@ -170,7 +170,10 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     initial = shift + opts.initial_window // 2          # d0 at a pixel
     layers = opts.layer_median // 2 + shift             # median of d0, then the occlusion warp
     matching = max(opts.window_sizes) // 2 + shift      # windows over labels/entropy, then the views
-    return initial + layers + matching + opts.smooth_neighbourhood // 2
+    # which windows a pixel may use depends on depth jumps and layers within a window of it, and the
+    # side windows' centroid correction fits over one more window
+    window_tests = 2 * (max(opts.window_sizes) // 2) + 1
+    return initial + layers + matching + window_tests + opts.smooth_neighbourhood // 2
 
 
 #: Tiling rule per method name (the lead may move ``halo_px`` next to each runner in
@@ -180,7 +183,8 @@ TILE_RULES: dict[str, TileRule] = {
     "entropy": TileRule(
         resolve=_entropy_resolve, halo_px=_entropy_halo, exact=False,
         note=("global steps: noise sigma of the whole centre view, disparity-histogram bins from the "
-              "whole layer map's minimum, TV refinement over tv_iterations pixels"),
+              "whole layer map's minimum, TV refinement over tv_iterations pixels, flat patches filled "
+              "from their whole surroundings"),
     ),
 }
 
