@@ -151,6 +151,19 @@ def valid_crop(map_x: np.ndarray, map_y: np.ndarray, source_size: tuple[int, int
                      "or the camera model is broken")
 
 
+def _output_defaults(model: Any, image_size: tuple[int, int] | None, focal_px: float | None,
+                     centre_px: tuple[float, float] | None) -> tuple[tuple[int, int], float, tuple[float, float]]:
+    """The output image size (the model's imager), focal length (``sqrt(fx fy)``) and principal point
+    (the image centre) where the caller gave none."""
+    intr = model.intrinsics()[1]
+    w, h = (int(v) for v in (image_size if image_size is not None else model.imagersize()))
+    if focal_px is None:
+        focal_px = float(math.sqrt(intr[0] * intr[1]))
+    if centre_px is None:
+        centre_px = ((w - 1) / 2.0, (h - 1) / 2.0)
+    return (w, h), focal_px, centre_px
+
+
 def rectification(model: Any, stage: StageCalibration, *, pitch_mm: float | None = None,
                   focal_px: float | None = None, image_size: tuple[int, int] | None = None,
                   centre_px: tuple[float, float] | None = None, crop: bool = True) -> Rectification:
@@ -162,11 +175,7 @@ def rectification(model: Any, stage: StageCalibration, *, pitch_mm: float | None
     no view has black borders where matching would find nothing; the principal point moves with it.
     """
     lensmodel, intr = model.intrinsics()
-    w, h = (int(v) for v in (image_size if image_size is not None else model.imagersize()))
-    if focal_px is None:
-        focal_px = float(math.sqrt(intr[0] * intr[1]))
-    if centre_px is None:
-        centre_px = ((w - 1) / 2.0, (h - 1) / 2.0)
+    (w, h), focal_px, centre_px = _output_defaults(model, image_size, focal_px, centre_px)
     su, sv = stage.steps_for(stage.pitch_mm if pitch_mm is None else pitch_mm)
     R, K, pitch = rectifying_frame(su, sv, focal_px=focal_px, centre_px=centre_px)
     map_x, map_y = _maps(model, R, K, (w, h))
@@ -186,11 +195,7 @@ def undistortion(model: Any, *, focal_px: float | None = None, image_size: tuple
     """Undistortion alone (no rotation, square pixels): the baseline that :func:`rectification`
     improves on. Same conventions as :func:`rectification`."""
     lensmodel, intr = model.intrinsics()
-    w, h = (int(v) for v in (image_size if image_size is not None else model.imagersize()))
-    if focal_px is None:
-        focal_px = float(math.sqrt(intr[0] * intr[1]))
-    if centre_px is None:
-        centre_px = ((w - 1) / 2.0, (h - 1) / 2.0)
+    (w, h), focal_px, centre_px = _output_defaults(model, image_size, focal_px, centre_px)
     K = np.array([[focal_px, 0.0, centre_px[0]], [0.0, focal_px, centre_px[1]], [0.0, 0.0, 1.0]])
     map_x, map_y = _maps(model, np.eye(3), K, (w, h))
     return Rectification(np.eye(3), K, float(focal_px), float(pitch_mm), (w, h), map_x, map_y, lensmodel,
