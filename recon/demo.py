@@ -22,7 +22,7 @@ import json
 import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +56,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 class Steps:
     """Prints one line per step with its time, and keeps the times for the summary."""
 
-    quiet: bool
+    name: str = ""
     started: float = 0.0
-    times: dict[str, float] | None = None
-
-    def __post_init__(self) -> None:
-        self.times = {}
+    times: dict[str, float] = field(default_factory=dict)
 
     def begin(self, name: str, text: str) -> None:
         self.name = name
@@ -107,6 +104,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
     from recon.depth import depth_error_scores, disparity_to_depth, write_depth
+    from recon.evaluate import score
     from recon.export import export_result
     from recon.imageio import write_png
     from recon.io import read_lightfield
@@ -118,7 +116,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
     folder = Path(folder)
     _prepare(folder)
-    steps = Steps(quiet)
+    steps = Steps()
     stream = None if quiet else sys.stderr
     centre_mm = _fake_centre_mm()
     rig = FakeRig.misaligned(ref_mm=centre_mm)
@@ -202,8 +200,6 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
         "textured": depth_error_scores(depth, truth_depth, mask=textured, border_px=15),
     }
     truth_disparity = rect.focal_px * rect.pitch_mm / truth_depth
-    from recon.evaluate import score
-
     summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
     lf = read_lightfield(folder / "rectified")
     report = write_report(
