@@ -38,9 +38,13 @@ def quantise_grey(image: np.ndarray, bins: int) -> np.ndarray:
     return np.clip((image * bins).astype(np.int64), 0, bins - 1)
 
 
-def quantise_disparity(d0: np.ndarray, width: float) -> np.ndarray:
-    """``(H, W)`` int64 bin index ``floor((d0 - min) / width)``, starting at 0."""
-    q = np.floor((d0 - np.nanmin(d0)) / width).astype(np.int64)
+def quantise_disparity(d0: np.ndarray, width: float, origin: float | None = None) -> np.ndarray:
+    """``(H, W)`` int64 bin index ``floor((d0 - origin) / width)``; ``origin`` defaults to
+    ``min(d0)`` (bins start at 0). A tile passes the whole map's minimum so its bins are the whole
+    image's bins (only differences of indices matter to the entropy, so any origin at or below the
+    minimum gives the same histograms up to relabelling)."""
+    origin = float(np.nanmin(d0)) if origin is None else float(origin)
+    q = np.floor((d0 - origin) / width).astype(np.int64)
     return q
 
 

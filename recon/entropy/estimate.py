@@ -28,7 +28,7 @@ from recon.entropy.windows import N_SHAPES
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
 from recon.entropy.windows import window_rect
 from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, flat_pixels, jump_distance,
-                                   layer_jumps, region_labels)
+                                   layer_jumps, layer_map, region_labels)
 from recon.errors import ReconError
 from recon.lightfield import LightField
 
@@ -265,6 +265,10 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
 def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        progress: Callable[[str], None] | None = None,
                        progress_fraction: Callable[[float, str], None] | None = None,
+                       noise_sigma: float | None = None,
+                       initial: tuple[np.ndarray, np.ndarray] | None = None,
+                       disparity_origin: float | None = None,
+                       stop_after: str | None = None,
                        **overrides) -> EntropyResult:
     """Disparity of the centre view by the matching-entropy method.
 
@@ -281,6 +285,16 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         run done so far (``0..1``, never decreasing, weighted by each step's expected time) at the
         start of each step and after every candidate disparity of the two line searches, which
         take almost all the time; ``message`` names the current step. Ends with ``(1.0, "done")``.
+    noise_sigma, initial, disparity_origin, stop_after
+        For tiling (``recon.scale.tiles``; the default ``None`` computes everything here, from this
+        light field). ``noise_sigma``: the centre view's noise sigma in ``[0, 1]`` grey units
+        (default: estimated from this centre view). ``stop_after="initial"``: return after the raw
+        nine-view search (``initial_disparity`` not hole-filled; ``info`` has
+        ``initial_ambiguity`` and ``flat``), the whole-image step :func:`fill_initial` is the
+        caller's. ``initial=(d0, ambiguity0)``: an already filled initial estimate (skips the
+        initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
+        layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
+        whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
     **overrides
         Any :class:`EntropyOptions` field by name, e.g. ``step=0.05``.
 
@@ -291,6 +305,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     """
     opts = make_options(options, **overrides)
     _check(lf, opts)
+    if stop_after not in (None, "initial", "matching"):
+        raise ValueError(f"stop_after must be None, 'initial' or 'matching', got {stop_after!r}")
     say = progress or (lambda message: None)
     timings: dict[str, float] = {}
     t = time.perf_counter()
@@ -307,9 +323,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
 
     u0, v0 = U // 2, V // 2
     flat, flat_info = flat_pixels(gray[u0, v0], size=opts.smooth_neighbourhood,
-                                  tolerance=opts.smooth_tolerance)
-    hole_delta = max(opts.hole_delta,
-                     opts.hole_delta_noise * flat_info["noise_sigma"] * opts.intensity_scale)
+                                  tolerance=opts.smooth_tolerance, sigma=noise_sigma)
+    noise = flat_info["noise_sigma"]
+    hole_delta = max(opts.hole_delta, opts.hole_delta_noise * noise * opts.intensity_scale)
     known = opts.disparity_range or lf.disparity_range
     initial_rng = known if known is not None else opts.initial_range
     if known is not None:  # search a little beyond a known range: edges of the range are refined
@@ -319,14 +335,20 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     reporter = _Reporter(say, progress_fraction, n_initial,
                          len(disparity_candidates(guess[0], guess[1], opts.step)))
     reporter.step("initial", "initial disparity (nine views)")
-    d0, _, ambiguity0 = initial_disparity(
-        gray, disparity_range=initial_rng, step=opts.initial_step, window=opts.initial_window,
-        shiftable=opts.initial_shiftable, strips=opts.strip_windows,
-        ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within)
-    holes0 = (flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
-              if opts.fill_holes else None)
-    if holes0 is not None and holes0.any():
-        d0 = harmonic_fill(d0, holes0)
+    holes0 = None
+    if initial is None:
+        d0, _, ambiguity0 = initial_disparity(
+            gray, disparity_range=initial_rng, step=opts.initial_step, window=opts.initial_window,
+            shiftable=opts.initial_shiftable, strips=opts.strip_windows,
+            ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within)
+        if stop_after == "initial":
+            lap("initial")
+            return _partial(d0, flat, ambiguity0, noise, timings, opts, known)
+        d0, holes0 = fill_initial(d0, ambiguity0, flat, options=opts)
+    else:
+        d0, ambiguity0 = (np.asarray(a) for a in initial)
+        if d0.shape != (H, W) or ambiguity0.shape != (H, W):
+            raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -338,13 +360,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     labels, region_info = region_labels(
         gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
         smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance,
-        occlusion_views=opts.occlusion_views,
-        keep=(ambiguity0 * opts.initial_step <= opts.layer_keep_width) & ~flat)
+        occlusion_views=opts.occlusion_views, noise=noise,
+        keep=_layer_keep(ambiguity0, flat, opts))
     lap("regions")
 
     reporter.step("windows", "window selection (matching entropy)")
     grey_q = quantise_grey(gray[U // 2, V // 2], opts.grey_bins)
-    disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin)
+    disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin, origin=disparity_origin)
     sizes = tuple(sorted(opts.window_sizes))
     if opts.side_windows == "edges":
         side_radius = jump_distance(layer_jumps(region_info["layers"], layer_gap=opts.side_jump))
@@ -389,12 +411,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
     lap("matching")
 
-    reporter.step("refine", "TV refinement of smooth regions")
-    holes = flat & (ambiguity * opts.step > opts.hole_width) if opts.fill_holes else None
-    refined = tv_refine(matched, labels == SMOOTH, gamma=opts.gamma, iterations=opts.tv_iterations,
-                        holes=holes)
-    lap("refine")
-    reporter.done()
+    if stop_after == "matching":
+        refined, holes = matched, None
+    else:
+        reporter.step("refine", "TV refinement of smooth regions")
+        refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
+        lap("refine")
+        reporter.done()
 
     return EntropyResult(
         disparity=refined, initial_disparity=d0.astype(np.float32),
@@ -403,6 +426,58 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         view_set=set_map.astype(np.uint8), entropy=entropy, cost=cost, disparity_range=rng,
         timings=timings, options=opts,
         info={"ambiguity": ambiguity, "initial_ambiguity": ambiguity0, "holes": holes,
-              "initial_holes": holes0, "hole_delta": hole_delta,
+              "initial_holes": holes0, "hole_delta": hole_delta, "flat": flat,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]})
+
+
+def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:
+    return (ambiguity0 * opts.initial_step <= opts.layer_keep_width) & ~flat
+
+
+def _partial(d0, flat, ambiguity0, noise, timings, opts, known) -> EntropyResult:
+    # The result of stop_after="initial": the raw initial estimate and what fill_initial needs.
+    empty = np.zeros(d0.shape, np.uint8)
+    return EntropyResult(
+        disparity=d0.astype(np.float32), initial_disparity=d0.astype(np.float32),
+        matched_disparity=d0.astype(np.float32), labels=empty, window_size=empty,
+        window_shape=empty, view_set=empty, entropy=np.zeros(d0.shape, np.float32),
+        cost=np.zeros(d0.shape, np.float32),
+        disparity_range=tuple(known) if known is not None else opts.initial_range,
+        timings=timings, options=opts,
+        info={"initial_ambiguity": ambiguity0, "flat": flat, "noise_sigma": noise})
+
+
+def fill_initial(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
+                 options: EntropyOptions) -> tuple[np.ndarray, np.ndarray | None]:
+    """Whole-image step after the initial search: black holes of ``d0`` (flat pixels whose
+    nine-view cost curve is flat) filled from their surroundings (:func:`harmonic_fill`).
+
+    ``(H, W)`` maps in, ``(filled d0 float32, holes bool or None)`` out."""
+    holes0 = (flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
+              if options.fill_holes else None)
+    if holes0 is not None and holes0.any():
+        d0 = harmonic_fill(d0, holes0)
+    return d0, holes0
+
+
+def layer_origin(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
+                 options: EntropyOptions) -> float:
+    """The disparity histogram's bin origin the whole image uses: the layer map's minimum."""
+    layers = layer_map(d0, median_size=options.layer_median,
+                       keep=_layer_keep(ambiguity0, flat, options))
+    return float(np.nanmin(layers))
+
+
+def refine_global(matched: np.ndarray, labels: np.ndarray, flat: np.ndarray,
+                  ambiguity: np.ndarray, *, options: EntropyOptions
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Whole-image last step: the TV refinement of Eq. 13 over the smooth region, black holes
+    (flat pixels whose matching cost curve is flat) filled by it.
+
+    ``(H, W)`` maps in (matched disparity, labels, flat mask, cost ambiguity in candidates);
+    ``(refined float32, holes bool or None)`` out."""
+    holes = flat & (ambiguity * options.step > options.hole_width) if options.fill_holes else None
+    refined = tv_refine(matched, labels == SMOOTH, gamma=options.gamma,
+                        iterations=options.tv_iterations, holes=holes)
+    return refined, holes

@@ -214,29 +214,39 @@ def _window_cost_kernel(integrals, set_index, rects, set_counts, out):
             xa = max(x + rects[y, x, 2], 0)
             xb = min(x + rects[y, x, 3], W - 1) + 1
             ii = integrals[k]
-            total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+            total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
             out[y, x] = total / ((yb - ya) * (xb - xa) * set_counts[y, x])
+
+
+#: Window sums are exact integer sums: each pixel's set value is rounded to a multiple of
+#: ``1 / FIXED_POINT`` (3.7e-9 grey levels of ``[0, 1]``) and the summed-area tables are int64, so a
+#: window's sum does not depend on where the table starts (a float table's rounding does: a tile
+#: would round differently from the whole image and flip near-ties of the line search). Holds
+#: without overflow up to 2^63 / 2^28 / 256 views = 2^27 pixels (134 Mpx) per image or tile.
+FIXED_POINT = float(2 ** 28)
+FIXED_INV = 1.0 / FIXED_POINT
 
 
 @numba.njit(cache=True, parallel=True)
 def _set_integrals_kernel(blocks_ad, set_weights, out):
-    # out[s] = summed-area table of sum_b set_weights[s, b] * blocks_ad[b], zero first row/column.
+    # out[s] = summed-area table of round(FIXED_POINT * sum_b set_weights[s, b] * blocks_ad[b]),
+    # int64, zero first row/column.
     S = set_weights.shape[0]
     B, H, W = blocks_ad.shape
     for job in numba.prange(S * H):
         s = job // H
         y = job % H
-        acc = 0.0
-        out[s, y + 1, 0] = 0.0
+        acc = 0
+        out[s, y + 1, 0] = 0
         for x in range(W):
             v = 0.0
             for b in range(B):
                 if set_weights[s, b] != 0.0:
                     v += blocks_ad[b, y, x]
-            acc += v
+            acc += np.int64(np.floor(v * FIXED_POINT + 0.5))
             out[s, y + 1, x + 1] = acc
     for job in numba.prange(S):
-        out[job, 0, :] = 0.0
+        out[job, 0, :] = 0
     for job in numba.prange(S * (W + 1)):
         s = job // (W + 1)
         x = job % (W + 1)
@@ -246,10 +256,11 @@ def _set_integrals_kernel(blocks_ad, set_weights, out):
 
 def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
                   out: np.ndarray | None = None) -> np.ndarray:
-    """``(S, H + 1, W + 1)`` float64 summed-area tables of the view-set images ``sets`` (0..8)."""
+    """``(S, H + 1, W + 1)`` int64 summed-area tables of the view-set images ``sets`` (0..8), in
+    units of ``1 / FIXED_POINT`` (see :data:`FIXED_POINT`)."""
     _, H, W = blocks_ad.shape
     if out is None:
-        out = np.empty((len(sets), H + 1, W + 1), np.float64)
+        out = np.empty((len(sets), H + 1, W + 1), np.int64)
     _set_integrals_kernel(blocks_ad, SET_BLOCKS[np.asarray(sets)].astype(np.float64), out)
     return out
 
@@ -298,7 +309,7 @@ def _min_window_cost_kernel(integrals, window_set, rects, counts, out):
                 xa = max(x + rects[k, 2], 0)
                 xb = min(x + rects[k, 3], W - 1) + 1
                 ii = integrals[window_set[k]]
-                total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+                total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
                 c = total / ((yb - ya) * (xb - xa) * counts[k])
                 if c < best:
                     best = c
@@ -371,7 +382,7 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts
                 xa = max(x + rects[k, 2], 0)
                 xb = min(x + rects[k, 3], W - 1) + 1
                 ii = integrals[s]
-                total = ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]
+                total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
                 c = scale * total / ((yb - ya) * (xb - xa) * counts[s]) + pens[j]
                 if c < best:
                     best = c

@@ -196,12 +196,15 @@ def different_neighbours(image: np.ndarray, *, size: int, tolerance: float) -> n
     return psi
 
 
-def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float) -> tuple[np.ndarray, dict]:
+def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float,
+                sigma: float | None = None) -> tuple[np.ndarray, dict]:
     """Eq. 12's test alone: ``psi < N / 2`` on the ``(H, W)`` centre view, whatever the occlusion
-    labels. ``tolerance`` is in units of the noise sigma (Immerkaer), floored at 0.5/255. Returns
-    ``(mask, info)`` with ``psi``, ``noise_sigma`` and ``smooth_tolerance_abs``."""
+    labels. ``tolerance`` is in units of the noise sigma (Immerkaer), floored at 0.5/255; ``sigma``
+    (grey units of ``centre``), when given, is used instead of estimating it from ``centre`` (a tile
+    passes the whole image's, so its pixels are tested alike). Returns ``(mask, info)`` with
+    ``psi``, ``noise_sigma`` and ``smooth_tolerance_abs``."""
     centre = centre.astype(np.float32)
-    sigma = noise_sigma(centre)
+    sigma = noise_sigma(centre) if sigma is None else float(sigma)
     tol = max(tolerance * sigma, 0.5 / 255)
     psi = different_neighbours(centre, size=size, tolerance=tol)
     n = size ** 2 - 1
@@ -210,7 +213,8 @@ def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float) -> tuple[np.
 
 def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_median: int,
                   smooth_neighbourhood: int, smooth_tolerance: float, occlusion_views: str = "all",
-                  keep: np.ndarray | None = None, fast: bool = True) -> tuple[np.ndarray, dict]:
+                  keep: np.ndarray | None = None, fast: bool = True,
+                  noise: float | None = None) -> tuple[np.ndarray, dict]:
     """Region map of Eq. 8 for the centre view.
 
     Parameters
@@ -229,6 +233,8 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
         the middle views only and visible again in the farthest ones).
     keep
         ``(H, W)`` bool: pixels whose ``d0`` enters the layer map unfiltered (:func:`layer_map`).
+    noise
+        Noise sigma of the centre view (grey units); default: estimated from it (:func:`noise_sigma`).
 
     Returns
     -------
@@ -244,7 +250,8 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
     layers = layer_map(d0, median_size=layer_median, keep=keep)
     diffs = occlusion_diffs_fast if fast else occlusion_diffs_reference
     neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
-    flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance)
+    flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance,
+                                  sigma=noise)
     labels = np.full(d0.shape, TEXTURE, np.uint8)
     labels[flat] = SMOOTH
     occluded = neg < 0
