@@ -124,3 +124,35 @@ def test_write_outputs(square, tmp_path):
     assert np.array_equal(regions, REGION_COLOURS[result.labels])
     np.testing.assert_array_equal(read_pfm(tmp_path / "out" / "refined_disparity.pfm"),
                                   result.disparity)
+
+
+def test_the_phases_compose_to_the_whole_estimator():
+    """What tiling calls (recon.scale.tiles): the raw initial search, the whole-image hole fill,
+    the matching with the whole image's noise sigma and bin origin, the whole-image refinement;
+    composed they give exactly the untiled result."""
+    from recon.entropy.estimate import fill_initial, layer_origin, refine_global
+
+    lf, _ = occluding_square_scene(48, seed=5, back=-0.5, front=0.9, grid=(5, 5))
+    whole = estimate_disparity(lf)
+    first = estimate_disparity(lf, stop_after="initial")
+    sigma = first.info["noise_sigma"]
+    d0, _ = fill_initial(first.initial_disparity, first.info["initial_ambiguity"], first.info["flat"],
+                         options=DEFAULTS)
+    np.testing.assert_array_equal(d0, whole.initial_disparity)
+    origin = layer_origin(d0, first.info["initial_ambiguity"], first.info["flat"], options=DEFAULTS)
+    second = estimate_disparity(lf, stop_after="matching", noise_sigma=sigma, disparity_origin=origin,
+                                initial=(d0, first.info["initial_ambiguity"]))
+    np.testing.assert_array_equal(second.matched_disparity, whole.matched_disparity)
+    refined, _ = refine_global(second.matched_disparity, second.labels, second.info["flat"],
+                               second.info["ambiguity"], options=DEFAULTS)
+    np.testing.assert_array_equal(refined, whole.disparity)
+    with pytest.raises(ValueError, match="stop_after"):
+        estimate_disparity(lf, stop_after="windows")
+
+
+def test_disparity_bins_from_a_given_origin():
+    from recon.entropy.entropy import quantise_disparity
+
+    d = np.array([[0.31, 0.5], [0.77, 1.25]])
+    np.testing.assert_array_equal(quantise_disparity(d, 0.1), [[0, 1], [4, 9]])
+    np.testing.assert_array_equal(quantise_disparity(d, 0.1, origin=0.0), [[3, 5], [7, 12]])
