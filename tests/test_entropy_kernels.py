@@ -169,3 +169,25 @@ def test_joint_line_search_fast_matches_reference():
     np.testing.assert_allclose(obj, obj_ref, rtol=1e-4)
     assert np.array_equal(k, k_ref)
     assert (np.abs(d - cands[i_ref]) <= 0.5 * 0.4 + 1e-6).all()
+
+
+def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin():
+    from recon.entropy.refine import centroid_correction, centroid_correction_reference
+    from recon.entropy.windows import N_SHAPES, window_rect
+
+    rng = np.random.default_rng(4)
+    H, W = 30, 34
+    yy, xx = np.mgrid[0:H, 0:W]
+    d = 0.3 + 0.01 * yy - 0.02 * xx + rng.normal(0, 0.002, (H, W))
+    d[:, 20:] += 0.8  # a step: planes fitted across it are rejected, far from the threshold
+    table = np.array([[window_rect(s, z) if z % 2 else (0, 0, 0, 0) for z in range(16)]
+                      for s in range(N_SHAPES)], np.int64)
+    rects = table[rng.integers(0, N_SHAPES, (H, W)), rng.choice([3, 5, 9, 15], (H, W))]
+    kwargs = dict(max_residual=0.05, max_shift=0.2)
+    fast = centroid_correction(d.astype(np.float32), rects, **kwargs)
+    reference = centroid_correction_reference(d.astype(np.float32), rects, **kwargs)
+    np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-6)
+    assert np.abs(fast - d).max() > 0.01  # it did correct something
+    crop = centroid_correction(np.ascontiguousarray(d[5:, 7:], dtype=np.float32), rects[5:, 7:], **kwargs)
+    # away from the crop's edge (15-px windows reach 7 px) a crop is bit-identical to the whole
+    np.testing.assert_array_equal(crop[7:, 7:], fast[12:, 14:])

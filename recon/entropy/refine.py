@@ -17,6 +17,7 @@ converge in a few hundred iterations; :func:`harmonic_fill` gives it (exact on a
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
@@ -147,9 +148,11 @@ def _sat(image: np.ndarray) -> np.ndarray:
     return out
 
 
-def centroid_correction(disparity: np.ndarray, rects: np.ndarray, *,
-                        max_residual: float, max_shift: float) -> np.ndarray:
-    """Move each pixel's disparity from its window's centroid back to the pixel.
+def centroid_correction_reference(disparity: np.ndarray, rects: np.ndarray, *,
+                                  max_residual: float, max_shift: float) -> np.ndarray:
+    """Move each pixel's disparity from its window's centroid back to the pixel (readable
+    reference with summed-area tables; :func:`centroid_correction` is the fast twin whose sums do
+    not depend on the image's origin).
 
     A window matched with one disparity on a slanted surface finds (about) the disparity at the
     window's centroid. A side window's centroid is ``r / 2`` off the pixel, so on a slant of ``g``
@@ -198,4 +201,58 @@ def centroid_correction(disparity: np.ndarray, rects: np.ndarray, *,
     shift = gy * (cy - yy) + gx * (cx - xx)
     ok = (residual <= max_residual ** 2) & ((cy != yy) | (cx != xx))
     out = np.where(ok, d - np.clip(shift, -max_shift, max_shift), d)
+    return out.astype(np.float32)
+
+
+@numba.njit(cache=True, parallel=True)
+def _centroid_kernel(d, rects, max_residual, max_shift, out):
+    H, W = d.shape
+    for y in numba.prange(H):
+        for x in range(W):
+            ya = max(y + rects[y, x, 0], 0)
+            yb = min(y + rects[y, x, 1], H - 1) + 1
+            xa = max(x + rects[y, x, 2], 0)
+            xb = min(x + rects[y, x, 3], W - 1) + 1
+            s1 = 0.0
+            sy = 0.0
+            sx = 0.0
+            s2 = 0.0
+            for qy in range(ya, yb):
+                for qx in range(xa, xb):
+                    v = d[qy, qx]
+                    s1 += v
+                    sy += v * (qy - y)
+                    sx += v * (qx - x)
+                    s2 += v * v
+            ny = yb - ya
+            nx = xb - xa
+            n = ny * nx
+            cy = (ya + yb - 1) / 2.0 - y  # centroid relative to the pixel
+            cx = (xa + xb - 1) / 2.0 - x
+            var_y = (ny * ny - 1) / 12.0
+            var_x = (nx * nx - 1) / 12.0
+            mean = s1 / n
+            gy = (sy / n - cy * mean) / var_y if var_y > 0 else 0.0
+            gx = (sx / n - cx * mean) / var_x if var_x > 0 else 0.0
+            residual = s2 / n - mean * mean - gy * gy * var_y - gx * gx * var_x
+            value = d[y, x]
+            if residual <= max_residual * max_residual and (cy != 0.0 or cx != 0.0):
+                shift = gy * cy + gx * cx
+                value -= min(max(shift, -max_shift), max_shift)
+            out[y, x] = value
+
+
+def centroid_correction(disparity: np.ndarray, rects: np.ndarray, *,
+                        max_residual: float, max_shift: float) -> np.ndarray:
+    """Move each pixel's disparity from its window's centroid back to the pixel.
+
+    As :func:`centroid_correction_reference` (same parameters and result up to rounding), with
+    each window's sums taken directly in a fixed order in coordinates relative to the pixel, so a
+    pixel's result depends only on the values in its window, not on where the image starts (a
+    tile computes what the whole image computes).
+    """
+    d = np.ascontiguousarray(disparity, dtype=np.float64)
+    out = np.empty(d.shape, np.float64)
+    _centroid_kernel(d, np.ascontiguousarray(rects, dtype=np.int64), float(max_residual),
+                     float(max_shift), out)
     return out.astype(np.float32)
