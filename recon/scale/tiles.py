@@ -184,6 +184,7 @@ def _entropy_initial_task(crop: LightField, maps: list[np.ndarray], options: dic
     from recon.scale.cluster import limit_threads
 
     limit_threads(threads)
+    options = dict(options)  # a retried task gets the same dict again
     shared = options.pop("_shared")
     r = estimate_disparity(crop, options=_entropy_options(options), stop_after="initial", **shared)
     return np.stack([r.initial_disparity, r.info["initial_ambiguity"], r.info["flat"]]).astype(np.float32)
@@ -197,6 +198,7 @@ def _entropy_matching_task(crop: LightField, maps: list[np.ndarray], options: di
     from recon.scale.cluster import limit_threads
 
     limit_threads(threads)
+    options = dict(options)  # a retried task gets the same dict again
     shared = options.pop("_shared")
     d0, ambiguity0 = maps
     r = estimate_disparity(crop, options=_entropy_options(options), stop_after="matching",
@@ -334,6 +336,7 @@ def tiled_disparity(
         ``None`` or an object with ``update(done, total, note=...)``, told as tiles finish.
     runner
         ``runner(crop, method, options, threads) -> (crop H, crop W)``; default :func:`run_tile`.
+        Not used for a method whose rule has its own ``run`` (entropy: two rounds of tiles).
 
     Returns
     -------
