@@ -495,14 +495,13 @@ def projection_difference(model_a: Any, model_b: Any, *, distance_mm: float, gri
 # ----------------------------------------------------------------------------------------------
 
 def _read_image(path: Path) -> np.ndarray:
-    import cv2
+    from recon.errors import LightFieldFormatError
+    from recon.imageio import read_image
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise CalibError(f"{path}: cannot read this image (missing, or not an image OpenCV reads)")
-    if img.ndim == 3 and img.shape[2] >= 3:
-        img = img[..., 2::-1]  # BGR(A) -> RGB
-    return img
+    try:
+        return read_image(Path(path))
+    except LightFieldFormatError as error:
+        raise CalibError(str(error)) from None
 
 
 def calibrate_intrinsics_from_images(paths: Sequence[str | os.PathLike], *, board: Board,

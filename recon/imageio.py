@@ -82,10 +82,11 @@ def encode_png(image: np.ndarray) -> bytes:
 def write_bytes_atomic(path: Path, data: bytes) -> str:
     """Write ``data`` to ``path`` so that a reader sees either the old file or the whole new one.
 
-    The bytes go to a temporary file in the same folder, are flushed to disk, and the file is renamed
-    into place; the folder is synced so the rename survives a power cut. Returns the SHA-256 hex digest.
+    The bytes go to a temporary file in the same folder (named with the process id, so two processes
+    writing the same file never share it), are flushed to disk, and the file is renamed into place;
+    the folder is synced so the rename survives a power cut. Returns the SHA-256 hex digest.
     """
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as f:
         f.write(data)
         f.flush()

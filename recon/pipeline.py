@@ -80,12 +80,9 @@ def check_options(options: Mapping[str, Any]) -> None:
 
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(json.dumps(record, indent=2) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    from recon.imageio import write_bytes_atomic
+
+    write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
 
 def reconstruct_to_folder(

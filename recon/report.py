@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from recon.depth import depth_error_scores, depth_to_disparity, disparity_to_depth
+from recon.imageio import write_png
 from recon.lightfield import to_float
 
 #: Region labels as ``recon.entropy.regions`` numbers them (0..3) and the paper's colours (RGB).
@@ -352,11 +353,6 @@ def line_plot(x: np.ndarray, series: Sequence[tuple], *,
     return _finish(canvas)
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
-    if not ok:
-        raise ValueError(f"{path}: OpenCV could not encode the figure")
-    path.write_bytes(data.tobytes())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -614,14 +610,14 @@ def write_report(
     if rows is None:
         rows = _default_rows(height, truth, border_px)
     rows = [int(r) for r in rows if 0 <= int(r) < height]
-    _write_png(out / "centre_view.png", image_figure(view, rows=rows, scale=factor))
+    write_png(out / "centre_view.png", image_figure(view, rows=rows, scale=factor))
     figures.append(_figure("centre_view.png", "Centre view",
                            "the rows of the depth profiles below are marked" if rows else ""))
 
     low, high = _robust_range(disparity if truth is None else np.concatenate([disparity.ravel(), truth.ravel()]),
                               disparity_range)
     picture = colour_map(disparity, low=low, high=high, lut="turbo")
-    _write_png(out / "disparity.png", colourbar_figure(picture, low=low, high=high, lut="turbo",
+    write_png(out / "disparity.png", colourbar_figure(picture, low=low, high=high, lut="turbo",
                                                        label="disparity (px per view step)", scale=factor))
     figures.append(_figure("disparity.png", "Disparity",
                            f"near is red, far is blue; dark grey: no value ({100 - coverage:.1f} % of pixels)"))
@@ -629,14 +625,14 @@ def write_report(
     if depth is not None:
         d_low, d_high = _robust_range(depth)
         picture = colour_map(depth, low=d_low, high=d_high, lut="turbo_r")
-        _write_png(out / "depth.png", colourbar_figure(picture, low=d_low, high=d_high, lut="turbo_r",
+        write_png(out / "depth.png", colourbar_figure(picture, low=d_low, high=d_high, lut="turbo_r",
                                                        label="depth (mm)", scale=factor))
         figures.append(_figure("depth.png", "Depth",
                                f"Z = focal_px · pitch_mm / (d + d0), focal {camera['focal_px']:.6g} px, "
                                f"pitch {camera['pitch_mm']:.4g} mm, d0 {camera.get('disparity_offset', 0.0):.4g}"))
 
     if depth is not None:
-        _write_png(out / "shaded.png", image_figure(shaded_relief(depth, focal_px=camera["focal_px"]), scale=factor))
+        write_png(out / "shaded.png", image_figure(shaded_relief(depth, focal_px=camera["focal_px"]), scale=factor))
         figures.append(_figure("shaded.png", "Shaded surface",
                                "the depth map (smoothed over 1.5 px) lit from the upper left: bumps and false steps show as "
                                "light and shade"))
@@ -644,7 +640,7 @@ def write_report(
     if truth is not None:
         error = disparity - truth
         picture = colour_map(error, low=-error_range_px, high=error_range_px, lut="diverging")
-        _write_png(out / "error.png", colourbar_figure(picture, low=-error_range_px, high=error_range_px,
+        write_png(out / "error.png", colourbar_figure(picture, low=-error_range_px, high=error_range_px,
                                                        lut="diverging", label="estimate - truth (px)", scale=factor))
         figures.append(_figure("error.png", "Disparity error",
                                f"red: estimate too near, blue: too far; clipped at ±{error_range_px:g} px"))
@@ -657,7 +653,7 @@ def write_report(
             outside = np.ones(shape, bool)
             outside[border_px:-border_px, border_px:-border_px] = False
             badpix[outside] = (badpix[outside] * 0.6).astype(np.uint8)
-        _write_png(out / "badpix.png", image_figure(badpix, scale=factor))
+        write_png(out / "badpix.png", image_figure(badpix, scale=factor))
         caption = f"red: |error| > {BADPIX_THRESHOLD} px or no value"
         if border_px:
             caption += f"; the darker {border_px}-pixel border is not scored"
@@ -666,7 +662,7 @@ def write_report(
     if region_map is not None:
         region = np.asarray(region_map)
         picture = region_picture(region, names=region_names) if region.ndim == 2 else _as_rgb8(region)
-        _write_png(out / "regions.png", image_figure(picture, scale=factor))
+        write_png(out / "regions.png", image_figure(picture, scale=factor))
         legend = []
         for label, name in enumerate(region_names):
             share = f" {100.0 * np.mean(region == label):.1f} %" if region.ndim == 2 else ""
@@ -684,7 +680,7 @@ def write_report(
             w_low, w_high = w_low - 1, w_high + 1
         ticks = present if 0 < present.size <= 8 else None
         picture = colour_map(sizes, low=w_low, high=w_high, lut="viridis")
-        _write_png(out / "window_size.png", colourbar_figure(picture, low=w_low, high=w_high, lut="viridis",
+        write_png(out / "window_size.png", colourbar_figure(picture, low=w_low, high=w_high, lut="viridis",
                                                              label="window side (px)", ticks=ticks, scale=factor))
         figures.append(_figure("window_size.png", "Window size", "side of the square window chosen per pixel"))
 
@@ -702,7 +698,7 @@ def write_report(
                 series.append(("truth", truth_depth[row], _TRUTH, 1.0))
             plots.append(line_plot(columns, series, xlabel=f"column x (px), row {row}", ylabel="depth (mm)"))
         name = f"profile_row{row}.png"
-        _write_png(out / name, np.concatenate(plots, axis=1) if len(plots) > 1 else plots[0])
+        write_png(out / name, np.concatenate(plots, axis=1) if len(plots) > 1 else plots[0])
         profiles.append(f'<img src="{name}" alt="profile along row {row}">')
 
     # ---- the page

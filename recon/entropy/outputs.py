@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from recon.entropy.estimate import EntropyResult
 from recon.entropy.regions import REGION_COLOURS
 from recon.entropy.windows import N_SHAPES
 from recon.errors import ReconError
+from recon.imageio import write_png
 from recon.pfm import write_pfm
 
 #: One colour per window shape (RGB): grey square, then W1..W8 and the two strips.
@@ -21,9 +21,10 @@ SHAPE_COLOURS = np.array([
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
-    image = rgb[..., ::-1] if rgb.ndim == 3 else rgb
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise ReconError(f"{path}: cannot write the image; check that the folder is writable")
+    try:
+        write_png(path, np.ascontiguousarray(rgb))
+    except OSError as error:
+        raise ReconError(f"{path}: cannot write the image ({error.strerror}); check that the folder is writable") from None
 
 
 def region_image(labels: np.ndarray) -> np.ndarray:
