@@ -25,8 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="estimate the centre view's disparity",
         description=(
             "Estimate the disparity of the centre view (pixels per view step, the benchmark's sign) and write "
-            "OUT_DIR/disparity.pfm, a colour-mapped disparity.png and result.json. When the light field has "
-            "ground truth (gt_disp_lowres.pfm), the scores are printed and recorded too."
+            "OUT_DIR/disparity.pfm, a colour-mapped disparity.png, centre_view.png, the method's own maps "
+            "(entropy: regions.png, window size and shape, initial/matched/refined disparity) and result.json. "
+            "When the light field has ground truth (gt_disp_lowres.pfm), the scores are printed and recorded too."
         ),
     )
     rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")

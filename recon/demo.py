@@ -106,8 +106,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.depth import depth_error_scores, disparity_to_depth, write_depth
     from recon.evaluate import score
     from recon.export import export_result
-    from recon.imageio import write_png
-    from recon.io import read_lightfield
+    from recon.imageio import read_image, write_png
     from recon.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
@@ -201,9 +200,8 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     }
     truth_disparity = rect.focal_px * rect.pitch_mm / truth_depth
     summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
-    lf = read_lightfield(folder / "rectified")
     report = write_report(
-        folder / "report", centre_view=lf.centre_view(), disparity_px=disparity,
+        folder / "report", centre_view=read_image(result_dir / "centre_view.png"), disparity_px=disparity,
         title="lfrig demo: simulated lab session", subtitle=str(folder / "rectified"),
         truth_depth_mm=truth_depth, camera={"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                                             "disparity_offset": 0.0},
