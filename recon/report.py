@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from recon.depth import depth_error_scores, depth_to_disparity, disparity_to_depth
+from recon.colour import LUTS, NO_VALUE, colour_map, robust_range
 from recon.imageio import write_png
 from recon.lightfield import to_float
 
@@ -51,7 +52,6 @@ REGION_COLOURS = {
     "smooth": (0, 160, 0),
 }
 UNLABELLED = (128, 128, 128)
-NO_VALUE = (60, 60, 60)  # pixels without a value in colour-mapped figures
 
 BADPIX_THRESHOLD = 0.07
 _SS = 2  # supersampling factor for drawing text and lines
@@ -65,43 +65,6 @@ _TRUTH = (20, 20, 20)
 # --------------------------------------------------------------------------------------------------
 # colour maps
 # --------------------------------------------------------------------------------------------------
-
-
-def _opencv_lut(code: int) -> np.ndarray:
-    ramp = np.arange(256, dtype=np.uint8).reshape(-1, 1)
-    return cv2.applyColorMap(ramp, code)[:, 0, ::-1].copy()  # (256, 3) RGB
-
-
-def _diverging_lut() -> np.ndarray:
-    # blue - near white - red (the ends of ColorBrewer's RdBu)
-    stops = np.array([(33, 102, 172), (146, 197, 222), (247, 247, 247), (244, 165, 130), (178, 24, 43)], float)
-    positions = np.linspace(0, 1, len(stops))
-    t = np.linspace(0, 1, 256)
-    return np.stack([np.interp(t, positions, stops[:, k]) for k in range(3)], axis=-1).round().astype(np.uint8)
-
-
-LUTS = {
-    "turbo": lambda: _opencv_lut(cv2.COLORMAP_TURBO),
-    "turbo_r": lambda: _opencv_lut(cv2.COLORMAP_TURBO)[::-1].copy(),
-    "viridis": lambda: _opencv_lut(cv2.COLORMAP_VIRIDIS),
-    "diverging": _diverging_lut,
-}
-
-
-def colour_map(values: np.ndarray, *, low: float, high: float, lut: str = "turbo") -> np.ndarray:
-    """``(H, W)`` values -> ``(H, W, 3)`` RGB ``uint8`` through a 256-entry colour map.
-
-    ``low`` maps to the first colour, ``high`` to the last; values outside are clipped. Non-finite
-    pixels get :data:`NO_VALUE`.
-    """
-    table = LUTS[lut]()
-    values = np.asarray(values, dtype=np.float64)
-    finite = np.isfinite(values)
-    span = high - low if high > low else 1.0
-    index = np.clip((np.where(finite, values, low) - low) / span, 0.0, 1.0)
-    rgb = table[np.round(index * 255).astype(np.int64)]
-    rgb[~finite] = NO_VALUE
-    return rgb
 
 
 def region_picture(labels: np.ndarray, *, names: Sequence[str] = REGION_NAMES) -> np.ndarray:
@@ -366,16 +329,6 @@ def _as_rgb8(image: np.ndarray) -> np.ndarray:
     return np.repeat(rgb[..., None], 3, axis=-1) if rgb.ndim == 2 else rgb
 
 
-def _robust_range(values: np.ndarray, given: tuple[float, float] | None = None) -> tuple[float, float]:
-    if given is not None:
-        return float(given[0]), float(given[1])
-    finite = values[np.isfinite(values)]
-    if finite.size == 0:
-        return 0.0, 1.0
-    low, high = (float(v) for v in np.percentile(finite, [1, 99]))
-    return (low, high) if high > low else (low - 0.5, high + 0.5)
-
-
 def _default_rows(height: int, truth: np.ndarray | None, border: int) -> list[int]:
     """Three rows: by default at 1/4, 1/2, 3/4 of the height, moved to the nearby row with the most
     structure in the truth (largest spread) when there is a truth."""
@@ -614,7 +567,7 @@ def write_report(
     figures.append(_figure("centre_view.png", "Centre view",
                            "the rows of the depth profiles below are marked" if rows else ""))
 
-    low, high = _robust_range(disparity if truth is None else np.concatenate([disparity.ravel(), truth.ravel()]),
+    low, high = robust_range(disparity if truth is None else np.concatenate([disparity.ravel(), truth.ravel()]),
                               disparity_range)
     picture = colour_map(disparity, low=low, high=high, lut="turbo")
     write_png(out / "disparity.png", colourbar_figure(picture, low=low, high=high, lut="turbo",
@@ -623,7 +576,7 @@ def write_report(
                            f"near is red, far is blue; dark grey: no value ({100 - coverage:.1f} % of pixels)"))
 
     if depth is not None:
-        d_low, d_high = _robust_range(depth)
+        d_low, d_high = robust_range(depth)
         picture = colour_map(depth, low=d_low, high=d_high, lut="turbo_r")
         write_png(out / "depth.png", colourbar_figure(picture, low=d_low, high=d_high, lut="turbo_r",
                                                        label="depth (mm)", scale=factor))
