@@ -372,6 +372,27 @@ def _read_image(path: Path, *, what: str) -> np.ndarray:
     return read_image(path)
 
 
+def result_camera(result: ResultFolder, *, focal_px: float | None = None, pitch_mm: float | None = None,
+                  disparity_offset: float | None = None) -> tuple[dict[str, float | None], list[str]]:
+    """The camera of a reconstruction folder with the caller's overrides: ``({"focal_px", "pitch_mm",
+    "disparity_offset"}, missing)``, where ``missing`` names the flags (``--focal-px``, ``--pitch-mm``)
+    of what is still unknown (metric depth needs both)."""
+    camera = {
+        "focal_px": focal_px if focal_px is not None else result.focal_px,
+        "pitch_mm": pitch_mm if pitch_mm is not None else result.pitch_mm,
+        "disparity_offset": disparity_offset if disparity_offset is not None else result.disparity_offset,
+    }
+    missing = ["--" + name.replace("_", "-") for name in ("focal_px", "pitch_mm") if camera[name] is None]
+    return camera, missing
+
+
+def missing_camera_error(result: ResultFolder, missing: list[str]) -> ExportError:
+    return ExportError(
+        f"{result.path / RESULT_JSON}: {', '.join(m[2:].replace('-', '_') for m in missing)} unknown (the light field "
+        f"had no camera parameters); metric depth needs them, pass {' and '.join(missing)}"
+    )
+
+
 def export_result(
     result_dir,
     ply_path,
@@ -389,23 +410,14 @@ def export_result(
     ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given.
     """
     result = read_result(result_dir)
-    focal = focal_px if focal_px is not None else result.focal_px
-    pitch = pitch_mm if pitch_mm is not None else result.pitch_mm
-    offset = disparity_offset if disparity_offset is not None else result.disparity_offset
-    missing = [name for name, value in (("focal_px", focal), ("pitch_mm", pitch)) if value is None]
+    camera, missing = result_camera(result, focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset)
     if missing:
-        flags = " and ".join("--" + name.replace("_", "-") for name in missing)
-        raise ExportError(
-            f"{result.path / RESULT_JSON}: {', '.join(missing)} unknown (the light field had no camera "
-            f"parameters); metric depth needs them, pass {flags}"
-        )
+        raise missing_camera_error(result, missing)
     return export_ply(
         ply_path,
         disparity_px=result.disparity_px,
         image=result.image,
-        focal_px=focal,
-        pitch_mm=pitch,
-        disparity_offset=offset,
+        **camera,
         principal_point_px=result.principal_point_px,
         mask=result.mask,
         kind=kind,

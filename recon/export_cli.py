@@ -55,19 +55,13 @@ def _export(args: argparse.Namespace) -> None:
 
     from recon.cloud import MAX_RELATIVE_JUMP
     from recon.depth import disparity_to_depth, write_depth
-    from recon.export import export_ply, read_result
+    from recon.export import export_ply, missing_camera_error, read_result, result_camera
 
     result = read_result(args.result_dir)
-    focal = args.focal_px if args.focal_px is not None else result.focal_px
-    pitch = args.pitch_mm if args.pitch_mm is not None else result.pitch_mm
-    offset = args.disparity_offset if args.disparity_offset is not None else result.disparity_offset
-    missing = [flag for flag, value in (("--focal-px", focal), ("--pitch-mm", pitch)) if value is None]
+    camera, missing = result_camera(result, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
+                                    disparity_offset=args.disparity_offset)
     if missing and (args.ply or args.depth):
-        raise ExportError(
-            f"{args.result_dir / 'result.json'}: the camera is unknown (the light field had no parameters), so "
-            f"depth cannot be metric; pass {' and '.join(missing)}"
-        )
-    camera = {"focal_px": focal, "pitch_mm": pitch, "disparity_offset": offset}
+        raise missing_camera_error(result, missing)
 
     if args.ply is not None:
         summary = export_ply(
