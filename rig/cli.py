@@ -86,7 +86,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     home = actions.add_parser("home", help="run the homing cycle ($H)")
     _stage_argument(home)
     move = actions.add_parser("move", help="move to an absolute machine position (mm) and wait")
-    move.add_argument("position", type=float, nargs=3, metavar=("X", "Y", "Z"))
+    for axis in "xyz":  # three positionals: argparse cannot print a tuple metavar of a positional
+        move.add_argument(axis, type=float, metavar=axis.upper(), help=f"machine {axis.upper()} in mm")
     move.add_argument("--feed-mm-min", type=float, help="feed (default: rapid)")
     move.add_argument("--home", action="store_true", help="home first")
     _stage_argument(move)
@@ -296,8 +297,12 @@ def _stage(args: argparse.Namespace) -> int:
             if args.home:
                 stage.home()
             else:
+                doubt = stage.machine_frame_doubt()
+                if doubt:
+                    print(f"lfrig: warning: {doubt}; X Y Z are taken in GRBL's present frame, which need not be the "
+                          "machine frame of earlier sessions (use --home for positions from the switches)", file=sys.stderr)
                 stage.prepare()
-            stage.move_to(tuple(args.position), feed_mm_min=args.feed_mm_min)
+            stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
             stage.wait_until_idle()
         status = stage.status()
         position = status.get("mpos_mm")
