@@ -780,6 +780,9 @@ class GrblStage:
             status = self._wait_until_still(deadline=self.clock.monotonic() + self._motion_bound_s())
         if reset:
             self.reset()
+        else:  # GRBL answers the wake's blank lines with "ok"s that may trail the status report
+            self.clock.sleep(0.1)
+            self._flush_input()
         self.settings_values = self.read_settings()
         self.open_state = self.status_report().state
 
@@ -952,7 +955,9 @@ class GrblStage:
     def _refuse_if_homing_required(self, action: str) -> None:
         if self.homing_required is None:
             return
-        if int(self.settings_values.get(22, 1)):
+        if int(self.settings_values.get(22, 1)) and action == "unlocking":
+            advice = "home the stage instead (`lfrig stage home`): unlocking would keep a position that may be wrong"
+        elif int(self.settings_values.get(22, 1)):
             advice = f"home the stage (`lfrig stage home`, or capture without --no-home) before {action}"
         else:
             advice = (f"enable homing ($22=1) and home the stage before {action}; if you have checked the position "
@@ -967,7 +972,7 @@ class GrblStage:
     def unlock(self) -> None:
         """``$X``: clear an alarm lock without homing (the position may be wrong), then ``G90 G21``.
         Refused after this driver saw ``ALARM:3`` (steps may have been lost): home instead."""
-        self._refuse_if_homing_required("unlocking: the position it would keep may be wrong;")
+        self._refuse_if_homing_required("unlocking")
         self.command("$X")
         self.prepare()
 
