@@ -270,3 +270,26 @@ def test_resume_without_homing_needs_the_same_machine_frame(rig, tmp_path):
         result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
     assert result.complete and camera.triggers == 12
     check_capture(tmp_path / "c", spec)
+
+
+def test_resume_without_homing_after_a_reset_with_homing_disabled(tmp_path):
+    """$22=0 (GRBL's default): no lock after the reset on open, so nothing but the driver's evidence
+    of the reset stops a resume in a frame shifted by wherever the carriage stood."""
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock, settings={22: 0, 20: 0})
+    url = register(controller)
+    try:
+        spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+        camera = PositionCamera(controller)
+        with open_stage(url, clock) as stage:
+            first = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                                home=False, should_stop=lambda: camera.triggers >= 5)
+            assert first.interrupted
+        with open_stage(url, clock) as stage:  # the reset on open re-zeroes GRBL where the carriage stands
+            assert stage.status()["state"] == "Idle"
+            with pytest.raises(FrameNotProvenError, match="restarted at 0 wherever the carriage stood"):
+                run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                            home=False)
+        assert camera.triggers == 5 and len(view_lines(tmp_path / "c")) == 5
+    finally:
+        unregister(url)
