@@ -496,7 +496,7 @@ def projection_difference(model_a: Any, model_b: Any, *, distance_mm: float, gri
 
 def _read_image(path: Path) -> np.ndarray:
     from recon.errors import LightFieldFormatError
-    from recon.imageio import read_image
+    from recon.lf.imageio import read_image
 
     try:
         return read_image(Path(path))

@@ -327,7 +327,7 @@ def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None
 
 def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: Board,
                                  progress: Any = None) -> tuple[StageCalibration, np.ndarray]:
-    """Read a capture of a board (``rig.layout`` / benchmark layout), find the corners in every view
+    """Read a capture of a board (``recon.lf.capture`` / benchmark layout), find the corners in every view
     and fit. Returns the calibration and the corners ``(U, V, rows, cols, 3)``.
 
     Raises
@@ -335,7 +335,7 @@ def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: 
     CalibError
         When the views and the model differ in size, the capture has no pitch, or the fit fails.
     """
-    from recon.io import read_lightfield
+    from recon.lf import read_lightfield
 
     lf = read_lightfield(path)
     h, w = lf.image_shape

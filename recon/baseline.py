@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon.costvolume import box_mean, pixel_cost, view_offsets
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)

@@ -136,8 +136,8 @@ def describe(path: Path) -> dict[str, Any]:
     import numpy as np
 
     from recon.errors import LightFieldFormatError
-    from recon.io import read_lightfield
-    from recon.pfm import read_pfm
+    from recon.lf import read_lightfield
+    from recon.lf.pfm import read_pfm
 
     if path.is_file():
         if path.suffix.lower() != ".pfm":
@@ -218,7 +218,7 @@ def _format_scores(scores: dict[str, float]) -> str:
 
 def _evaluate(args: argparse.Namespace) -> None:
     from recon.evaluate import score
-    from recon.pfm import read_pfm
+    from recon.lf.pfm import read_pfm
 
     estimate = read_pfm(args.estimate)
     gt = read_pfm(args.gt)

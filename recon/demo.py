@@ -106,8 +106,8 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.depth import depth_error_scores, disparity_to_depth, write_depth
     from recon.evaluate import score
     from recon.export import export_result
-    from recon.imageio import read_image, write_png
-    from recon.pfm import read_pfm, write_pfm
+    from recon.lf.imageio import read_image, write_png
+    from recon.lf.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 
 @dataclass

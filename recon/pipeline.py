@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 from recon.methods import DEFAULT_METHOD, MethodResult
 RESULT_JSON = "result.json"
 DISPARITY_PFM = "disparity.pfm"
@@ -80,7 +80,7 @@ def check_options(options: Mapping[str, Any]) -> None:
 
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
-    from recon.imageio import write_bytes_atomic
+    from recon.lf.imageio import write_bytes_atomic
 
     write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
@@ -128,9 +128,9 @@ def reconstruct_to_folder(
     """
     from recon.colour import colourise
     from recon.evaluate import score
-    from recon.imageio import write_png
-    from recon.io import read_ground_truth, read_lightfield
-    from recon.pfm import write_pfm
+    from recon.lf.imageio import write_png
+    from recon.lf import read_ground_truth, read_lightfield
+    from recon.lf.pfm import write_pfm
 
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
     opts: dict[str, Any] = dict(options or {})

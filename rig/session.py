@@ -2,7 +2,7 @@
 
 For each view of the grid, in scan order: move (with a backlash take-up move when needed), wait until
 the stage reports ``Idle`` at the target, wait the settle time, check that it is still idle there,
-trigger the camera, write the frame atomically and journal it (:class:`rig.layout.CaptureWriter`).
+trigger the camera, write the frame atomically and journal it (:class:`recon.lf.capture.CaptureWriter`).
 A frame is never taken while the stage moves.
 
 Resuming: the same command on the same folder takes only the views the journal does not have (whose
@@ -31,7 +31,7 @@ from recon.progress import Progress
 from rig.errors import RigError
 from rig.grbl import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
-from rig.layout import CaptureWriter
+from recon.lf.capture import CaptureWriter
 from rig.protocols import Camera, Stage
 
 LOG_NAME = "session.log"
@@ -210,7 +210,7 @@ def run_capture(
 
     Raises
     ------
-    rig.errors.CaptureLayoutError
+    recon.errors.CaptureLayoutError
         The folder holds a capture with other settings (nothing moved).
     rig.grid.GridError
         A move lies outside the stage's travel (nothing moved).
@@ -336,7 +336,7 @@ def _finish(writer: CaptureWriter, grid: GridSpec, camera: Camera, log: Callable
         log("capture already complete")
         return
     first = next(iter(writer.completed.values()))
-    from recon.imageio import read_image  # local: only needed once per capture
+    from recon.lf.imageio import read_image  # local: only needed once per capture
 
     shape = read_image(path / first["file"]).shape[:2]
     settings = camera.settings()

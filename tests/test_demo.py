@@ -69,8 +69,8 @@ def test_a_second_run_refuses_a_folder_it_did_not_write(tmp_path):
 def test_rectified_capture_reconstructs_better_than_the_raw_one(session, tmp_path):
     """Issue 5's check: the same capture, rectified with the session's calibration, gives a lower
     disparity error than unrectified (each against its own truth: raw or rectified centre view)."""
-    from recon.io import read_lightfield
-    from recon.pfm import read_pfm
+    from recon.lf import read_lightfield
+    from recon.lf.pfm import read_pfm
     from recon.pipeline import reconstruct_to_folder
     from rig.fakecam import FakeCamera, FakeRig
 

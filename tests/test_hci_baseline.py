@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from recon.cli import main
-from recon.pfm import read_pfm
+from recon.lf.pfm import read_pfm
 
 pytestmark = [pytest.mark.hci, pytest.mark.slow]
 

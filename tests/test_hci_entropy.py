@@ -7,7 +7,7 @@ import pytest
 
 from recon.cli import main
 from recon.evaluate import score
-from recon.pfm import read_pfm
+from recon.lf.pfm import read_pfm
 
 pytestmark = [pytest.mark.hci, pytest.mark.slow]
 

@@ -8,10 +8,10 @@ import pytest
 
 from recon.cli import main
 from recon.errors import LfrigError
-from recon.io import read_lightfield, write_lightfield
-from recon.lightfield import LightField
-from rig.errors import CaptureLayoutError
-from rig.layout import CaptureWriter, read_capture
+from recon.lf import read_lightfield, write_lightfield
+from recon.lf.lightfield import LightField
+from recon.errors import CaptureLayoutError
+from recon.lf.capture import CaptureWriter, read_capture
 
 CFG = """[intrinsics]
 focal_length_mm = 100

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.cli import main
-from recon.pfm import read_pfm
+from recon.lf.pfm import read_pfm
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 

@@ -125,7 +125,7 @@ def test_fake_capture_reconstructs_to_the_fake_scenes_disparity(tmp_path):
     matches the disparity the fake camera knows to be true."""
     import numpy as np
 
-    from recon.pfm import read_pfm
+    from recon.lf.pfm import read_pfm
     from rig.cli import FAKE_CENTRE_MM
     from rig.fakecam import FakeCamera, FakeRig
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.errors import CaptureLayoutError
+from recon.errors import CaptureLayoutError
 from rig.fakegrbl import FakeGrbl, VirtualClock, register, unregister
 from rig.grbl import (
     GrblAlarmError,
@@ -27,7 +27,7 @@ from rig.grbl import (
     GrblTimeoutError,
 )
 from rig.grid import GridError, GridSpec, view_position
-from rig.layout import read_capture
+from recon.lf.capture import read_capture
 from rig.session import CaptureAborted, CaptureInterrupted, run_capture
 
 CENTRE = (-50.0, -50.0, -10.0)

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.imageio import write_png
-from recon.params import write_parameters
-from recon.pfm import read_pfm, write_pfm
+from recon.lf.imageio import write_png
+from recon.lf.params import write_parameters
+from recon.lf.pfm import read_pfm, write_pfm
 from recon.pipeline import reconstruct_to_folder
 from recon.scale import ScaleError
 from recon.scale.batch import (
@@ -33,7 +33,7 @@ from recon.scale.batch import (
 )
 from recon.scale.cluster import plan_local
 from recon.synthetic import occluding_square_scene
-from rig.layout import parameters_for
+from recon.lf.capture import parameters_for
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_CAPTURE = ROOT / "fixtures" / "tiny_capture"

@@ -30,7 +30,7 @@ from recon.entropy.windows import window_rect
 from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, flat_pixels, jump_distance,
                                    layer_jumps, layer_map, region_labels)
 from recon.errors import ReconError
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 
 def _opt(default, help: str):

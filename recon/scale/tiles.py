@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 from recon.scale import ScaleError
 
 
