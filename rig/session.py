@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence, TextIO
 
 from recon.progress import Progress
 from rig.errors import RigError
-from rig.grbl import Clock, SystemClock
+from rig.clock import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
 from recon.lf.capture import CaptureWriter
 from rig.protocols import Camera, Stage

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from recon.cli import main
+from rig.main import main
 from recon.depth import depth_to_disparity, read_depth
 from recon.lf.pfm import write_pfm
 

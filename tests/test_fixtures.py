@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.cli import main
+from rig.main import main
 from recon.lf import read_lightfield
 from recon.lf.pfm import read_pfm
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.cli import main
+from rig.main import main
 from recon.errors import LfrigError
 from recon.lf import read_lightfield, write_lightfield
 from recon.lf.lightfield import LightField

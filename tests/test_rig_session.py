@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 
 from recon.errors import CaptureLayoutError
-from rig.fakegrbl import FakeGrbl, VirtualClock, register, unregister
+from rig.clock import VirtualClock
+from rig.fakegrbl import FakeGrbl
+from rig.urlhandler.protocol_fakegrbl import register, unregister
 from rig.grbl import (
     GrblAlarmError,
     GrblCommandError,

@@ -82,7 +82,7 @@ def client():
 @pytest.fixture(scope="module")
 def one_by_one(captures, tmp_path_factory) -> dict[str, Path]:
     """Each good capture reconstructed alone by `lfrig reconstruct --ply`."""
-    from recon.cli import main
+    from rig.main import main
 
     root = tmp_path_factory.mktemp("one_by_one")
     out = {}
@@ -235,7 +235,7 @@ def test_tiled_batch_equals_untiled(tmp_path, captures, client, one_by_one):
 
 
 def test_cli_on_its_own_local_cluster(tmp_path, captures, one_by_one, capsys):
-    from recon.cli import main
+    from rig.main import main
 
     out = tmp_path / "out"
     args = ["batch", "reconstruct", str(captures["scene_a"]), str(captures["tiny_capture"]), "-o", str(out),
@@ -274,7 +274,7 @@ def _start(args: list[str], log: Path, cwd: Path) -> subprocess.Popen:
 
 
 def test_batch_through_a_dask_scheduler_and_worker_started_by_hand(tmp_path, captures, one_by_one, capsys):
-    from recon.cli import main
+    from rig.main import main
 
     dask = str(Path(sys.executable).with_name("dask"))
     scheduler_file = tmp_path / "scheduler.json"

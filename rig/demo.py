@@ -217,14 +217,14 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
 
 def _fake_centre_mm() -> tuple[float, float, float]:
-    from rig.cli import FAKE_CENTRE_MM
+    from rig.devices import FAKE_CENTRE_MM
 
     return tuple(float(c) for c in FAKE_CENTRE_MM)
 
 
 def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], stream) -> Any:
     """A 9x9 capture at 0.5 mm with the simulated GRBL stage and camera, through the real session."""
-    from rig.cli import open_stage
+    from rig.devices import open_stage
     from rig.fakecam import FakeCamera
     from rig.grid import GridSpec
     from rig.session import run_capture
