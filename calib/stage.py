@@ -311,7 +311,7 @@ def calibrate_stage(corners: np.ndarray, *, model: Any, board: Board, pitch_mm: 
 
 def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None) -> np.ndarray:
     """Board corners ``(U, V, rows, cols, 3)`` of every view of a light field ``(U, V, H, W[, 3])``
-    (weight -1 everywhere in a view without a board). ``progress(i, n)`` is called per view."""
+    (weight -1 everywhere in a view without a board). ``progress(fraction, view)`` is called per view (:mod:`recon.progress`)."""
     U, V = views.shape[:2]
     out = np.zeros((U, V, board.rows, board.cols, 3))
     out[..., 2] = -1.0
@@ -321,7 +321,7 @@ def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None
             if c is not None:
                 out[u, v] = c
             if progress is not None:
-                progress(u * V + v + 1, U * V)
+                progress((u * V + v + 1) / (U * V), f"u{u:02d} v{v:02d}")
     return out
 
 

@@ -213,7 +213,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from recon.progress import Progress
 
     options = method_options(args)
-    with Progress(args.method, 1, quiet=args.quiet) as bar:
+    with Progress(args.method, quiet=args.quiet) as bar:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
                                        ply_kind="points" if args.points else "mesh", progress=bar)
     print(f"wrote {args.output / 'disparity.pfm'} and disparity.png in {folder.result['seconds']:.1f} s")

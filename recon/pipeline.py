@@ -36,8 +36,8 @@ CENTRE_VIEW_PNG = "centre_view.png"
 
 #: ``estimate(lf, method, options, progress) -> MethodResult``: how the disparity is computed. The
 #: default runs :func:`recon.methods.run_method` in this process; tiled runs on a cluster plug in
-#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or an object with
-#: ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or
+#: ``progress(fraction, message)`` (:mod:`recon.progress`).
 Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
 
 
@@ -112,7 +112,7 @@ def reconstruct_to_folder(
     ply, ply_kind
         Also export a PLY ``"mesh"`` or ``"points"`` to this path (after ``result.json``).
     progress
-        ``None`` or an object with ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+        ``None`` or ``progress(fraction, message)`` (:mod:`recon.progress`).
     estimate
         How the disparity is computed (:data:`Estimator`); default :func:`run_in_process`.
     source

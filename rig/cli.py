@@ -119,6 +119,7 @@ def _limits_from_args(args: argparse.Namespace):
 
 def _capture(args: argparse.Namespace) -> int:
     from rig.grid import check_limits, format_plan, grid_extent_mm, plan_moves
+    from recon.progress import Progress
     from rig.session import CaptureInterrupted, plan_summary, run_capture
 
     grid = _grid_from_args(args)
@@ -147,13 +148,13 @@ def _capture(args: argparse.Namespace) -> int:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
         try:
-            result = run_capture(
-                args.out_dir, stage=devices.stage, camera=devices.camera, grid=grid, settle_s=args.settle_s,
-                feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
-                tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
-                progress=None if args.quiet else sys.stderr,
-                header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
-            )
+            with Progress("capture", quiet=args.quiet) as bar:
+                result = run_capture(
+                    args.out_dir, stage=devices.stage, camera=devices.camera, grid=grid, settle_s=args.settle_s,
+                    feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
+                    tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
+                    progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+                )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130
