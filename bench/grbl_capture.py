@@ -49,7 +49,7 @@ def main() -> int:
         try:
             for run in range(args.runs):
                 out = root / f"cap{run}"
-                command = [sys.executable, "-m", "recon.cli", "capture", str(out), "--stage", device.url,
+                command = [sys.executable, "-m", "rig.main", "capture", str(out), "--stage", device.url,
                            "--centre-mm", "-10", "-10", "-5", "--camera", "fake", "--binning", str(args.binning),
                            "--supersample", "1", "--settle-s", str(args.settle_s), "--quiet"]
                 start = time.perf_counter()

@@ -183,7 +183,7 @@ class FakeOnPty(_PtyDevice):
 
     def __init__(self, settings: dict[int, float] = FAST, start_mm: Sequence[float] | None = None) -> None:
         from rig.fakegrbl import FakeGrbl
-        from rig.grbl import SystemClock
+        from rig.clock import SystemClock
 
         super().__init__(dict(settings))
         travel = [float(self.settings.get(130 + i, 100.0)) for i in range(3)]

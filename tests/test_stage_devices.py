@@ -22,11 +22,11 @@ from pathlib import Path
 import pytest
 
 from grbl_devices import FAST, GRBL_SIM, FakeOnPty, Firmware, build_firmware
-from recon.cli import main
+from rig.main import main
 from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, travel_limits_mm
 
 ROOT = Path(__file__).resolve().parents[1]
-LFRIG = [sys.executable, "-m", "recon.cli"]
+LFRIG = [sys.executable, "-m", "rig.main"]
 CENTRE = (-10.0, -10.0, -5.0)
 CAMERA = ["--camera", "fake", "--binning", "8", "--supersample", "1", "--settle-s", "0.02", "--quiet"]
 TOL = 0.0041  # one step at 250 steps/mm, plus rounding
