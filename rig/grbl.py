@@ -763,7 +763,10 @@ class GrblStage:
             self.clock.sleep(0.1)
             self._flush_input()
         self.settings_values = self.read_settings()
-        self.open_state = self.status_report().state
+        try:
+            self.open_state = self.status_report().state
+        except GrblTimeoutError:  # a critical alarm without the reset: GRBL answers nothing but 0x18
+            self.open_state = None
 
     def _wake(self, wake_s: float) -> Status | None:
         """Read what GRBL sends for up to ``wake_s``, querying its status every 0.25 s; returns the
