@@ -59,10 +59,11 @@ class FrameNotProvenError(RigError):
 def check_machine_frame(
     stage: Stage, completed: dict[tuple[int, int], dict[str, Any]], *, tolerance_mm: float, path: Path
 ) -> None:
-    """Refuse to resume without homing unless the machine frame is proven unchanged: no reset or
-    alarm lock seen by the driver (``stage.machine_frame_doubt()``), and the stage at the position
-    read back for the journal's last view. Nothing to prove for a fresh capture."""
-    if not completed:
+    """Refuse to resume without homing unless the machine frame is proven: homed through this
+    connection (``stage.homed``), or unchanged: no reset or alarm lock seen by the driver
+    (``stage.machine_frame_doubt()``) and the stage at the position read back for the journal's last
+    view. Nothing to prove for a fresh capture."""
+    if not completed or getattr(stage, "homed", False):  # homed since power-up: the frame is the switches'
         return
     advice = (
         "home it: run the same command without --no-home (with homing disabled, $22=0, enable it and home, or "

@@ -25,6 +25,8 @@ from grbl_devices import FAST, GRBL_SIM, FakeOnPty, Firmware, build_firmware
 from rig.main import main
 from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, travel_limits_mm
 
+pytestmark = pytest.mark.slow  # real-time motion: about 3 min on the firmware, 2 on the fake
+
 ROOT = Path(__file__).resolve().parents[1]
 LFRIG = [sys.executable, "-m", "rig.main"]
 CENTRE = (-10.0, -10.0, -5.0)
