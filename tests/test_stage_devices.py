@@ -334,23 +334,23 @@ def test_controller_restart_between_runs(make_device, tmp_path, capsys, homing):
     device = make_device({22: 1} if homing else {22: 0, 20: 0})
     out = tmp_path / "cap"
     if homing:
-        args = capture_args(out, device, rows=3, cols=3)
+        args = capture_args(out, device, rows=4, cols=4)
     else:  # the frame is wherever GRBL powered up: the lab's --no-home habit with $22=0
-        args = capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-3.0, -3.0, -2.0))
+        args = capture_args(out, device, "--no-home", rows=4, cols=4, centre=(-3.0, -3.0, -2.0))
     process = start_capture(args)
     wait_for_views(process, out, 3)
     process.send_signal(signal.SIGINT)
     _, err = process.communicate(timeout=60)
     assert process.returncode == 130, err
     first = len(views_in(out))
-    assert first < 9
+    assert first < 16
     # power cycle with the carriage a little off (moved by hand while the controller was off)
     device.restart(start_mm=tuple(c + d for c, d in zip(device.carriage_mm(), (2.0, 1.5, -0.5))))
     code = main(args)
     err = capsys.readouterr().err
     if homing:
         assert code == 0, err
-        check_views(out, 9)
+        check_views(out, 16)
         assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
     else:
         assert code == 2 and "cannot prove" in err, err
