@@ -150,3 +150,10 @@ def test_stage_move_help(capsys):
         main(["stage", "move", "--help"])
     assert exit_.value.code == 0
     assert "X Y Z" in capsys.readouterr().out
+
+
+def test_capture_without_homing_after_a_reset_warns(tmp_path, capsys):
+    out = tmp_path / "cap"
+    assert main(["capture", str(out), "--no-home", "--rows", "2", "--cols", "2", "--quiet", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "warning: GRBL reset when the port opened" in err and "error:9" in err  # $22=1: locked as well
