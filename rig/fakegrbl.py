@@ -5,17 +5,24 @@ bytes out (:meth:`FakeGrbl.take_output`), and a physical stage whose position fo
 trapezoidal speed profile from the feed rate (or the maximum rates ``$110..$112`` for ``G0``) and the
 accelerations ``$120..$122``. It behaves like the firmware where the driver can tell:
 
-- after power-up (every port open, like an Arduino that resets on DTR) it prints its welcome line and
-  is in ``Alarm`` until homed (``$H``) or unlocked (``$X``); G-code in alarm gets ``error:9``;
+- after power-up (every ``fakegrbl://`` port open, like an Arduino that resets on DTR) it prints its
+  welcome line and, with homing enabled (``$22=1``), is in ``Alarm`` until homed (``$H``) or unlocked
+  (``$X``); G-code in alarm gets ``error:9``;
 - the step counter starts at 0 on power-up wherever the stage physically is; homing finds the switches
-  at machine zero and leaves the stage at ``-pulloff`` (``$27``) on each axis;
-- soft limits (``$20=1``) reject targets outside ``[-max_travel, 0]`` with ``ALARM:2`` and
-  ``[MSG:Reset to continue]``; only a soft reset (``0x18``) is heard afterwards;
+  at machine zero (or at ``-max_travel`` for an axis set in ``$23``) and leaves the stage ``$27``
+  (pull-off) away from them; it gives up with ``ALARM:9`` beyond 1.5 x the travel;
+- machine space is ``[-max_travel, 0]`` whichever end an axis homes to (GRBL 1.1h); soft limits
+  (``$20=1``, refused without ``$22=1``) reject targets outside it with ``ALARM:2`` and
+  ``[MSG:Reset to continue]``; hard limits (``$21=1``) raise ``ALARM:1`` when a move closes a switch;
+  only a soft reset (``0x18``) is heard afterwards;
+- work coordinate systems ``G54``..``G59`` (set by ``G10 L2``/``L20``, kept across resets like
+  GRBL's EEPROM, ``G54`` again after a reset) offset every move but ``G53`` ones;
 - ``ok`` for a motion line comes when it is planned, not when it is done; ``G4 P..`` is answered only
   when the planner has emptied and the dwell has elapsed; ``M8``/``M9`` also wait for the planner;
 - real-time ``?`` (status report), ``!`` (feed hold: decelerate, ``Hold:1`` then ``Hold:0``), ``~``
-  (resume) and ``0x18`` (soft reset; during motion it raises ``ALARM:3``);
-- positions are whole motor steps (``$100..$102`` steps/mm).
+  (resume) and ``0x18`` (soft reset; during motion it raises ``ALARM:3``, after a completed hold not);
+- positions are whole motor steps (``$100..$102`` steps/mm);
+- one port at a time may open it (pyserial's ``exclusive=True``, as on a tty).
 
 Switchable faults (:meth:`FakeGrbl.arm_fault`), each triggered by the n-th motion line after arming:
 ``lost_ok`` (the line runs, its ``ok`` never comes), ``garbled`` (the line arrives corrupted and is
