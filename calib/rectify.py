@@ -266,9 +266,9 @@ def pure_translation_fit(tracks: np.ndarray) -> tuple[float, np.ndarray, np.ndar
 
 
 def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
-    """A rectified copy of a :class:`recon.lightfield.LightField` whose ``focal_px`` and ``pitch_mm``
+    """A rectified copy of a :class:`recon.lf.lightfield.LightField` whose ``focal_px`` and ``pitch_mm``
     are the rectification's (``metadata["rectification"]`` records the rest)."""
-    from recon.lightfield import LightField
+    from recon.lf.lightfield import LightField
 
     views = rectify_views(lf.views, rect)
     metadata = {"rectification": rect.metadata(), "source": str(lf.source) if lf.source else None}
@@ -287,8 +287,8 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
     CalibError
         When the model and the views differ in size or the capture has no pitch.
     """
-    from recon.io import read_lightfield
-    from rig.layout import write_lightfield
+    from recon.lf import read_lightfield
+    from recon.lf.capture import write_lightfield
 
     model = load_model(model_path)
     stage = StageCalibration.load(stage_path)

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recon.progress import ProgressCallback, report
 from recon.costvolume import box_mean, pixel_cost, view_offsets
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)
@@ -65,7 +66,7 @@ def estimate_baseline(
     window: int = 7,
     step: float = 0.02,
     disparity_range: tuple[float, float] | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> BaselineResult:
     """Fixed-window SAD disparity of the centre view.
 
@@ -80,7 +81,7 @@ def estimate_baseline(
     disparity_range
         ``(min, max)`` to search; defaults to ``lf.disparity_range``, else :data:`DEFAULT_DISPARITY_RANGE`.
     progress
-        Called as ``progress(done, total)`` after each candidate.
+        ``progress(fraction, message)`` after each candidate (:mod:`recon.progress`).
 
     Returns
     -------
@@ -96,7 +97,6 @@ def estimate_baseline(
     volume = np.empty((len(candidates),) + lf.image_shape, dtype=np.float32)
     for i, d in enumerate(candidates):
         volume[i] = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
-        if progress:
-            progress(i + 1, len(candidates))
+        report(progress, (i + 1) / len(candidates), "disparity candidates")
     disparity, cost = parabolic_refine(volume, candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)

@@ -234,7 +234,7 @@ def benchmark_camera(parameters) -> BenchmarkCamera:
                 "(focal_length_mm, sensor_size_mm, image resolution, baseline_mm, focus_distance_m). "
                 "Copy it next to the views or pass focal_px/pitch_mm/disparity_offset yourself."
             )
-        from recon.params import read_parameters
+        from recon.lf.params import read_parameters
 
         sections = read_parameters(path)
         where = str(path)
@@ -391,7 +391,7 @@ def decode_depth_png(stored: np.ndarray, metadata: dict) -> np.ndarray:
 def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, offset_mm: float | None = None) -> Path:
     """Write an ``(H, W)`` depth map in mm; the format follows the suffix.
 
-    - ``.pfm``: ``float32``, ``NaN`` where there is no depth (``recon.pfm``; rows top-down in memory).
+    - ``.pfm``: ``float32``, ``NaN`` where there is no depth (``recon.lf.pfm``; rows top-down in memory).
     - ``.npy``: ``float32`` as given (``NaN`` kept).
     - ``.png``: 16-bit grey, quantised by :func:`encode_depth_png`; the scale is stored in a PNG
       ``tEXt`` chunk under :data:`PNG_SCALE_KEY` and in the sidecar ``<name>.png.json``.
@@ -406,7 +406,7 @@ def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, of
         raise DepthFormatError(f"{path}: folder {path.parent} does not exist; create it first")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
-        from recon.pfm import write_pfm
+        from recon.lf.pfm import write_pfm
 
         write_pfm(path, depth.astype(np.float32))
     elif suffix == ".npy":
@@ -436,7 +436,7 @@ def read_depth(path) -> np.ndarray:
         raise DepthFormatError(f"{path}: no such depth map")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
-        from recon.pfm import read_pfm
+        from recon.lf.pfm import read_pfm
 
         return read_pfm(path)
     if suffix == ".npy":

@@ -22,3 +22,7 @@ class ReconError(LfrigError):
 
 class LightFieldFormatError(ReconError):
     """A light-field folder or file is missing, incomplete or unreadable."""
+
+
+class CaptureLayoutError(LightFieldFormatError):
+    """A capture folder does not match lfrig's capture layout, or conflicts with the settings."""

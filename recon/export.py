@@ -302,7 +302,7 @@ def read_result(result_dir) -> ResultFolder:
     relative to the result folder). Colours come from ``centre_view.png`` in the folder if present,
     else from the centre view of ``source``; without either the export has no colours.
     """
-    from recon.pfm import read_pfm
+    from recon.lf.pfm import read_pfm
 
     folder = Path(result_dir)
     if not folder.is_dir():
@@ -343,7 +343,7 @@ def read_result(result_dir) -> ResultFolder:
         source = Path(str(record["source"]))
         source = source if source.is_absolute() else folder / source
         if source.is_dir():
-            from recon.io import read_lightfield
+            from recon.lf import read_lightfield
 
             image = read_lightfield(source).centre_view()
     if image is not None and image.shape[:2] != disparity.shape:
@@ -365,7 +365,7 @@ def read_result(result_dir) -> ResultFolder:
 
 
 def _read_image(path: Path, *, what: str) -> np.ndarray:
-    from recon.imageio import read_image
+    from recon.lf.imageio import read_image
 
     if not path.is_file():
         raise ExportError(f"{path}: the {what} named by result.json is missing")

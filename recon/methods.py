@@ -1,7 +1,7 @@
 """The reconstruction methods by name, with one calling convention for the CLI, benchmark and batch.
 
-A runner takes the light field, an optional progress object (:class:`recon.progress.Progress` or
-anything with ``update(done, total, note=...)``) and the method's keyword options, and returns a
+A runner takes the light field, an optional ``progress(fraction, message)`` callback
+(:mod:`recon.progress`) and the method's keyword options, and returns a
 :class:`MethodResult`: the disparity of the centre view and, where the method has them, the maps
 that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_extras`.
 """
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 
 @dataclass
@@ -33,19 +33,14 @@ class MethodResult:
 def _baseline(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.baseline import estimate_baseline
 
-    update = (lambda done, total: progress.update(done, total, note="disparity candidates")) if progress else None
-    result = estimate_baseline(lf, progress=update, **options)
+    result = estimate_baseline(lf, progress=progress, **options)
     return MethodResult(disparity=result.disparity, extras=result, options=options)
 
 
 def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.entropy import estimate_disparity, write_outputs
 
-    def report(fraction: float, note: str) -> None:  # the estimator's share of its work done, never decreasing
-        if progress:
-            progress.update(int(round(1000 * fraction)), 1000, note=note)
-
-    result = estimate_disparity(lf, progress_fraction=report, **options)
+    result = estimate_disparity(lf, progress=progress, **options)
     used = dataclasses.asdict(result.options) if dataclasses.is_dataclass(getattr(result, "options", None)) else options
     return MethodResult(disparity=result.disparity, extras=result, options=used,
                         write_extras=lambda folder: write_outputs(result, folder))

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 from recon.methods import DEFAULT_METHOD, MethodResult
 RESULT_JSON = "result.json"
 DISPARITY_PFM = "disparity.pfm"
@@ -36,8 +36,8 @@ CENTRE_VIEW_PNG = "centre_view.png"
 
 #: ``estimate(lf, method, options, progress) -> MethodResult``: how the disparity is computed. The
 #: default runs :func:`recon.methods.run_method` in this process; tiled runs on a cluster plug in
-#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or an object with
-#: ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or
+#: ``progress(fraction, message)`` (:mod:`recon.progress`).
 Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
 
 
@@ -80,7 +80,7 @@ def check_options(options: Mapping[str, Any]) -> None:
 
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
-    from recon.imageio import write_bytes_atomic
+    from recon.lf.imageio import write_bytes_atomic
 
     write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
@@ -112,7 +112,7 @@ def reconstruct_to_folder(
     ply, ply_kind
         Also export a PLY ``"mesh"`` or ``"points"`` to this path (after ``result.json``).
     progress
-        ``None`` or an object with ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+        ``None`` or ``progress(fraction, message)`` (:mod:`recon.progress`).
     estimate
         How the disparity is computed (:data:`Estimator`); default :func:`run_in_process`.
     source
@@ -128,9 +128,9 @@ def reconstruct_to_folder(
     """
     from recon.colour import colourise
     from recon.evaluate import score
-    from recon.imageio import write_png
-    from recon.io import read_ground_truth, read_lightfield
-    from recon.pfm import write_pfm
+    from recon.lf.imageio import write_png
+    from recon.lf import read_ground_truth, read_lightfield
+    from recon.lf.pfm import write_pfm
 
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
     opts: dict[str, Any] = dict(options or {})

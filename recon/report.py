@@ -40,8 +40,8 @@ import numpy as np
 
 from recon.depth import depth_error_scores, depth_to_disparity, disparity_to_depth
 from recon.colour import LUTS, NO_VALUE, colour_map, robust_range
-from recon.imageio import write_png
-from recon.lightfield import to_float
+from recon.lf.imageio import write_png
+from recon.lf.lightfield import to_float
 
 #: Region labels as ``recon.entropy.regions`` numbers them (0..3) and the paper's colours (RGB).
 REGION_NAMES = ("occluding", "occluded", "texture", "smooth")
@@ -716,7 +716,7 @@ def report_for_result(result, out_dir, *, camera: Mapping[str, float] | None = N
     ``window_size.npy`` / ``window_size.pfm`` in the result folder; ``scores``, ``method``,
     ``options`` and ``seconds`` from ``result.json``. ``camera`` defaults to the folder's own.
     """
-    from recon.pfm import read_pfm
+    from recon.lf.pfm import read_pfm
 
     folder = Path(result.path)
     record = dict(result.record)
@@ -736,7 +736,7 @@ def report_for_result(result, out_dir, *, camera: Mapping[str, float] | None = N
     if (folder / "regions.npy").is_file():
         regions = np.load(folder / "regions.npy")
     elif (folder / "regions.png").is_file():
-        from recon.imageio import read_image
+        from recon.lf.imageio import read_image
 
         regions = read_image(folder / "regions.png")
     window = None

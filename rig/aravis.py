@@ -51,7 +51,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rig.camera import CameraError
-from rig.grbl import Clock, SystemClock
+from rig.clock import Clock, SystemClock
 
 log = logging.getLogger(__name__)
 

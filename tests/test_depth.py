@@ -111,7 +111,7 @@ def test_benchmark_camera_matches_the_toolkit_formula(tmp_path):
 
 
 def test_benchmark_camera_agrees_with_lightfield_reader(tmp_path):
-    from recon.params import camera_from_parameters, read_parameters
+    from recon.lf.params import camera_from_parameters, read_parameters
 
     cfg = tmp_path / "parameters.cfg"
     cfg.write_text(BACKGAMMON_CFG)

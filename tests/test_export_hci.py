@@ -8,9 +8,9 @@ import pytest
 
 from recon.depth import benchmark_camera, benchmark_disparity_to_depth, disparity_to_depth
 from recon.export import export_ply
-from recon.imageio import read_image
-from recon.params import read_parameters
-from recon.pfm import read_pfm
+from recon.lf.imageio import read_image
+from recon.lf.params import read_parameters
+from recon.lf.pfm import read_pfm
 
 # backgammon's camera as the benchmark publishes it in parameters.cfg
 BACKGAMMON = {

@@ -10,7 +10,7 @@ import pytest
 
 from recon.depth import depth_to_disparity
 from recon.export import ExportError, export_ply, export_result, read_result
-from recon.pfm import write_pfm
+from recon.lf.pfm import write_pfm
 
 CAMERA = {"focal_px": 120.0, "pitch_mm": 2.0, "disparity_offset": 0.1}
 HEIGHT, WIDTH, SPLIT = 14, 18, 8

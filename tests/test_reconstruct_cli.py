@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.cli import main
-from recon.pfm import read_pfm
+from rig.main import main
+from recon.lf.pfm import read_pfm
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.cli import main
+from rig.main import main
 from rig.aravis import (
     PIXEL_FORMATS,
     AravisCamera,
@@ -244,7 +244,7 @@ def test_capture_completes_journals_resumes_and_reconstructs(aravis, tmp_path, c
 
 def test_camera_that_stops_mid_capture_aborts_resumably(aravis, tmp_path, capsys):
     from rig.aravis import open_aravis
-    from rig.cli import open_stage
+    from rig.devices import open_stage
     from rig.grid import GridSpec
     from rig.session import CaptureAborted, run_capture
 
@@ -290,7 +290,7 @@ def test_hardware_trigger_pulses_the_stage_output(aravis, tmp_path):
     """With --trigger Line0 --hw-trigger each view pulses M8 on the (simulated GRBL) stage. The Fake
     camera streams regardless of its trigger line, so this checks the wiring, not the camera."""
     from rig.aravis import open_aravis
-    from rig.cli import open_stage
+    from rig.devices import open_stage
     from rig.grid import GridSpec
     from rig.session import run_capture
 

@@ -10,8 +10,8 @@ from recon.entropy.estimate import EntropyResult
 from recon.entropy.regions import REGION_COLOURS
 from recon.entropy.windows import N_SHAPES
 from recon.errors import ReconError
-from recon.imageio import write_png
-from recon.pfm import write_pfm
+from recon.lf.imageio import write_png
+from recon.lf.pfm import write_pfm
 
 #: One colour per window shape (RGB): grey square, then W1..W8 and the two strips.
 SHAPE_COLOURS = np.array([

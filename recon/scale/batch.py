@@ -47,7 +47,7 @@ MARKER_VERSION = 1
 Transfer = Literal["shared", "ship"]
 Status = Literal["ok", "skipped", "failed"]
 
-#: The files a light-field reader uses (``recon.io``: benchmark layout; ``rig.layout``: capture
+#: The files a light-field reader uses (``recon.lf.benchmark``: benchmark layout; ``recon.lf.capture``: capture
 #: layout). Only these are fingerprinted and shipped, not e.g. a benchmark's high-resolution truth.
 _LIGHTFIELD_FILE = re.compile(
     r"^(input_Cam\d{3}\.png|parameters\.cfg|gt_disp_lowres\.pfm|manifest\.jsonl|views/u\d+_v\d+\.png)$"
@@ -317,7 +317,7 @@ def _finish(job: CaptureJob, request: BatchRequest, fingerprint: str, report: di
         return outcome
     names = report["names"]
     if transfer == "ship":
-        from recon.imageio import write_bytes_atomic
+        from recon.lf.imageio import write_bytes_atomic
 
         for name in sorted(names, key=lambda n: n == RESULT_JSON):  # result.json last, as on the worker
             (job.out_dir / name).parent.mkdir(parents=True, exist_ok=True)

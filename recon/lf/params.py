@@ -78,7 +78,7 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
     """What lfrig needs from a ``parameters.cfg``: grid, pitch, focal length, disparity range.
 
     Returns ``(num_cams, camera)``: the grid ``(rows, cols)`` or ``None``, and the keyword arguments
-    of :class:`recon.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
+    of :class:`recon.lf.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
     ``disparity_offset`` (pixels per view step, 0 when unknown), ``disparity_range`` and
     ``principal_point_px`` (each may be ``None``).
     The benchmark's focal length in pixels is ``focal_length_mm / sensor_size_mm * max(res_x, res_y)``
@@ -121,3 +121,44 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         "disparity_range": (d_min, d_max) if d_min is not None and d_max is not None else None,
         "principal_point_px": (cx, cy) if cx is not None and cy is not None else None,
     }
+
+
+def parameters_for(
+    *,
+    grid: tuple[int, int],
+    image_shape: tuple[int, int],
+    pitch_mm: float,
+    focal_px: float | None = None,
+    focal_length_mm: float | None = None,
+    sensor_size_mm: float | None = None,
+    disparity_range: tuple[float, float] | None = None,
+    disparity_offset: float = 0.0,
+    principal_point_px: tuple[float, float] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """The ``parameters.cfg`` sections describing a light field: the inverse of :func:`camera_from_parameters`.
+
+    ``camera_from_parameters(parameters_for(grid=g, image_shape=s, **camera))`` gives back ``g`` and
+    ``camera`` (a test checks the round trip).
+    """
+    height, width = image_shape
+    intrinsics: dict[str, Any] = {"image_resolution_x_px": width, "image_resolution_y_px": height}
+    if focal_px is not None:
+        # The benchmark derives focal_px = focal_length_mm / sensor_size_mm * max(W, H); pick a
+        # consistent pair when only focal_px is known.
+        if focal_length_mm is None or sensor_size_mm is None:
+            focal_length_mm, sensor_size_mm = focal_px / max(width, height), 1.0
+    if focal_length_mm is not None and sensor_size_mm is not None:
+        intrinsics.update(focal_length_mm=focal_length_mm, sensor_size_mm=sensor_size_mm)
+    sections: dict[str, dict[str, Any]] = {
+        "intrinsics": intrinsics,
+        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0], "baseline_mm": pitch_mm},
+    }
+    if disparity_range is not None:
+        sections["meta"] = {"disp_min": disparity_range[0], "disp_max": disparity_range[1]}
+    lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}
+    if focal_px is not None:
+        lfrig["focal_px"] = focal_px
+    if principal_point_px is not None:
+        lfrig["principal_x_px"], lfrig["principal_y_px"] = (float(c) for c in principal_point_px)
+    sections["lfrig"] = lfrig
+    return sections

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,8 +105,8 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.depth import depth_error_scores, disparity_to_depth, write_depth
     from recon.evaluate import score
     from recon.export import export_result
-    from recon.imageio import read_image, write_png
-    from recon.pfm import read_pfm, write_pfm
+    from recon.lf.imageio import read_image, write_png
+    from recon.lf.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report
@@ -116,7 +115,6 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     folder = Path(folder)
     _prepare(folder)
     steps = Steps()
-    stream = None if quiet else sys.stderr
     centre_mm = _fake_centre_mm()
     rig = FakeRig.misaligned(ref_mm=centre_mm)
     summary: dict[str, Any] = {"folder": str(folder.resolve()), "rig": _rig_summary(rig, binning)}
@@ -130,14 +128,14 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     paths = []
     poses = calibration_poses(still, count=boards, inner=(board.cols, board.rows), square_mm=board.square_mm,
                               distance_mm=(650.0, 1050.0), tilt_deg=30.0, seed=1)
-    with Progress("rendering boards", len(poses), quiet=quiet) as bar:
+    with Progress("rendering boards", quiet=quiet) as bar:
         for i, (centre, rotation) in enumerate(poses):
             scene = chessboard_scene(inner=(board.cols, board.rows), square_mm=board.square_mm,
                                      centre_mm=centre, rotation_deg=rotation)
             path = folder / "boards" / f"board{i:02d}.png"
             write_png(path, still.frame(rig.ref_mm, scene=scene))
             paths.append(path)
-            bar.update(i + 1)
+            bar((i + 1) / len(poses), path.name)
     intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
     intrinsics.model.write(str(folder / "camera.cameramodel"), note="lfrig demo\n" + intrinsics.report())
     write_residual_picture(intrinsics, folder / "camera.residuals.png")
@@ -151,7 +149,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     board_scene = chessboard_scene(inner=(stage_board.cols, stage_board.rows), square_mm=stage_board.square_mm,
                                    centre_mm=(0.0, 0.0, 950.0))
     _capture(folder / "stage_capture", camera_options | {"scene": board_scene, "colour": False, "supersample": 1},
-             centre_mm, stream)
+             centre_mm, quiet)
     stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board)
     stage.save(folder / "stage.json")
     summary["stage"] = _stage_summary(stage, rig)
@@ -161,7 +159,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
     # 3. The scene.
     steps.begin("capture", "capturing the scene: 81 views on the simulated GRBL stage")
-    scene_camera = _capture(folder / "capture", camera_options | {"scene": default_scene()}, centre_mm, stream)
+    scene_camera = _capture(folder / "capture", camera_options | {"scene": default_scene()}, centre_mm, quiet)
     steps.end(f"{folder / 'capture'}")
 
     # 4. Rectification.
@@ -175,7 +173,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     # 5. Disparity, depth, PLY.
     steps.begin("reconstruct", f"estimating disparity ({method}), depth and 3D models")
     result_dir = folder / "result"
-    with Progress(method, 1, quiet=quiet) as bar:
+    with Progress(method, quiet=quiet) as bar:
         done = reconstruct_to_folder(folder / "rectified", result_dir, method=method, progress=bar)
     disparity = read_pfm(result_dir / "disparity.pfm")
     depth = disparity_to_depth(disparity, focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
@@ -217,14 +215,15 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
 
 def _fake_centre_mm() -> tuple[float, float, float]:
-    from rig.cli import FAKE_CENTRE_MM
+    from rig.devices import FAKE_CENTRE_MM
 
     return tuple(float(c) for c in FAKE_CENTRE_MM)
 
 
-def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], stream) -> Any:
+def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], quiet: bool) -> Any:
     """A 9x9 capture at 0.5 mm with the simulated GRBL stage and camera, through the real session."""
-    from rig.cli import open_stage
+    from recon.progress import Progress
+    from rig.devices import open_stage
     from rig.fakecam import FakeCamera
     from rig.grid import GridSpec
     from rig.session import run_capture
@@ -234,9 +233,10 @@ def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float,
         camera = FakeCamera(devices.controller.physical_position, is_moving=devices.controller.is_moving,
                             **camera_options)
         grid = GridSpec(rows=9, cols=9, pitch_mm=0.5, centre_mm=centre_mm)
-        result = run_capture(path, stage=devices.stage, camera=camera, grid=grid, clock=devices.clock,
-                             progress=stream, handle_sigint=False,
-                             camera_request={"device": "fake", "binning": camera.binning})
+        with Progress("capture", quiet=quiet) as bar:
+            result = run_capture(path, stage=devices.stage, camera=camera, grid=grid, clock=devices.clock,
+                                 progress=bar, handle_sigint=False,
+                                 camera_request={"device": "fake", "binning": camera.binning})
         if not result.complete:
             from rig.errors import RigError
 
