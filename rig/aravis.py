@@ -549,8 +549,10 @@ class AravisCamera:
         deadline = time.monotonic() + self.timeout_s + exposure_us * 1e-6
         stale = failed = 0
         while True:
-            remaining = deadline - time.monotonic()
-            buffer = self._stream.timeout_pop_buffer(max(1, int(remaining * 1e6))) if remaining > 0 else None
+            buffer = None
+            while buffer is None and (remaining := deadline - time.monotonic()) > 0:
+                # short waits, so that a Ctrl-C (handled between calls into Aravis) is seen promptly
+                buffer = self._stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
             if buffer is None:
                 self._stale_dropped += stale
                 self._failed_buffers += failed
