@@ -10,10 +10,12 @@ Fresh frames
 Acquisition runs continuously from :meth:`AravisCamera.__init__` to :meth:`~AravisCamera.close`.
 :meth:`~AravisCamera.trigger` first returns every frame already delivered to the stream's queue to the
 pool (unseen), records the host time ``t0``, fires the trigger, and then returns the first complete
-frame whose host receive time (``ArvBuffer`` system timestamp) is no earlier than
-``t0 + exposure`` -- the earliest a frame whose exposure began after ``t0`` can arrive. In free-running
-mode (``trigger="free"``) one frame period is added to that bound (a frame's readout is shorter than
-its period), so a frame exposed while the stage was still moving is never returned.
+frame whose host receive time (``ArvBuffer`` system timestamp) is no earlier than ``t0``: a triggered
+camera sends a frame only for a trigger, so that frame is the one this trigger exposed. In
+free-running mode (``trigger="free"``) the camera streams on its own, and the bound is
+``t0 + exposure + one frame period`` (a frame's readout is shorter than its period): the earliest a
+frame whose exposure began after ``t0`` can arrive. So a frame exposed while the stage was still
+moving is never returned.
 
 Triggers
 --------
@@ -522,7 +524,13 @@ class AravisCamera:
 
     def _fire(self) -> None:
         if self.trigger_mode == "software":
-            self._call("software trigger", self._cam.software_trigger)
+            try:
+                self._cam.software_trigger()
+            except self._gerror as error:
+                raise CameraError(
+                    f"camera {self.name}: software trigger failed: {_gerror_message(error)}; the camera does not "
+                    "answer: check its power and cable (GigE: network link and address)"
+                ) from None
         elif self.trigger_mode != "free" and self.hardware_trigger is not None:
             self.hardware_trigger(True)
             self.clock.sleep(self.trigger_pulse_s)
@@ -540,10 +548,10 @@ class AravisCamera:
             raise CameraError(f"camera {self.name} is closed")
         self._flush()
         exposure_us = self._exposure_us()
-        margin_ns = int(exposure_us * 1e3)
+        margin_ns = 0  # triggered: the camera sends a frame only for a trigger, and the queue is empty now
         if self.trigger_mode == "free":
             rate = self._frame_rate()
-            margin_ns += int(1e9 / rate) if rate else 0
+            margin_ns = int(exposure_us * 1e3) + (int(1e9 / rate) if rate else 0)
         t0_ns = time.time_ns()
         self._fire()
         deadline = time.monotonic() + self.timeout_s + exposure_us * 1e-6

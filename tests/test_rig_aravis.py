@@ -18,6 +18,7 @@ from rig.aravis import (
     AravisCamera,
     CameraTimeoutError,
     decode_frame,
+    describe,
     list_devices,
     packed_size,
 )
@@ -164,15 +165,17 @@ def test_bayer_camera_gives_rgb(aravis):
 
 @pytest.mark.parametrize("trigger", ["software", "free", "Line0"])
 def test_every_frame_is_fresh(aravis, trigger):
-    """Frames queue up while nobody asks (the Fake streams at 25 Hz); each trigger must still return
-    one received after the call began plus one exposure, never a queued one."""
+    """Frames queue up while nobody asks (the Fake streams at 25 Hz whatever its trigger settings);
+    each trigger must still return one received after the call began, never a queued one; free-running,
+    one received at least an exposure plus a frame period (40 ms) after it."""
     with AravisCamera(FAKE, roi=ROI, exposure_us=5000, trigger=trigger) as camera:
         ids = []
         for _ in range(3):
             time.sleep(0.25)  # several frames are delivered into the queue meanwhile
             camera.trigger()
             last = camera.settings()["last_frame"]
-            assert last["received_ns"] >= last["trigger_ns"] + 5000 * 1000
+            bound_ns = (5000 * 1000 + 40_000_000) if trigger == "free" else 0
+            assert last["received_ns"] >= last["trigger_ns"] + bound_ns
             ids.append(last["frame_id"])
         assert ids == sorted(ids) and len(set(ids)) == 3
 
@@ -320,3 +323,104 @@ def test_camera_commands(aravis, capsys):
     assert info["features"]["AcquisitionControl"]["ExposureTimeAbs"] == "10000"
     assert main(["camera", "info", "opencv:0"]) == 2
     assert "expected aravis: or aravis:DEVICE_ID" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------------
+# Aravis's simulated GigE Vision camera: a real GVCP/GVSP server on the loopback interface, which
+# (unlike Fake_1) takes a frame only when triggered
+
+
+class GigEFake:
+    """``Aravis.GvFakeCamera`` serving on ``lo``; :meth:`stop` is a pulled cable."""
+
+    address = "127.0.0.1"
+
+    def __init__(self) -> None:
+        self.server = None
+
+    def start(self) -> "GigEFake":
+        from gi.repository import Aravis
+
+        self.server = Aravis.GvFakeCamera.new("lo", "GV01")
+        assert self.server.is_running()
+        return self
+
+    def stop(self) -> None:
+        import gc
+
+        self.server = None  # the last reference: Aravis stops its threads and closes the sockets
+        gc.collect()
+
+
+@pytest.fixture
+def gige(aravis):
+    fake = GigEFake().start()
+    yield fake
+    fake.stop()
+
+
+def test_gige_camera_takes_exactly_one_frame_per_software_trigger(gige):
+    with AravisCamera(gige.address, roi=ROI) as camera:
+        ids = []
+        for _ in range(3):
+            camera.trigger()
+            ids.append(camera.settings()["last_frame"]["frame_id"])
+            time.sleep(0.3)
+            assert camera._flush() == 0  # nothing arrives unasked: the camera really waits for the trigger
+        info = describe(camera)
+    assert ids == [ids[0], ids[0] + 1, ids[0] + 2]
+    assert info["protocol"] == "GigE Vision" and info["serial"] == "GV01"
+
+
+def test_gige_line_trigger_that_never_fires_times_out(gige):
+    with AravisCamera(gige.address, roi=ROI, trigger="Line0", timeout_s=0.5) as camera:
+        with pytest.raises(CameraTimeoutError, match=r"no fresh frame within 0.5 s after the trigger; is Line0 wired"):
+            camera.trigger()
+        assert camera.settings()["readback"]["trigger_source"] == "Line0"
+
+
+def test_gige_hw_trigger_without_wiring_is_one_line_and_resumable(gige, tmp_path, capsys):
+    """--hw-trigger pulses the stage's M8, but nothing connects it to the simulated camera's Line0."""
+    out = tmp_path / "cap"
+    args = ["capture", str(out), "--camera", f"aravis:{gige.address}", "--rows", "2", "--cols", "2", "--roi",
+            *map(str, ROI), "--trigger", "Line0", "--hw-trigger", "--frame-timeout-s", "0.5", "--quiet"]
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("lfrig:")]
+    assert len(err) == 1 and "is Line0 wired to the trigger output (the stage's M8) and firing?" in err[0]
+    assert "0 of 4 views" in err[0] and "run the same command again to resume" in err[0]
+
+
+@pytest.mark.slow
+def test_gige_cable_pulled_mid_capture_then_resumed(gige, tmp_path, capsys):
+    from rig.aravis import open_aravis
+    from rig.devices import open_stage
+    from rig.grid import GridSpec
+    from rig.session import CaptureAborted, run_capture
+
+    out = tmp_path / "cap"
+    grid = GridSpec(rows=3, cols=3, pitch_mm=0.5, centre_mm=(-50.0, -50.0, -10.0))
+    devices = open_stage("fake")
+    camera, request = open_aravis(f"aravis:{gige.address}", roi=ROI, timeout_s=1, clock=devices.clock)
+    taken = 0
+    real_trigger = camera.trigger
+
+    def trigger():
+        nonlocal taken
+        if taken == 3:
+            gige.stop()
+        taken += 1
+        return real_trigger()
+
+    camera.trigger = trigger  # type: ignore[method-assign]
+    try:
+        with pytest.raises(CaptureAborted) as caught:
+            run_capture(out, stage=devices.stage, camera=camera, grid=grid, camera_request=request,
+                        clock=devices.clock, progress=None, handle_sigint=False)
+    finally:
+        camera.close()
+        devices.close()
+    assert "software trigger failed" in str(caught.value) and "3 of 9 views" in str(caught.value)
+    gige.start()  # plugged back in
+    assert main(["capture", str(out), "--camera", f"aravis:{gige.address}", "--rows", "3", "--cols", "3",
+                 "--roi", *map(str, ROI), "--quiet"]) == 0
+    assert "9 of 9 views (6 taken now), complete" in capsys.readouterr().out
