@@ -6,7 +6,7 @@ takes part, the disparity search is dense, and the cost volume is built by a com
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,6 +60,21 @@ def parabolic_refine(volume: np.ndarray, candidates: np.ndarray) -> tuple[np.nda
     return disparity.astype(np.float32), volume[best, rows, cols].astype(np.float32)
 
 
+def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple[float, float] | None = None,
+                  **unknown: object) -> None:
+    """Raise ``ValueError`` naming an option value :func:`estimate_baseline` cannot use."""
+    if unknown:
+        raise ValueError(f"unknown baseline option(s) {sorted(unknown)}; valid names: disparity_range, step, window")
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be an odd number of pixels >= 1; got {window}")
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step must be a positive number of pixels per view step; got {step}")
+    if disparity_range is not None:
+        low, high = disparity_range
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"disparity_range must be finite (min, max) with min < max; got {tuple(disparity_range)}")
+
+
 def estimate_baseline(
     lf: LightField,
     *,
@@ -87,8 +102,7 @@ def estimate_baseline(
     -------
     BaselineResult with ``disparity`` ``(H, W)`` in the benchmark's sign convention.
     """
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be an odd number of pixels >= 1; got {window}")
+    check_options(window=window, step=step, disparity_range=disparity_range)
     disparity_range = disparity_range or lf.disparity_range or DEFAULT_DISPARITY_RANGE
     candidates = disparity_candidates(disparity_range, step)
     gray = lf.gray()

@@ -76,7 +76,7 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     ``--disparity-range``, ``--step``, the baseline's ``--window`` and one flag per entropy option.
     :func:`method_options` turns the parsed flags into the chosen method's options."""
     parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
-                        help="; ".join(f"{k}: {v[1]}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
+                        help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     parser.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
                              "entropy finds it from its initial estimate and baseline searches -4 4)")
@@ -212,14 +212,15 @@ def _or_unknown(value: float | None, fmt: str) -> str:
 def _reconstruct(args: argparse.Namespace) -> None:
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
+    from recon.result import DISPARITY_PFM, DISPARITY_PNG
 
     options = method_options(args)
     with Progress(args.method, quiet=args.quiet) as bar:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
                                        ply_kind="points" if args.points else "mesh", progress=bar)
-    print(f"wrote {args.output / 'disparity.pfm'} and disparity.png in {folder.result['seconds']:.1f} s")
-    if "scores" in folder.result:
-        print(_format_scores(folder.result["scores"]))
+    print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
+    if folder.record.scores is not None:
+        print(_format_scores(folder.record.scores))
     if folder.export is not None:
         print(f"wrote {folder.export}")
 
@@ -289,7 +290,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _export(args: argparse.Namespace) -> None:
-    from recon.export import ExportError
+    from recon.errors import ExportError
 
     if args.ply is None and not args.depth and args.report is None:
         raise ExportError("nothing to do: give --ply OUT.ply, --depth DEPTH.pfm and/or --report REPORT_DIR")
@@ -299,25 +300,28 @@ def _export(args: argparse.Namespace) -> None:
         raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
 
     from recon.cloud import MAX_RELATIVE_JUMP
-    from recon.depth import disparity_to_depth, write_depth
-    from recon.export import export_ply, missing_camera_error, read_result, result_camera
+    from recon.depth import write_depth
+    from recon.export import export_ply
+    from recon.result import read_result
 
     result = read_result(args.result_dir)
-    camera, missing = result_camera(result, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
-                                    disparity_offset=args.disparity_offset)
-    if missing and (args.ply or args.depth):
-        raise missing_camera_error(result, missing)
+    overrides = {"focal_px": args.focal_px, "pitch_mm": args.pitch_mm, "disparity_offset": args.disparity_offset}
+    try:
+        camera = result.camera(**overrides)
+    except ExportError:
+        if args.ply or args.depth:
+            raise
+        camera = None  # a report without metric depth
 
     if args.ply is not None:
         summary = export_ply(
-            args.ply, disparity_px=result.disparity_px, image=result.image, **camera,
-            principal_point_px=result.principal_point_px, mask=result.mask, kind=args.kind,
-            poisson=args.poisson, ascii=args.ascii,
+            args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
+            kind=args.kind, poisson=args.poisson, ascii=args.ascii,
             max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
         )
         print(f"wrote {summary}")
     if args.depth:
-        depth = disparity_to_depth(result.disparity_px, **camera)
+        depth = camera.depth_mm(result.disparity_px)
         if result.mask is not None:
             depth[~result.mask] = float("nan")
         for path in args.depth:
@@ -329,7 +333,7 @@ def _export(args: argparse.Namespace) -> None:
     if args.report is not None:
         from recon.report import report_for_result
 
-        page = report_for_result(result, args.report, **({} if missing else {"camera": camera}))
+        page = report_for_result(result, args.report, camera=camera)
         print(f"wrote {page}")
 
 

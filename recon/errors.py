@@ -26,3 +26,7 @@ class LightFieldFormatError(ReconError):
 
 class CaptureLayoutError(LightFieldFormatError):
     """A capture folder does not match lfrig's capture layout, or conflicts with the settings."""
+
+
+class ExportError(ReconError):
+    """A reconstruction folder cannot be read or exported, or a PLY or depth file cannot be written."""

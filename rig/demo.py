@@ -102,7 +102,9 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
-    from recon.depth import depth_error_scores, disparity_to_depth, write_depth
+    from recon.camera import Camera
+    from recon.depth import depth_error_scores, write_depth
+    from recon.entropy.labels import TEXTURE
     from recon.evaluate import score
     from recon.export import export_result
     from recon.lf.imageio import read_image, write_png
@@ -110,7 +112,9 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report
-    from rig.fakecam import FakeCamera, FakeRig, calibration_poses, chessboard_scene, default_scene
+    from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, REGIONS_NPY, WINDOW_SIZE_NPY
+    from rig.fakecam import FakeCamera, FakeRig, calibration_poses
+    from rig.render import chessboard_scene, default_scene
 
     folder = Path(folder)
     _prepare(folder)
@@ -175,14 +179,15 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     result_dir = folder / "result"
     with Progress(method, quiet=quiet) as bar:
         done = reconstruct_to_folder(folder / "rectified", result_dir, method=method, progress=bar)
-    disparity = read_pfm(result_dir / "disparity.pfm")
-    depth = disparity_to_depth(disparity, focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
+    disparity = read_pfm(result_dir / DISPARITY_PFM)
+    camera = Camera(focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
+    depth = camera.depth_mm(disparity)
     for suffix in ("pfm", "png", "npy"):
         write_depth(result_dir / f"depth.{suffix}", depth)
     ply = {kind: export_result(result_dir, folder / f"model_{kind}.ply", kind=kind).as_dict()
            for kind in ("mesh", "points")}
     summary["ply"] = ply
-    summary["method"] = {"name": method, "seconds": done.result.get("seconds")}
+    summary["method"] = {"name": method, "seconds": done.record.seconds}
     steps.end(f"{ply['mesh']['points']} vertices, {ply['mesh']['triangles']} triangles; "
               f"{ply['points']['points']} points")
 
@@ -190,20 +195,19 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     steps.begin("report", "scoring against the simulated scene's truth and writing the report")
     truth_depth = scene_camera.depth_in_rectified(rect.K_rect, rect.R_rect_cam, rect.image_size, centre_mm)
     write_pfm(folder / "result" / "truth_depth.pfm", truth_depth.astype(np.float32))
-    labels = _load_optional(result_dir / "regions.npy")
-    textured = labels == 2 if labels is not None else None
+    labels = _load_optional(result_dir / REGIONS_NPY)
+    textured = labels == TEXTURE if labels is not None else None
     summary["depth_error"] = {
         "all": depth_error_scores(depth, truth_depth, border_px=15),
         "textured": depth_error_scores(depth, truth_depth, mask=textured, border_px=15),
     }
-    truth_disparity = rect.focal_px * rect.pitch_mm / truth_depth
+    truth_disparity = camera.disparity_px(truth_depth)
     summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
     report = write_report(
-        folder / "report", centre_view=read_image(result_dir / "centre_view.png"), disparity_px=disparity,
+        folder / "report", centre_view=read_image(result_dir / CENTRE_VIEW_PNG), disparity_px=disparity,
         title="lfrig demo: simulated lab session", subtitle=str(folder / "rectified"),
-        truth_depth_mm=truth_depth, camera={"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
-                                            "disparity_offset": 0.0},
-        region_map=labels, window_size_px=_load_optional(result_dir / "window_size.npy"),
+        truth_depth_mm=truth_depth, camera=camera,
+        region_map=labels, window_size_px=_load_optional(result_dir / WINDOW_SIZE_NPY),
         scores=summary["disparity_scores"], info={"steps (s)": steps.times},
     )
     summary["report"] = str(report)

@@ -25,9 +25,8 @@ from __future__ import annotations
 import logging
 import math
 import re
-import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Sequence
 
 from rig.clock import Clock, SystemClock
 from rig.errors import RigError

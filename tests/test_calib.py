@@ -21,8 +21,8 @@ from calib.rectify import pure_translation_fit, rectification, rectify_views, re
 from calib.stage import StageCalibration, load_model
 from rig.main import main
 from recon.lf import read_lightfield
-from rig.fakecam import (FakeCamera, FakeRig, board_corners_world, calibration_poses, chessboard_scene,
-                         rectified_geometry)
+from rig.fakecam import FakeCamera, FakeRig, calibration_poses, rectified_geometry
+from rig.render import board_corners_world, chessboard_scene
 from recon.lf.capture import CaptureWriter
 
 PITCH = 0.5

@@ -10,7 +10,7 @@ import pytest
 
 from recon.baseline import estimate_baseline
 from recon.entropy import DEFAULTS, EntropyOptions, estimate_disparity, make_options, write_outputs
-from recon.entropy.regions import OCCLUDED, OCCLUDING, REGION_COLOURS, SMOOTH
+from recon.entropy.labels import OCCLUDED, OCCLUDING, REGION_COLOURS, SMOOTH
 from recon.lf.lightfield import LightField
 from recon.synthetic import Layer, noise_texture, occluding_square_scene, render
 

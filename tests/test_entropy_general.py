@@ -12,7 +12,8 @@ from recon.entropy import estimate_disparity
 from recon.entropy.entropy import select_windows, select_windows_reference
 from recon.entropy.matching import cost_ambiguity
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
-from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, TEXTURE, jump_distance,
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
+from recon.entropy.regions import (jump_distance,
                                    layer_jumps, layer_map, region_labels)
 from recon.entropy.scenes import (REGION_KINDS, SCENES, Surface, make_scene, region_masks,
                                   render_surfaces)

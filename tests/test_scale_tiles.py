@@ -130,7 +130,7 @@ def test_a_halo_too_small_shows_at_the_seams(scene, untiled):
 
 
 def test_tiled_baseline_on_a_local_cluster_equals_untiled(scene, untiled):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,  # in-process, no ports
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         seen = []

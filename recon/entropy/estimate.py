@@ -26,8 +26,8 @@ from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_
 from recon.entropy.windows import N_SHAPES
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
 from recon.entropy.windows import window_rect
-from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, flat_pixels, jump_distance,
-                                   layer_jumps, layer_map, region_labels)
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
+from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.errors import ReconError
 from recon.progress import ProgressCallback
 from recon.lf.lightfield import LightField
@@ -246,6 +246,11 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
     U, V = lf.grid_shape
     if U < 3 or V < 3:
         raise ReconError(f"the entropy estimator needs at least a 3x3 grid of views, got {U}x{V}")
+    check_options(opts)
+
+
+def check_options(opts: EntropyOptions) -> None:
+    """Raise ``ValueError`` naming an option value the estimator cannot use."""
     sizes = opts.window_sizes
     if not sizes or any(s < 3 or s % 2 == 0 for s in sizes):
         raise ValueError(f"window_sizes must be odd sizes >= 3, got {sizes}")

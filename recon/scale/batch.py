@@ -36,7 +36,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.pipeline import RESULT_JSON, reconstruct_to_folder, write_json_atomic
+from recon.pipeline import reconstruct_to_folder, write_json_atomic
+from recon.result import RESULT_JSON
 from recon.scale import ScaleError
 
 MARKER = "batch.json"
@@ -278,7 +279,7 @@ def reconstruct_capture(
             ply_kind=request.export or "mesh", estimate=estimate, source=str(source), extra=extra,
         )
         names = list(folder.files) + ([request.ply_name] if ply is not None else [])
-        report.update(status="ok", scores=folder.result.get("scores"), names=names)
+        report.update(status="ok", scores=folder.record.scores, names=names)
         if payload is not None:
             report["files"] = {name: (target_dir / name).read_bytes() for name in names}
     except LfrigError as error:
