@@ -269,3 +269,27 @@ def test_a_failure_while_writing_leaves_nothing(plain, tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         import_views(plain, tmp_path / "cap", pattern="view_{u}_{v}.png", rows=3, cols=3, pitch_mm=0.5)
     assert nothing_written(tmp_path, tmp_path / "cap")
+
+
+def test_index_base_and_mode_mistakes(plain, tmp_path, capsys):
+    # names start at 0, told 1: the views at 0 lie below the first index
+    assert run_import(plain, tmp_path / "cap", "--index-base", "1") == 2
+    assert "view_0_0.png: row 0, column 0 is below the first index 1; pass the index your names start at" in one_error_line(capsys)
+    # a running index without an order
+    assert main(["import", str(plain), "-o", str(tmp_path / "cap"), "--pattern", "view_{i}.png", "--pitch-mm", "0.5",
+                 "--rows", "3", "--cols", "3", "--quiet"]) == 2
+    assert "numbers the views in capture order: give --order" in one_error_line(capsys)
+    # a position pattern with an order
+    assert run_import(plain, tmp_path / "cap", "--order", "raster") == 2
+    assert "places each view by its row and column; --order is for files in capture order" in one_error_line(capsys)
+    assert nothing_written(tmp_path, tmp_path / "cap")
+
+
+def test_benchmark_grid_size_is_checked(tmp_path, capsys):
+    original = read_lightfield(TINY)
+    bench = tmp_path / "bench"
+    export_plain(original, bench, lambda u, v: f"input_Cam{u * 3 + v:03d}.png")
+    (bench / "parameters.cfg").write_text((TINY / "parameters.cfg").read_text())
+    assert main(["import", str(bench), "-o", str(tmp_path / "cap"), "--rows", "9", "--cols", "9", "--quiet"]) == 2
+    assert "the benchmark folder holds a 3x3 grid, not 9x9" in one_error_line(capsys)
+    assert nothing_written(tmp_path, tmp_path / "cap")
