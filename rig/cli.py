@@ -54,7 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     camera.add_argument("--drop-frames", type=int, help="buffered frames dropped per trigger (default 4)")
     camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
     gen = cap.add_argument_group("camera (aravis)")
-    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (default: the camera's)")
+    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
     gen.add_argument("--exposure-us", type=float, help="exposure time in microseconds (auto exposure off)")
     gen.add_argument("--gain-db", type=float, help="gain in dB (auto gain off)")
     gen.add_argument("--trigger", default="software", metavar="MODE",
