@@ -84,6 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rect.add_argument("--focal-px", type=float, help="focal length of the rectified views (default: the camera's)")
     rect.add_argument("--no-crop", dest="crop", action="store_false",
                       help="keep the camera's image size, with black where no camera pixel maps")
+    rect.add_argument("--no-verify", dest="verify", action="store_false",
+                      help="do not check the capture's views against the checksums in its journal")
     rect.set_defaults(handler=_rectify)
 
 
@@ -132,7 +134,7 @@ def _rectify(args: argparse.Namespace) -> int:
     from calib.rectify import rectify_capture
 
     rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
-                           focal_px=args.focal_px, crop=args.crop)
+                           focal_px=args.focal_px, crop=args.crop, verify=args.verify)
     print(json.dumps({"output": str(args.output), "focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                       "image_size": list(rect.image_size)}))
     return 0

@@ -89,6 +89,7 @@ def reconstruct_to_folder(
     estimate: Estimator | None = None,
     source: str | None = None,
     extra: Mapping[str, Any] | None = None,
+    verify: bool = True,
 ) -> FolderResult:
     """Reconstruct one light field into ``out_dir`` (created if needed); see the module docstring.
 
@@ -112,6 +113,8 @@ def reconstruct_to_folder(
         batch that ships the views to a worker passes the folder the views came from.
     extra
         More keys for ``result.json`` (e.g. how the work was tiled); they must not clash.
+    verify
+        Check a capture's views against their journalled checksums (:func:`recon.lf.capture.read_capture`).
 
     Raises
     ------
@@ -124,7 +127,7 @@ def reconstruct_to_folder(
     from recon.lf import read_ground_truth, read_lightfield
     from recon.lf.pfm import write_pfm
 
-    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
+    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
     opts: dict[str, Any] = dict(options or {})
     check_options(method, opts)
     if opts.get("disparity_range") is not None:

@@ -19,13 +19,15 @@ import hashlib
 import json
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from recon.lf.imageio import read_images, write_png
+from recon.lf.imageio import fault_point, read_images, write_bytes_atomic, write_error, write_png
+from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
 from recon.lf.params import camera_from_parameters, parameters_for, read_parameters, write_parameters
@@ -36,6 +38,8 @@ MANIFEST = "manifest.jsonl"
 VIEWS = "views"
 PARAMETERS = "parameters.cfg"
 _VIEW_NAME = re.compile(r"^u(\d+)_v(\d+)\.png$")
+#: Files a folder may hold before the capture starts (the lock is taken first, the log opened early).
+_IGNORED = {"session.log", LOCK_NAME}
 
 
 def view_name(u: int, v: int) -> str:
@@ -52,23 +56,45 @@ def is_capture(path: str | os.PathLike) -> bool:
     return (Path(path) / MANIFEST).is_file()
 
 
+def _journal_lines(manifest: Path) -> tuple[list[tuple[int, str]], int]:
+    """The lines of a journal with their line numbers, and the byte offset where the last complete
+    line ends. A torn tail (a crash or a full disk mid-append: bytes without a final newline, or a
+    last line that is not JSON, e.g. the zeros a crash can leave) is left out of both."""
+    try:
+        data = manifest.read_bytes()
+    except FileNotFoundError:
+        raise CaptureLayoutError(f"{manifest}: no such file; {manifest.parent} is not an lfrig capture") from None
+    except OSError as error:
+        raise CaptureLayoutError(f"{manifest}: cannot read ({error.strerror})") from None
+    end = data.rfind(b"\n") + 1  # bytes after the last newline are a torn append
+    raw = data[:end].split(b"\n")[:-1] if end else []
+    if raw:
+        try:
+            json.loads(raw[-1].decode("utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            end -= len(raw[-1]) + 1  # a complete-looking last line that is not JSON: torn as well
+            raw = raw[:-1]
+    lines = []
+    for number, line in enumerate(raw, start=1):
+        try:
+            lines.append((number, line.decode("utf-8")))
+        except UnicodeDecodeError:
+            raise CaptureLayoutError(f"{manifest}: line {number} is not UTF-8 text; the journal is damaged") from None
+    return lines, end
+
+
 def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The header and the remaining records of a manifest. A torn last line (a crash mid-append) is
-    ignored; any other unreadable line is an error."""
+    ignored (:func:`_journal_lines`); any other unreadable line is an error."""
     manifest = path / MANIFEST
-    try:
-        lines = manifest.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise CaptureLayoutError(f"{manifest}: no such file; {path} is not an lfrig capture") from None
+    lines, _ = _journal_lines(manifest)
     records: list[dict[str, Any]] = []
-    for number, line in enumerate(lines, start=1):
+    for number, line in lines:
         if not line.strip():
             continue
         try:
             record = json.loads(line)
         except json.JSONDecodeError:
-            if number == len(lines):
-                break  # torn final append: the view it named is taken again
             raise CaptureLayoutError(f"{manifest}: line {number} is not valid JSON; the journal is damaged") from None
         if not isinstance(record, dict):
             raise CaptureLayoutError(f"{manifest}: line {number} is not a JSON object")
@@ -81,9 +107,30 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
             f"{manifest}: capture format version {header.get('version')!r}; this lfrig reads version {VERSION}"
         )
     grid = header.get("grid", {})
-    if not (isinstance(grid.get("rows"), int) and isinstance(grid.get("cols"), int) and grid["rows"] > 0 and grid["cols"] > 0):
+    if not (isinstance(grid, dict) and isinstance(grid.get("rows"), int) and isinstance(grid.get("cols"), int)
+            and grid["rows"] > 0 and grid["cols"] > 0):
         raise CaptureLayoutError(f"{manifest}: header has no valid grid rows/cols")
     return header, records[1:]
+
+
+def _view_key(record: dict[str, Any], *, rows: int, cols: int, path: Path) -> tuple[int, int] | None:
+    """``(u, v)`` of a view record whose ``u``, ``v`` lie in the grid and whose ``file`` is exactly
+    ``views/uUU_vVV.png``; ``None`` for any other record (it names nothing lfrig will read)."""
+    u, v = record.get("u"), record.get("v")
+    if not (isinstance(u, int) and isinstance(v, int) and not isinstance(u, bool) and not isinstance(v, bool)):
+        return None
+    if not (0 <= u < rows and 0 <= v < cols) or record.get("file") != view_name(u, v):
+        return None
+    return u, v
+
+
+def _inside(path: Path, file: Path) -> bool:
+    """Whether ``file`` (resolved, symlinks followed) lies inside the folder ``path``."""
+    try:
+        file.resolve().relative_to(path.resolve())
+    except ValueError:
+        return False
+    return True
 
 
 class CaptureWriter:
@@ -104,31 +151,59 @@ class CaptureWriter:
         When the folder holds a capture taken with other settings, or is not a capture but not empty.
     """
 
-    def __init__(self, path: str | os.PathLike, *, header: dict[str, Any]) -> None:
+    def __init__(self, path: str | os.PathLike, *, header: dict[str, Any], lock: FolderLock | None = None) -> None:
         self.path = Path(path)
         if "settings" not in header or "grid" not in header:
             raise ValueError("the capture header needs 'grid' and 'settings'")
         self.completed: dict[tuple[int, int], dict[str, Any]] = {}
         #: Whether the journal ends with the "complete" record (no view was retaken after it).
         self.marked_complete = False
+        # One writer per folder: the caller may have taken the lock earlier (before opening devices).
+        self._own_lock = lock is None
+        self.lock = lock if lock is not None else FolderLock(self.path, what="capture")
+        try:
+            self._open(header)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, header: dict[str, Any]) -> None:
+        self._journal = None
+        manifest = self.path / MANIFEST
         if is_capture(self.path):
             self.header, records = _read_journal(self.path)
             self._check_settings(header["settings"])
+            self.rows = int(self.header["grid"]["rows"])
+            self.cols = int(self.header["grid"]["cols"])
             self._load_completed(records)
+            _, end = _journal_lines(manifest)
+            if end != manifest.stat().st_size:
+                # A torn last line (crash or full disk mid-append): cut it, or the next append would
+                # land after it and turn it into a damaged line in the middle of the journal.
+                try:
+                    with open(manifest, "r+b") as f:
+                        f.truncate(end)
+                        os.fsync(f.fileno())
+                except OSError as error:
+                    raise write_error(manifest, error) from None
         else:
-            if self.path.exists() and any(p.name != "session.log" for p in self.path.iterdir()):
+            if self.path.exists() and any(p.name not in _IGNORED for p in self.path.iterdir()):
                 raise CaptureLayoutError(
                     f"{self.path}: folder exists, is not empty and is not an lfrig capture; choose a new folder"
                 )
-            (self.path / VIEWS).mkdir(parents=True, exist_ok=True)
+            try:
+                (self.path / VIEWS).mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise write_error(self.path / VIEWS, error) from None
             self.header = {"kind": "header", "format": FORMAT, "version": VERSION, "created": now_iso(), **header}
-            with open(self.path / MANIFEST, "w", encoding="utf-8") as f:
-                f.write(json.dumps(self.header, sort_keys=True) + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-        self.rows = int(self.header["grid"]["rows"])
-        self.cols = int(self.header["grid"]["cols"])
-        self._journal = open(self.path / MANIFEST, "a", encoding="utf-8")
+            # Atomic: a crash leaves no manifest (a folder to start afresh) or the whole header line.
+            write_bytes_atomic(manifest, (json.dumps(self.header, sort_keys=True) + "\n").encode("utf-8"))
+            self.rows = int(self.header["grid"]["rows"])
+            self.cols = int(self.header["grid"]["cols"])
+        try:
+            self._journal = open(manifest, "ab")
+        except OSError as error:
+            raise write_error(manifest, error) from None
 
     def _check_settings(self, settings: dict[str, Any]) -> None:
         stored = self.header.get("settings", {})
@@ -147,11 +222,19 @@ class CaptureWriter:
         for record in records:
             if record.get("kind") != "view":
                 continue
-            key = (int(record["u"]), int(record["v"]))
+            # A record outside the grid, or naming another file, counts for nothing (the grid's
+            # own views are what completes a capture); the view it claims is taken again.
+            key = _view_key(record, rows=self.rows, cols=self.cols, path=self.path)
+            if key is None:
+                continue
             file = self.path / record["file"]
+            if file.is_symlink() or not file.is_file():
+                self.completed.pop(key, None)
+                continue
             try:
                 digest = hashlib.sha256(file.read_bytes()).hexdigest()
-            except FileNotFoundError:
+            except OSError:
+                self.completed.pop(key, None)
                 continue
             if digest == record.get("sha256"):
                 self.completed[key] = record
@@ -172,13 +255,35 @@ class CaptureWriter:
         return entry
 
     def _append(self, record: dict[str, Any]) -> None:
-        self._journal.write(json.dumps(record, sort_keys=True) + "\n")
-        self._journal.flush()
-        os.fsync(self._journal.fileno())
+        """Append one line and sync it; on failure cut what was written, so no torn line stays."""
+        line = (json.dumps(record, sort_keys=True) + "\n").encode("utf-8")
+        manifest = self.path / MANIFEST
+        start = self._journal.tell()
+        try:
+            half = len(line) // 2
+            self._journal.write(line[:half])
+            self._journal.flush()
+            fault_point(manifest)
+            self._journal.write(line[half:])
+            self._journal.flush()
+            os.fsync(self._journal.fileno())
+        except OSError as error:
+            try:
+                self._journal.close()  # drops what is still buffered
+            except OSError:
+                pass
+            try:
+                with open(manifest, "r+b") as f:
+                    f.truncate(start)
+                    os.fsync(f.fileno())
+            except OSError:
+                pass  # the next open cuts the torn line (_journal_lines)
+            self._journal = open(manifest, "ab")
+            raise write_error(manifest, error) from None
 
     @property
     def is_complete(self) -> bool:
-        return len(self.completed) == self.rows * self.cols
+        return all((u, v) in self.completed for u in range(self.rows) for v in range(self.cols))
 
     def write_parameters(self, **camera: Any) -> None:
         """Write ``parameters.cfg`` in the benchmark's format (plus an ``[lfrig]`` section).
@@ -199,7 +304,11 @@ class CaptureWriter:
         self.marked_complete = True
 
     def close(self) -> None:
-        self._journal.close()
+        if getattr(self, "_journal", None) is not None:
+            self._journal.close()
+            self._journal = None
+        if self._own_lock:
+            self.lock.release()
 
     def __enter__(self) -> "CaptureWriter":
         return self
@@ -208,22 +317,37 @@ class CaptureWriter:
         self.close()
 
 
-def read_capture(path: str | os.PathLike) -> LightField:
+def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
     """Read a complete capture folder into a :class:`LightField`.
+
+    Every view must be journalled as ``views/uUU_vVV.png`` of its own grid position, a regular file
+    inside the folder (not a symlink out of it). With ``verify`` (the default), each file's SHA-256
+    is checked against the journal, so a swapped, edited or damaged view is an error rather than
+    silently used; ``verify=False`` (``--no-verify``) skips that check (about 0.1 s for 81 views of
+    640x490, see ``bench/verify_capture.py``), never the path checks.
 
     Raises
     ------
     CaptureLayoutError
         When views are missing (the capture is incomplete: resume it), a view file lies outside the
-        grid, or a file does not match its journalled checksum.
+        grid or the folder, or a file does not match its journalled checksum.
     """
     path = Path(path)
     header, records = _read_journal(path)
+    manifest = path / MANIFEST
     rows, cols = header["grid"]["rows"], header["grid"]["cols"]
     entries: dict[tuple[int, int], dict[str, Any]] = {}
-    for record in records:
-        if record.get("kind") == "view":
-            entries[(int(record["u"]), int(record["v"]))] = record
+    for number, record in enumerate(records, start=2):
+        if record.get("kind") != "view":
+            continue
+        key = _view_key(record, rows=rows, cols=cols, path=path)
+        if key is None:
+            raise CaptureLayoutError(
+                f"{manifest}: a view record (u={record.get('u')!r}, v={record.get('v')!r}, "
+                f"file={record.get('file')!r}) is not a view of the {rows}x{cols} grid named views/uUU_vVV.png; "
+                "the journal was edited or damaged, resume the capture to repair it"
+            )
+        entries[key] = record
     view_dir = path / VIEWS
     for file in sorted(view_dir.iterdir()) if view_dir.is_dir() else []:
         if file.name.startswith("."):
@@ -242,8 +366,12 @@ def read_capture(path: str | os.PathLike) -> LightField:
         )
     paths = [path / entries[(u, v)]["file"] for u in range(rows) for v in range(cols)]
     for p in paths:
+        if p.is_symlink() or not _inside(path, p):
+            raise CaptureLayoutError(f"{p}: a view must be a file inside {path}, not a link elsewhere; replace it with the view itself")
         if not p.is_file():
             raise CaptureLayoutError(f"{p}: journalled view is missing on disk; resume the capture to take it again")
+    if verify:
+        _verify_views(path, paths, [entries[(u, v)].get("sha256") for u in range(rows) for v in range(cols)])
     images = read_images(paths)
     views = images.reshape((rows, cols) + images.shape[1:])
     camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
@@ -255,6 +383,22 @@ def read_capture(path: str | os.PathLike) -> LightField:
         _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
         camera.update({k: v for k, v in found.items() if v is not None})
     return LightField(views=views, metadata=metadata, source=path, **camera)
+
+
+def _verify_views(path: Path, paths: list[Path], digests: list[Any]) -> None:
+    """Check each file's SHA-256 against the journal (hashing runs in threads: hashlib drops the GIL)."""
+
+    def digest(file: Path) -> str:
+        return hashlib.sha256(file.read_bytes()).hexdigest()
+
+    with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
+        found = list(pool.map(digest, paths))
+    for file, want, got in zip(paths, digests, found):
+        if want != got:
+            raise CaptureLayoutError(
+                f"{file}: content does not match the checksum in {MANIFEST} (the file was replaced, edited or "
+                f"damaged); resume the capture to take it again, or pass --no-verify to use it anyway"
+            )
 
 
 def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict[str, Any] | None = None) -> None:
