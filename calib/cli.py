@@ -108,9 +108,15 @@ def _intrinsics(args: argparse.Namespace) -> int:
                                                   focal_estimate_px=args.focal_px,
                                                   working_distance_mm=args.working_distance_mm, progress=bar)
     note = "lfrig calibrate intrinsics\n" + result.report()
-    result.model.write(str(args.output), note=note)
+    from recon.lf.imageio import atomic_output
+
+    # Through a temporary name and a rename, as every file lfrig writes: a crash or a full disk
+    # leaves the previous model (or none), never half of one.
+    with atomic_output(args.output, what="camera model") as tmp:
+        result.model.write(str(tmp), note=note)
     picture = args.residuals or args.output.with_suffix(".residuals.png")
-    write_residual_picture(result, picture)
+    with atomic_output(picture, what="residual picture") as tmp:
+        write_residual_picture(result, tmp)
     print(result.report())
     print(f"wrote {args.output} and {picture}")
     return 0

@@ -155,7 +155,9 @@ class StageCalibration:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write as JSON (``derived`` holds the derived numbers, for people; it is not read back)."""
-        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n", encoding="utf-8")
+        from recon.lf.imageio import write_bytes_atomic
+
+        write_bytes_atomic(Path(path), (json.dumps(self.to_json(), indent=2) + "\n").encode("utf-8"))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "StageCalibration":

@@ -113,15 +113,19 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     return header, records[1:]
 
 
-def _view_key(record: dict[str, Any], *, rows: int, cols: int, path: Path) -> tuple[int, int] | None:
-    """``(u, v)`` of a view record whose ``u``, ``v`` lie in the grid and whose ``file`` is exactly
-    ``views/uUU_vVV.png``; ``None`` for any other record (it names nothing lfrig will read)."""
+def _view_key(record: dict[str, Any], *, rows: int, cols: int) -> tuple[tuple[int, int] | None, bool]:
+    """The grid position a view record is about, and whether it names that position's own file.
+
+    Returns ``(None, False)`` for a record whose ``u``, ``v`` are not integers inside the grid (it
+    names nothing lfrig reads, and is ignored: such a line cannot make a capture unfinishable), and
+    ``((u, v), ok)`` otherwise, ``ok`` when ``file`` is exactly ``views/uUU_vVV.png``.
+    """
     u, v = record.get("u"), record.get("v")
     if not (isinstance(u, int) and isinstance(v, int) and not isinstance(u, bool) and not isinstance(v, bool)):
-        return None
-    if not (0 <= u < rows and 0 <= v < cols) or record.get("file") != view_name(u, v):
-        return None
-    return u, v
+        return None, False
+    if not (0 <= u < rows and 0 <= v < cols):
+        return None, False
+    return (u, v), record.get("file") == view_name(u, v)
 
 
 def _inside(path: Path, file: Path) -> bool:
@@ -224,11 +228,11 @@ class CaptureWriter:
                 continue
             # A record outside the grid, or naming another file, counts for nothing (the grid's
             # own views are what completes a capture); the view it claims is taken again.
-            key = _view_key(record, rows=self.rows, cols=self.cols, path=self.path)
+            key, named_right = _view_key(record, rows=self.rows, cols=self.cols)
             if key is None:
                 continue
-            file = self.path / record["file"]
-            if file.is_symlink() or not file.is_file():
+            file = self.path / view_name(*key)
+            if not named_right or file.is_symlink() or not file.is_file():
                 self.completed.pop(key, None)
                 continue
             try:
@@ -337,17 +341,20 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
     manifest = path / MANIFEST
     rows, cols = header["grid"]["rows"], header["grid"]["cols"]
     entries: dict[tuple[int, int], dict[str, Any]] = {}
-    for number, record in enumerate(records, start=2):
+    for record in records:
         if record.get("kind") != "view":
             continue
-        key = _view_key(record, rows=rows, cols=cols, path=path)
+        key, _ = _view_key(record, rows=rows, cols=cols)
         if key is None:
-            raise CaptureLayoutError(
-                f"{manifest}: a view record (u={record.get('u')!r}, v={record.get('v')!r}, "
-                f"file={record.get('file')!r}) is not a view of the {rows}x{cols} grid named views/uUU_vVV.png; "
-                "the journal was edited or damaged, resume the capture to repair it"
-            )
-        entries[key] = record
+            continue  # outside the grid: names nothing that is read (the writer ignores it too)
+        entries[key] = record  # the last record of a position counts (a retake follows a bad one)
+    bad = [(key, r) for key, r in entries.items() if r.get("file") != view_name(*key)]
+    if bad:
+        (u, v), record = bad[0]
+        raise CaptureLayoutError(
+            f"{manifest}: the view ({u}, {v}) is journalled as file {record.get('file')!r}, but a view must be "
+            f"{view_name(u, v)} inside the capture; run the same `lfrig capture` command again to take it again"
+        )
     view_dir = path / VIEWS
     for file in sorted(view_dir.iterdir()) if view_dir.is_dir() else []:
         if file.name.startswith("."):
@@ -404,25 +411,33 @@ def _verify_views(path: Path, paths: list[Path], digests: list[Any]) -> None:
 def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict[str, Any] | None = None) -> None:
     """Write a whole light field (e.g. a rectified one) as a complete capture folder.
 
-    ``lf.views`` must be ``uint8`` or ``uint16``. The folder must not exist or be empty.
+    ``lf.views`` must be ``uint8`` or ``uint16``. The folder must not exist or be empty, or hold an
+    unfinished capture of the same light field (an interrupted earlier run: it is finished, the
+    views already on disk with their journalled checksum are kept). The folder is locked meanwhile.
     """
     path = Path(path)
-    if is_capture(path) or (path.exists() and any(path.iterdir())):
-        raise CaptureLayoutError(f"{path}: folder exists and is not empty; choose a new output folder")
     rows, cols = lf.grid_shape
     grid = {"rows": rows, "cols": cols, "pitch_mm": lf.pitch_mm}
     header = {"grid": grid, "settings": {"grid": grid, "source": str(lf.source) if lf.source else None},
               **(header_extra or {})}
-    with CaptureWriter(path, header=header) as writer:
-        for u in range(rows):
-            for v in range(cols):
-                writer.write_view(u, v, lf.views[u, v])
-        writer.write_parameters(
-            image_shape=lf.image_shape,
-            pitch_mm=lf.pitch_mm if lf.pitch_mm is not None else 0.0,
-            focal_px=lf.focal_px,
-            disparity_range=lf.disparity_range,
-            disparity_offset=lf.disparity_offset,
-            principal_point_px=lf.principal_point_px,
-        )
-        writer.mark_complete()
+    with FolderLock(path, what="capture") as lock:
+        if is_capture(path):
+            _, records = _read_journal(path)
+            if records and records[-1].get("kind") == "complete":
+                raise CaptureLayoutError(f"{path}: folder already holds a complete capture; choose a new output folder")
+        elif any(p.name not in _IGNORED for p in path.iterdir()):
+            raise CaptureLayoutError(f"{path}: folder exists and is not empty; choose a new output folder")
+        with CaptureWriter(path, header=header, lock=lock) as writer:
+            for u in range(rows):
+                for v in range(cols):
+                    if (u, v) not in writer.completed:
+                        writer.write_view(u, v, lf.views[u, v])
+            writer.write_parameters(
+                image_shape=lf.image_shape,
+                pitch_mm=lf.pitch_mm if lf.pitch_mm is not None else 0.0,
+                focal_px=lf.focal_px,
+                disparity_range=lf.disparity_range,
+                disparity_offset=lf.disparity_offset,
+                principal_point_px=lf.principal_point_px,
+            )
+            writer.mark_complete()
