@@ -201,7 +201,10 @@ def clear_result(folder: str | Path) -> list[str]:
                     continue  # a name outside the folder is never removed
     except (OSError, ValueError):
         pass  # no (readable) record: the known names are still removed
+    from recon.lf.imageio import remove_stale_temporaries
+
     removed = []
+    remove_stale_temporaries(folder)  # called under the folder's lock: a dead run's temporaries
     for name in [RESULT_JSON] + sorted(names - {RESULT_JSON}):
         path = folder / name
         if path.is_file() or path.is_symlink():

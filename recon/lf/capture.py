@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from recon.lf.imageio import fault_point, read_images, write_bytes_atomic, write_error, write_png
+from recon.lf.imageio import (fault_point, read_images, remove_stale_temporaries, write_bytes_atomic, write_error,
+                             write_png)
 from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
@@ -40,6 +41,7 @@ PARAMETERS = "parameters.cfg"
 _VIEW_NAME = re.compile(r"^u(\d+)_v(\d+)\.png$")
 #: Files a folder may hold before the capture starts (the lock is taken first, the log opened early).
 _IGNORED = {"session.log", LOCK_NAME}
+_TEMPORARY = re.compile(r"\..+\.\d+\.tmp(\.[^.]*)?")  # recon.lf.imageio.temporary_name
 
 
 def view_name(u: int, v: int) -> str:
@@ -128,6 +130,26 @@ def _view_key(record: dict[str, Any], *, rows: int, cols: int) -> tuple[tuple[in
     return (u, v), record.get("file") == view_name(u, v)
 
 
+def _unused(path: Path) -> bool:
+    """Whether a folder that is not a capture may become one: it is missing, empty, or holds only
+    what a capture that died before its header was in place leaves (the lock, the log, an empty
+    ``views/``, temporary files)."""
+    if not path.exists():
+        return True
+
+    def leftover(p: Path) -> bool:
+        return p.name in _IGNORED or _TEMPORARY.fullmatch(p.name) is not None
+
+    for entry in path.iterdir():
+        if entry.name == VIEWS and entry.is_dir() and not entry.is_symlink():
+            if all(leftover(v) for v in entry.iterdir()):
+                continue
+            return False
+        if not leftover(entry):
+            return False
+    return True
+
+
 def _inside(path: Path, file: Path) -> bool:
     """Whether ``file`` (resolved, symlinks followed) lies inside the folder ``path``."""
     try:
@@ -180,6 +202,8 @@ class CaptureWriter:
             self.rows = int(self.header["grid"]["rows"])
             self.cols = int(self.header["grid"]["cols"])
             self._load_completed(records)
+            remove_stale_temporaries(self.path)  # we hold the lock: these are a dead writer's
+            remove_stale_temporaries(self.path / VIEWS)
             _, end = _journal_lines(manifest)
             if end != manifest.stat().st_size:
                 # A torn last line (crash or full disk mid-append): cut it, or the next append would
@@ -191,10 +215,13 @@ class CaptureWriter:
                 except OSError as error:
                     raise write_error(manifest, error) from None
         else:
-            if self.path.exists() and any(p.name not in _IGNORED for p in self.path.iterdir()):
+            if not _unused(self.path):
                 raise CaptureLayoutError(
                     f"{self.path}: folder exists, is not empty and is not an lfrig capture; choose a new folder"
                 )
+            remove_stale_temporaries(self.path)  # a run that died before its header was in place
+            if (self.path / VIEWS).is_dir():
+                remove_stale_temporaries(self.path / VIEWS)
             try:
                 (self.path / VIEWS).mkdir(parents=True, exist_ok=True)
             except OSError as error:
@@ -222,7 +249,7 @@ class CaptureWriter:
             )
 
     def _load_completed(self, records: list[dict[str, Any]]) -> None:
-        self.marked_complete = bool(records) and records[-1].get("kind") == "complete"
+        self.marked_complete = _ends_complete(records)
         for record in records:
             if record.get("kind") != "view":
                 continue
@@ -371,6 +398,11 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
             f"{path}: capture is incomplete, {len(missing)} of {rows * cols} views missing ({shown}); "
             "run the same `lfrig capture` command again to resume it"
         )
+    if not _ends_complete(records):
+        raise CaptureLayoutError(
+            f"{path}: capture is incomplete, every view is on disk but it was not finished ({MANIFEST} has no "
+            "'complete' record after them); run the same `lfrig capture` command again to finish it"
+        )
     paths = [path / entries[(u, v)]["file"] for u in range(rows) for v in range(cols)]
     for p in paths:
         if p.is_symlink() or not _inside(path, p):
@@ -390,6 +422,11 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
         _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
         camera.update({k: v for k, v in found.items() if v is not None})
     return LightField(views=views, metadata=metadata, source=path, **camera)
+
+
+def _ends_complete(records: list[dict[str, Any]]) -> bool:
+    """Whether the journal's last record (after any retake) is the ``complete`` record."""
+    return bool(records) and records[-1].get("kind") == "complete"
 
 
 def _verify_views(path: Path, paths: list[Path], digests: list[Any]) -> None:
@@ -425,7 +462,7 @@ def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: d
             _, records = _read_journal(path)
             if records and records[-1].get("kind") == "complete":
                 raise CaptureLayoutError(f"{path}: folder already holds a complete capture; choose a new output folder")
-        elif any(p.name not in _IGNORED for p in path.iterdir()):
+        elif not _unused(path):
             raise CaptureLayoutError(f"{path}: folder exists and is not empty; choose a new output folder")
         with CaptureWriter(path, header=header, lock=lock) as writer:
             for u in range(rows):

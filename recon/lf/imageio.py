@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import re
 import signal
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
@@ -167,6 +168,23 @@ def write_bytes_atomic(path: Path, data: bytes) -> str:
         tmp.unlink(missing_ok=True)
         raise write_error(path, error) from None
     return hashlib.sha256(data).hexdigest()
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove the temporary files that interrupted atomic writes left in ``folder`` (not below it).
+
+    Call it only while holding the folder's lock (:mod:`recon.lf.lock`): then no other lfrig process
+    is writing there, and every temporary is a leftover of one that died. Returns what was removed.
+    """
+    removed = []
+    for file in Path(folder).glob(".*.tmp*"):
+        if re.fullmatch(r"\..+\.\d+\.tmp(\.[^.]*)?", file.name) and file.is_file():
+            try:
+                file.unlink()
+            except OSError:
+                continue
+            removed.append(file)
+    return removed
 
 
 @contextmanager
