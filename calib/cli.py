@@ -64,6 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _board_args(st)
     st.add_argument("-o", "--output", type=Path, required=True, metavar="STAGE.json")
     st.add_argument("--quiet", action="store_true", help="no progress output")
+    st.add_argument("--no-verify", dest="verify", action="store_false",
+                    help="do not check the capture's views against the checksums in its journal")
     st.set_defaults(handler=_stage)
 
     rect = subparsers.add_parser(
@@ -129,7 +131,8 @@ def _stage(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     board = _board(args)
     with Progress("finding corners", quiet=args.quiet) as bar:
-        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar)
+        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar,
+                                                verify=args.verify)
     stage.save(args.output)
     print(stage.report())
     print(f"wrote {args.output}")

@@ -143,7 +143,8 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
     with atomic_output(folder / "camera.cameramodel", what="camera model") as tmp:
         intrinsics.model.write(str(tmp), note="lfrig demo\n" + intrinsics.report())
-    write_residual_picture(intrinsics, folder / "camera.residuals.png")
+    with atomic_output(folder / "camera.residuals.png", what="residual picture") as tmp:
+        write_residual_picture(intrinsics, tmp)
     summary["intrinsics"] = _intrinsics_summary(intrinsics, still)
     steps.end(f"RMS reprojection error {summary['intrinsics']['rms_px']:.3f} px; against the truth: projection "
               f"{summary['intrinsics']['truth_error_px']:.3f} px RMS, focal {summary['intrinsics']['focal_error_pct']:+.3f} %")

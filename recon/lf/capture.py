@@ -289,6 +289,8 @@ class CaptureWriter:
         """Append one line and sync it; on failure cut what was written, so no torn line stays."""
         line = (json.dumps(record, sort_keys=True) + "\n").encode("utf-8")
         manifest = self.path / MANIFEST
+        if self._journal is None:
+            raise CaptureLayoutError(f"{manifest}: the journal could not be reopened after a failed write; run again to resume")
         start = self._journal.tell()
         try:
             half = len(line) // 2
@@ -309,7 +311,10 @@ class CaptureWriter:
                     os.fsync(f.fileno())
             except OSError:
                 pass  # the next open cuts the torn line (_journal_lines)
-            self._journal = open(manifest, "ab")
+            try:
+                self._journal = open(manifest, "ab")
+            except OSError:
+                self._journal = None  # nothing more can be journalled; the views so far are kept
             raise write_error(manifest, error) from None
 
     @property
