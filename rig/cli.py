@@ -80,7 +80,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     home = actions.add_parser("home", help="run the homing cycle ($H)")
     _stage_argument(home)
     move = actions.add_parser("move", help="move to an absolute machine position (mm) and wait")
-    move.add_argument("position", type=float, nargs=3, metavar=("X", "Y", "Z"))
+    for axis in "xyz":  # three positionals: argparse cannot print a tuple metavar of a positional
+        move.add_argument(axis, type=float, metavar=axis.upper(), help=f"machine {axis.upper()} in mm")
     move.add_argument("--feed-mm-min", type=float, help="feed (default: rapid)")
     move.add_argument("--home", action="store_true", help="home first")
     _stage_argument(move)
@@ -152,10 +153,19 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
+    from recon.lf.lock import FolderLock
+
+    # Lock the folder before opening anything: a second capture must not touch the stage or camera
+    # (opening a GRBL's serial port resets it) while the first one drives them.
+    lock = FolderLock(args.out_dir, what="capture")
     devices = Devices()
     try:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
+        doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
+        if args.no_home and doubt and not args.out_dir.exists():  # a resume is checked by the session
+            print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
+                  "resume without homing will be refused after any reset", file=sys.stderr)
         try:
             with Progress("capture", quiet=args.quiet) as bar:
                 result = run_capture(
@@ -163,12 +173,14 @@ def _capture(args: argparse.Namespace) -> int:
                     feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
                     tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
                     progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+                    lock=lock,
                 )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130
     finally:
         devices.close()
+        lock.release()
     if result.interrupted:
         print(
             f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "
@@ -192,8 +204,12 @@ def _stage(args: argparse.Namespace) -> int:
             if args.home:
                 stage.home()
             else:
+                doubt = stage.machine_frame_doubt()
+                if doubt:
+                    print(f"lfrig: warning: {doubt}; X Y Z are taken in GRBL's present frame, which need not be the "
+                          "machine frame of earlier sessions (use --home for positions from the switches)", file=sys.stderr)
                 stage.prepare()
-            stage.move_to(tuple(args.position), feed_mm_min=args.feed_mm_min)
+            stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
             stage.wait_until_idle()
         status = stage.status()
         position = status.get("mpos_mm")
