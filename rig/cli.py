@@ -153,7 +153,6 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
-    from recon.lf.capture import is_capture
     from recon.lf.lock import FolderLock
 
     # Lock the folder before opening anything: a second capture must not touch the stage or camera
@@ -164,8 +163,10 @@ def _capture(args: argparse.Namespace) -> int:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
         doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
-        # a new capture (the lock made the folder, so ask for a journal); a resume is checked by the session
-        if args.no_home and doubt and not is_capture(args.out_dir):
+        from recon.lf.capture import is_capture
+
+        # (not "the folder exists": the lock above has just created it)
+        if args.no_home and doubt and not is_capture(args.out_dir):  # a resume is checked by the session
             print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
                   "resume without homing will be refused after any reset", file=sys.stderr)
         try:
