@@ -127,6 +127,20 @@ class EntropyOptions:
 #: gives each name, type, default and ``metadata["help"]``).
 DEFAULTS = EntropyOptions()
 
+#: Named option sets. ``"paper"`` is the paper's literal configuration as far as the text fixes one
+#: (``docs/entropy-method.md``, "Deviations"): region labels from the median-filtered layers and the
+#: nine views, the square window alone in texture and smooth regions, W1..W8 (no strips) in occlusion
+#: regions, window first by largest entropy and then the line search (Eqs. 6-7 read as two steps),
+#: every pixel's data term kept in Eq. 13 (no black-hole filling), no centroid correction, 256 grey
+#: bins. Where the paper leaves a choice open (the initial estimate, the noise tolerance of Eq. 12)
+#: it keeps lfrig's reading.
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "paper": {"occlusion_views": "nine", "strip_windows": False, "side_windows": "occlusion",
+              "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
+              "centroid_correction": False, "fill_holes": False, "grey_bins": 256},
+}
+
 
 @dataclass
 class EntropyResult:
@@ -234,8 +248,16 @@ class _Reporter:
 MATCH_CANDIDATE_WEIGHT = 1.8
 
 
-def make_options(options: EntropyOptions | None = None, **overrides) -> EntropyOptions:
-    """``options`` (default :data:`DEFAULTS`) with ``overrides`` applied; unknown names raise."""
+def make_options(options: EntropyOptions | None = None, *, preset: str | None = None,
+                 **overrides) -> EntropyOptions:
+    """``options`` (default :data:`DEFAULTS`, or the named :data:`PRESETS` entry ``preset`` applied
+    to the defaults) with ``overrides`` applied; unknown names raise."""
+    if preset is not None:
+        if options is not None:
+            raise ValueError("give either options or preset, not both")
+        if preset not in PRESETS:
+            raise ValueError(f"unknown entropy preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        options = dataclasses.replace(DEFAULTS, **PRESETS[preset])
     base = DEFAULTS if options is None else options
     names = {f.name for f in dataclasses.fields(EntropyOptions)}
     unknown = sorted(set(overrides) - names)
@@ -269,6 +291,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
                        stop_after: str | None = None,
+                       preset: str | None = None,
                        **overrides) -> EntropyResult:
     """Disparity of the centre view by the matching-entropy method.
 
@@ -295,6 +318,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
         layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
         whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+    preset
+        A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
+        ``overrides``; not together with ``options``.
     **overrides
         Any :class:`EntropyOptions` field by name, e.g. ``step=0.05``.
 
@@ -303,7 +329,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     :class:`EntropyResult` with the disparity (pixels per view step, ``docs/conventions.md`` sign)
     and the intermediate maps.
     """
-    opts = make_options(options, **overrides)
+    opts = make_options(options, preset=preset, **overrides)
     _check(lf, opts)
     if stop_after not in (None, "initial", "matching"):
         raise ValueError(f"stop_after must be None, 'initial' or 'matching', got {stop_after!r}")
