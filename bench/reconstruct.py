@@ -43,7 +43,7 @@ if scene.startswith("suite/"):
     rendered = make_scene(scene.split("/", 1)[1], size=size)
     lf, gt = rendered.lf, rendered.truth
 else:
-    from recon.io import read_lightfield, read_ground_truth
+    from recon.lf import read_lightfield, read_ground_truth
     lf = read_lightfield(scene)
     gt = read_ground_truth(lf)
 t1 = time.perf_counter()
