@@ -29,8 +29,8 @@ filtered and unfiltered parts join without a seam.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 from recon.entropy.regions import flat_pixels
 
@@ -72,8 +72,14 @@ def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tupl
             lx = np.floor(xs - (v - V // 2) * d + 0.5).astype(np.int64)
             ok = (ly >= 0) & (ly < H) & (lx >= 0) & (lx < W)
             out[u, v, ly[ok], lx[ok]] = True
-            out[u, v] = ndimage.binary_dilation(out[u, v], np.ones((3, 3), bool))
+            out[u, v] = cv2.dilate(out[u, v].view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
     return out
+
+
+def _gaussian(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    # Edge pixels repeated (scipy's "nearest"), the kernel cut at TRUNCATE sigmas.
+    radius = int(np.ceil(TRUNCATE * sigma_px))
+    return cv2.GaussianBlur(image, (2 * radius + 1, 2 * radius + 1), sigma_px, borderType=cv2.BORDER_REPLICATE)
 
 
 def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, size: int,
@@ -100,15 +106,17 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
     U, V = gray.shape[:2]
     for u in range(U):
         for v in range(V):
-            view = gray[u, v].astype(np.float32)
+            view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
+            if where is not None and not where[u, v].any():
+                out[u, v] = view
+                continue
             flat, _ = flat_pixels(view, size=size, tolerance=tolerance, sigma=noise_sigma)
             if where is not None:
                 flat &= where[u, v]
             if not flat.any():
                 out[u, v] = view
                 continue
-            weight = ndimage.gaussian_filter(flat.astype(np.float32), MASK_SIGMA_PX, mode="nearest",
-                                             truncate=TRUNCATE)
-            smooth = ndimage.gaussian_filter(view, sigma_px, mode="nearest", truncate=TRUNCATE)
+            weight = _gaussian(flat.astype(np.float32), MASK_SIGMA_PX)
+            smooth = _gaussian(view, sigma_px)
             out[u, v] = view + weight * (smooth - view)
     return out
