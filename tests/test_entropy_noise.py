@@ -155,3 +155,14 @@ def test_reconstruct_command_takes_the_paper_preset(tmp_path, capsys):
     assert main(["reconstruct", str(capture), "-o", str(tmp_path / "b"), "--method", "baseline",
                  "--preset", "paper"]) != 0
     assert "--preset belongs to the entropy method" in capsys.readouterr().err
+
+
+def test_a_thin_flat_structure_is_not_noise_limited():
+    from recon.entropy.estimate import _fits_window
+
+    mask = np.zeros((40, 40), bool)
+    mask[:, 5:10] = True  # a 5-px textureless pole
+    mask[:, 20:] = True  # a wide plain wall (to the image edge)
+    fits = _fits_window(mask, 15)
+    assert not fits[:, :20].any()
+    assert fits[:, 27:].all() and not fits[:, 20:27].any()

@@ -22,7 +22,7 @@ import numpy as np
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import initial_disparity, range_from_initial
-from recon.entropy.noise import filter_flat_views, filter_gain, warp_mask_to_views
+from recon.entropy.noise import filter_flat_views, warp_mask_to_views
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
@@ -399,14 +399,15 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
     # Noise-limited pixels (docs/entropy-method.md): flat, and no valley in the initial cost. Matched
-    # on views filtered where they land, with the largest window, and their hole test scaled by the
-    # filter's noise gain (holes are flat pixels, whose views are filtered).
-    noise_limited = flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
+    # on views filtered where they land, with the largest window.
+    # The largest window must fit: a thin textureless structure (a pole) is not noise-limited, its
+    # information is at its edges, which side windows reach.
+    noise_limited = _fits_window(flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width),
+                                 max(opts.window_sizes))
     if opts.noise_filter > 0 and noise_limited.any():
         gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
                                  size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
                                  where=warp_mask_to_views(noise_limited, d0, (U, V)))
-        hole_delta = filter_gain(opts.noise_filter) * hole_delta
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -493,6 +494,15 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
         confidence=confidence)
+
+
+def _fits_window(mask: np.ndarray, size: int) -> np.ndarray:
+    """``mask`` eroded by a ``size x size`` square: pixels whose whole square lies in ``mask``
+    (beyond the image edge counts as inside)."""
+    import cv2
+
+    return cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
 
 
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
