@@ -124,11 +124,13 @@ class EntropyOptions:
         0.2, "... or this times the noise sigma in grey levels, whichever is larger")
     tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
     noise_filter: float = _opt(
-        1.5, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
+        0.0, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
              "pixels (Eq. 12-flat, no valley in the initial cost) land and the view is flat: there "
-             "the noise, not the texture, shapes the cost curve (0: off, the paper)")
+             "the noise, not the texture, shapes the cost curve (0: off, the paper and the default; "
+             "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
+             "docs/entropy-method.md)")
     flat_windows: str = _opt(
-        "largest", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
+        "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
                    "to choose by) or 'all' (the same as the other pixels, the paper)")
 
@@ -400,10 +402,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
     # Noise-limited pixels (docs/entropy-method.md): flat, and no valley in the initial cost. Matched
     # on views filtered where they land, with the largest window.
-    # The largest window must fit: a thin textureless structure (a pole) is not noise-limited, its
-    # information is at its edges, which side windows reach.
-    noise_limited = _fits_window(flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width),
-                                 max(opts.window_sizes))
+    noise_limited = flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
     if opts.noise_filter > 0 and noise_limited.any():
         gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
                                  size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
@@ -494,15 +493,6 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
         confidence=confidence)
-
-
-def _fits_window(mask: np.ndarray, size: int) -> np.ndarray:
-    """``mask`` eroded by a ``size x size`` square: pixels whose whole square lies in ``mask``
-    (beyond the image edge counts as inside)."""
-    import cv2
-
-    return cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
 
 
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:

@@ -249,9 +249,7 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     # side windows' centroid correction fits over one more window
     window_tests = 2 * (max(opts.window_sizes) // 2) + 1
     # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat
-    # (noise-limited: eroded by the largest window)
-    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood) + shift + 1 \
-        + max(opts.window_sizes) // 2
+    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood) + shift + 1
     return filtered + initial + layers + matching + window_tests + opts.smooth_neighbourhood // 2
 
 
