@@ -102,8 +102,11 @@ def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
     """
     import dataclasses
 
-    from recon.entropy.estimate import DEFAULTS, EntropyOptions
+    from recon.entropy.estimate import DEFAULTS, PRESETS, EntropyOptions
 
+    group.add_argument("--preset", choices=list(PRESETS), default=None,
+                       help="a named set of options applied before the flags below: 'paper' is the paper's "
+                            "literal configuration (docs/entropy-method.md), 'default' lfrig's defaults")
     for f in dataclasses.fields(EntropyOptions):
         if f.name in _SHARED_OPTIONS:
             continue
@@ -138,7 +141,11 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     if args.method == "baseline":
         if args.window is not None:
             chosen["window"] = args.window
+        if getattr(args, "preset", None) is not None:
+            raise ReconError("--preset belongs to the entropy method; drop it or use --method entropy")
         return chosen
+    if getattr(args, "preset", None) is not None:
+        chosen["preset"] = args.preset
     from recon.entropy.estimate import EntropyOptions
 
     for f in dataclasses.fields(EntropyOptions):
@@ -268,7 +275,9 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
             "Read RESULT_DIR (written by lfrig reconstruct: disparity.pfm and result.json with focal_px, "
             "pitch_mm, disparity_offset, source), convert disparity to depth in mm "
             "(Z = focal_px * pitch_mm / (d + disparity_offset)), and write what is asked for. Pixels without "
-            "a trustworthy disparity are left out; the mesh is cut where depth jumps. Coordinates are mm in "
+            "a trustworthy disparity are left out: not finite, confidence (confidence.pfm) below --min-confidence, "
+            "or outside the range the method searched (--keep-all keeps them); the PLY carries each vertex's "
+            "confidence as a float property. The mesh is cut where depth jumps. Coordinates are mm in "
             "the centre camera's frame (x right, y down, z forward)."
         ),
     )
@@ -286,6 +295,10 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--max-jump", type=float, default=None, metavar="FRACTION",
                         help="neighbours whose depths differ by more than this fraction are not joined "
                              "(default 0.05)")
+    export.add_argument("--min-confidence", type=float, default=None, metavar="C",
+                        help="leave out pixels whose confidence is below C, in [0, 1] (default 0.4)")
+    export.add_argument("--keep-all", action="store_true",
+                        help="keep every finite pixel, whatever its confidence or range")
     export.add_argument("--depth", type=Path, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
                         help="also write the depth map in mm (16-bit PNG records its scale); may repeat")
     export.add_argument("--report", type=Path, metavar="REPORT_DIR",
@@ -306,11 +319,15 @@ def _export(args: argparse.Namespace) -> None:
         raise ExportError("--poisson makes a mesh; drop --points")
     if args.max_jump is not None and not args.max_jump > 0:
         raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
+    if args.min_confidence is not None and not 0 <= args.min_confidence <= 1:
+        raise ExportError(f"--min-confidence {args.min_confidence}: give a value in [0, 1], e.g. 0.4")
 
     from recon.cloud import MAX_RELATIVE_JUMP
     from recon.depth import write_depth
-    from recon.export import export_ply
+    from recon.export import MIN_CONFIDENCE, export_ply, trusted_pixels
     from recon.result import read_result
+
+    min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
 
     result = read_result(args.result_dir)
     overrides = {"focal_px": args.focal_px, "pitch_mm": args.pitch_mm, "disparity_offset": args.disparity_offset}
@@ -326,12 +343,18 @@ def _export(args: argparse.Namespace) -> None:
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
             kind=args.kind, poisson=args.poisson, ascii=args.ascii,
             max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
+            confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
+            keep_all=args.keep_all,
         )
-        print(f"wrote {summary}")
+        print(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
+                                    if summary.pixels_unreliable else ""))
     if args.depth:
         depth = camera.depth_mm(result.disparity_px)
         if result.mask is not None:
             depth[~result.mask] = float("nan")
+        if not args.keep_all:
+            depth[~trusted_pixels(result.disparity_px, confidence=result.confidence, min_confidence=min_confidence,
+                                  search_range=result.search_range)] = float("nan")
         for path in args.depth:
             try:
                 write_depth(path, depth)

@@ -208,6 +208,77 @@ def poisson_mesh(cloud: PointCloud, *, depth: int = 9, density_quantile: float =
     return Mesh(vertices_mm=vertices, triangles=triangles, normals=normals, colours=colours, pixels=None)
 
 
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
+              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+
+
+def add_vertex_property(path, name: str, values: np.ndarray) -> Path:
+    """Rewrite the PLY file ``path`` (as open3d writes it: binary little-endian or ASCII, the vertex
+    element first, its properties scalar) with one more ``float`` vertex property ``name``.
+
+    ``values`` ``(N,)``: one per vertex, in the file's vertex order. Other elements are kept byte for
+    byte. Returns the path."""
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode("ascii").splitlines()
+    fmt = next(line.split()[1] for line in lines if line.startswith("format "))
+    try:
+        at = next(i for i, line in enumerate(lines) if line.startswith("element vertex "))
+    except StopIteration:
+        raise ExportError(f"{path}: no vertex element in the PLY header") from None
+    count = int(lines[at].split()[2])
+    values = np.asarray(values, np.float32).reshape(-1)
+    if len(values) != count:
+        raise ValueError(f"{path}: {count} vertices but {len(values)} values for {name!r}")
+    last = at + 1
+    while last < len(lines) and lines[last].startswith("property "):
+        last += 1
+    props = [line.split() for line in lines[at + 1:last]]
+    header = "\n".join(lines[:last] + [f"property float {name}"] + lines[last:]) + "\n"
+    body = data[end:]
+    if fmt == "ascii":
+        text = body.decode("ascii").split("\n")
+        rows = [f"{row} {v:.6g}" if row.strip() else row for row, v in zip(text[:count], values)]
+        out = header.encode("ascii") + "\n".join(rows + text[count:]).encode("ascii")
+    elif fmt == "binary_little_endian":
+        if any(p[1] == "list" for p in props):
+            raise ExportError(f"{path}: list properties in the vertex element are not supported")
+        dtype = np.dtype([(p[2], _PLY_TYPES[p[1]]) for p in props])
+        vertices = np.frombuffer(body[:count * dtype.itemsize], dtype=dtype)
+        extended = np.empty(count, np.dtype(dtype.descr + [(name, "<f4")]))
+        for field_name in dtype.names:
+            extended[field_name] = vertices[field_name]
+        extended[name] = values
+        out = header.encode("ascii") + extended.tobytes() + body[count * dtype.itemsize:]
+    else:
+        raise ExportError(f"{path}: PLY format {fmt!r} not supported for adding a property")
+    from recon.lf.imageio import write_bytes_atomic
+
+    write_bytes_atomic(path, out)
+    return path
+
+
+#: Pixels whose confidence (``confidence.pfm``, :mod:`recon.entropy.confidence`) is below this are left
+#: out of exports unless the caller keeps everything.
+MIN_CONFIDENCE = 0.4
+
+
+def trusted_pixels(disparity_px: np.ndarray, *, confidence: np.ndarray | None = None,
+                   min_confidence: float = MIN_CONFIDENCE,
+                   search_range: tuple[float, float] | None = None) -> np.ndarray:
+    """``(H, W)`` bool: finite disparity, confidence at least ``min_confidence`` (when a map is
+    given) and inside the searched range (when given; a value outside it was never matched)."""
+    disparity = np.asarray(disparity_px, np.float64)
+    keep = np.isfinite(disparity)
+    if confidence is not None:
+        keep &= np.asarray(confidence) >= min_confidence
+    if search_range is not None:
+        keep &= (disparity >= search_range[0] - 1e-6) & (disparity <= search_range[1] + 1e-6)
+    return keep
+
+
 # --------------------------------------------------------------------------------------------------
 # from disparity to a file
 # --------------------------------------------------------------------------------------------------
@@ -226,6 +297,7 @@ class ExportSummary:
     pixels_used: int  # pixels with a trustworthy depth
     pixels_total: int
     depth_range_mm: tuple[float, float] | None
+    pixels_unreliable: int = 0  # left out for low confidence or a disparity outside the search range
 
     def as_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
@@ -253,6 +325,10 @@ def export_ply(
     ascii: bool = False,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
     poisson_depth: int = 9,
+    confidence: np.ndarray | None = None,
+    min_confidence: float = MIN_CONFIDENCE,
+    search_range: tuple[float, float] | None = None,
+    keep_all: bool = False,
 ) -> ExportSummary:
     """Disparity of the centre view -> depth -> coloured point cloud or cut mesh -> PLY.
 
@@ -282,6 +358,12 @@ def export_ply(
         (:data:`recon.cloud.MAX_RELATIVE_JUMP`).
     poisson_depth
         Octree depth for :func:`poisson_mesh`.
+    confidence
+        ``(H, W)`` confidence in ``[0, 1]`` (``confidence.pfm``), or ``None``. Written as the float
+        vertex property ``confidence`` (points and grid meshes; a Poisson mesh's vertices are new).
+    min_confidence, search_range, keep_all
+        Unless ``keep_all``, pixels with confidence below ``min_confidence`` or a disparity outside
+        ``search_range`` are left out (:func:`trusted_pixels`).
     """
     if kind not in ("mesh", "points"):
         raise ValueError(f"kind must be 'mesh' or 'points'; got {kind!r}")
@@ -290,17 +372,30 @@ def export_ply(
     disparity = np.asarray(disparity_px)
     if disparity.ndim != 2:
         raise ValueError(f"disparity_px must be an (H, W) map; got shape {disparity.shape}")
+    if confidence is not None and np.shape(confidence) != disparity.shape:
+        raise ValueError(f"confidence must be {disparity.shape} like the disparity; got {np.shape(confidence)}")
+    unreliable = 0
+    if not keep_all:
+        trusted = trusted_pixels(disparity, confidence=confidence, min_confidence=min_confidence,
+                                 search_range=search_range)
+        unreliable = int(np.count_nonzero(np.isfinite(disparity) & ~trusted))
+        mask = trusted if mask is None else (np.asarray(mask, bool) & trusted)
     depth = camera.depth_mm(disparity.astype(np.float64))
     options = {"focal_px": camera.focal_px, "principal_point_px": camera.principal_point_px, "mask": mask,
                "max_relative_jump": max_relative_jump}
     cloud = point_cloud(depth, image, **options)
     depth_range = (float(cloud.points_mm[:, 2].min()), float(cloud.points_mm[:, 2].max())) if len(cloud) else None
-    common = {"pixels_used": len(cloud), "pixels_total": int(disparity.size), "depth_range_mm": depth_range}
+    common = {"pixels_used": len(cloud), "pixels_total": int(disparity.size), "depth_range_mm": depth_range,
+              "pixels_unreliable": unreliable}
     if kind == "points":
         written = write_cloud_ply(path, cloud, ascii=ascii)
+        if confidence is not None:
+            add_vertex_property(written, "confidence", np.asarray(confidence)[cloud.pixels[:, 0], cloud.pixels[:, 1]])
         return ExportSummary(path=written, kind="points", points=len(cloud), triangles=0, **common)
     mesh = poisson_mesh(cloud, depth=poisson_depth) if poisson else depth_mesh(depth, image, **options)
     written = write_mesh_ply(path, mesh, ascii=ascii)
+    if confidence is not None and mesh.pixels is not None:
+        add_vertex_property(written, "confidence", np.asarray(confidence)[mesh.pixels[:, 0], mesh.pixels[:, 1]])
     return ExportSummary(
         path=written, kind="poisson" if poisson else "mesh", points=len(mesh.vertices_mm),
         triangles=len(mesh.triangles), **common,
@@ -318,10 +413,14 @@ def export_result(
     pitch_mm: float | None = None,
     disparity_offset: float | None = None,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
+    min_confidence: float = MIN_CONFIDENCE,
+    keep_all: bool = False,
 ) -> ExportSummary:
     """:func:`export_ply` for a reconstruction folder (:func:`recon.result.read_result`).
 
-    ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given.
+    ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given. The
+    folder's ``confidence.pfm`` and searched range (``result.json`` options) filter the pixels unless
+    ``keep_all``.
     """
     from recon.result import read_result
 
@@ -337,4 +436,8 @@ def export_result(
         poisson=poisson,
         ascii=ascii,
         max_relative_jump=max_relative_jump,
+        confidence=result.confidence,
+        min_confidence=min_confidence,
+        search_range=result.search_range,
+        keep_all=keep_all,
     )

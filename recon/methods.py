@@ -42,6 +42,7 @@ def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
 
     result = estimate_disparity(lf, progress=progress, **options)
     used = dataclasses.asdict(result.options) if dataclasses.is_dataclass(getattr(result, "options", None)) else options
+    used["disparity_range"] = [float(v) for v in result.disparity_range]  # the range searched, found or given
     return MethodResult(disparity=result.disparity, extras=result, options=used,
                         write_extras=lambda folder: write_outputs(result, folder))
 

@@ -42,8 +42,13 @@ INITIAL_DISPARITY_PFM = "initial_disparity.pfm"
 MATCHED_DISPARITY_PFM = "matched_disparity.pfm"
 REFINED_DISPARITY_PFM = "refined_disparity.pfm"
 HOLES_PNG = "holes.png"
+#: Per-pixel confidence of disparity.pfm in [0, 1] (recon.entropy.confidence); the export drops
+#: pixels below its threshold.
+CONFIDENCE_PFM = "confidence.pfm"
+CONFIDENCE_PNG = "confidence.png"
 ENTROPY_MAPS = (REGIONS_PNG, REGIONS_NPY, WINDOW_SIZE_PNG, WINDOW_SIZE_NPY, WINDOW_SHAPE_PNG, WINDOW_SHAPE_NPY,
-                VIEW_SET_NPY, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, HOLES_PNG)
+                VIEW_SET_NPY, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, HOLES_PNG,
+                CONFIDENCE_PFM, CONFIDENCE_PNG)
 #: Every name lfrig itself writes into a reconstruction folder; a rerun removes them (:func:`clear_result`).
 RESULT_FILES = (RESULT_JSON, DISPARITY_PFM, DISPARITY_PNG, CENTRE_VIEW_PNG) + ENTROPY_MAPS
 
@@ -229,6 +234,16 @@ class ResultFolder:
     image: np.ndarray | None
     mask: np.ndarray | None
     record: ResultRecord
+    #: ``(H, W)`` float32 in ``[0, 1]`` from ``confidence.pfm``, or ``None`` (a method without one).
+    confidence: np.ndarray | None = None
+
+    @property
+    def search_range(self) -> tuple[float, float] | None:
+        """``(min, max)`` disparity the method searched (``options["disparity_range"]``), or ``None``."""
+        rng = self.record.options.get("disparity_range")
+        if isinstance(rng, (list, tuple)) and len(rng) == 2 and all(isinstance(v, (int, float)) for v in rng):
+            return float(rng[0]), float(rng[1])
+        return None
 
     @property
     def focal_px(self) -> float | None:
@@ -277,7 +292,7 @@ def read_result(result_dir) -> ResultFolder:
 
     Reads ``disparity.pfm`` and ``result.json`` (:class:`ResultRecord`: ``focal_px``, ``pitch_mm``,
     ``disparity_offset`` default 0, optionally ``principal_point_px``, ``mask`` (a PNG in the folder,
-    non-zero = trusted) and ``source``). Colours come from ``centre_view.png`` in the folder if
+    non-zero = trusted) and ``source``), and ``confidence.pfm`` when the method wrote one. Colours come from ``centre_view.png`` in the folder if
     present, else from the centre view of ``source``; without either the export has no colours.
 
     Raises
@@ -312,6 +327,13 @@ def read_result(result_dir) -> ResultFolder:
         if mask.shape != disparity.shape:
             raise ExportError(f"{folder / str(record.extra['mask'])}: mask is {mask.shape}, disparity is {disparity.shape}")
 
+    confidence = None
+    if (folder / CONFIDENCE_PFM).is_file():
+        confidence = read_pfm(folder / CONFIDENCE_PFM)
+        if confidence.shape != disparity.shape:
+            raise ExportError(f"{folder / CONFIDENCE_PFM}: confidence is {confidence.shape}, disparity is "
+                              f"{disparity.shape}; they must come from the same reconstruction")
+
     image = None
     if (folder / CENTRE_VIEW_PNG).is_file():
         image = _read_image(folder / CENTRE_VIEW_PNG, what="centre view")
@@ -326,7 +348,8 @@ def read_result(result_dir) -> ResultFolder:
             f"{folder}: centre view is {image.shape[:2]} but disparity.pfm is {disparity.shape}; "
             "they must come from the same reconstruction"
         )
-    return ResultFolder(path=folder, disparity_px=disparity, image=image, mask=mask, record=record)
+    return ResultFolder(path=folder, disparity_px=disparity, image=image, mask=mask, record=record,
+                        confidence=confidence)
 
 
 def source_folder(folder: Path, record: ResultRecord) -> Path | None:

@@ -90,6 +90,9 @@ def _demo(args: argparse.Namespace) -> int:
     print()
     print(f"median depth error on textured surfaces: {d['median_abs_rel_pct']:.3f} % of the distance "
           f"({d['within_pct']:.1f} % of pixels within 0.5 %)")
+    c = summary["exported_cloud"]
+    print(f"exported cloud: {c['kept_pct']:.1f} % of pixels kept, mean depth error {c['mean_abs_rel_pct']:.3f} %, "
+          f"{c['points_outside_range_5pct']} points outside the true depth range +-5 %")
     print(f"report: {summary['report']}")
     print(f"PLY:    {summary['ply']['mesh']['path']}")
     print(f"        {summary['ply']['points']['path']}")
@@ -106,13 +109,13 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.depth import depth_error_scores, write_depth
     from recon.entropy.labels import TEXTURE
     from recon.evaluate import score
-    from recon.export import export_result
+    from recon.export import MIN_CONFIDENCE, export_result, trusted_pixels
     from recon.lf.imageio import atomic_output, read_image, write_bytes_atomic, write_png
     from recon.lf.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report
-    from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, REGIONS_NPY, WINDOW_SIZE_NPY
+    from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, REGIONS_NPY, WINDOW_SIZE_NPY, read_result
     from rig.fakecam import FakeCamera, FakeRig, calibration_poses
     from rig.render import chessboard_scene, default_scene
 
@@ -205,11 +208,16 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     }
     truth_disparity = camera.disparity_px(truth_depth)
     summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
+    folder_result = read_result(result_dir)
+    summary["exported_cloud"] = exported_cloud_scores(depth, truth_depth, trusted_pixels(
+        disparity, confidence=folder_result.confidence, search_range=folder_result.search_range))
     report = write_report(
         folder / "report", centre_view=read_image(result_dir / CENTRE_VIEW_PNG), disparity_px=disparity,
         title="lfrig demo: simulated lab session", subtitle=str(folder / "rectified"),
         truth_depth_mm=truth_depth, camera=camera,
         region_map=labels, window_size_px=_load_optional(result_dir / WINDOW_SIZE_NPY),
+        confidence=folder_result.confidence,
+        min_confidence=MIN_CONFIDENCE if folder_result.confidence is not None else None,
         scores=summary["disparity_scores"], info={"steps (s)": steps.times},
     )
     summary["report"] = str(report)
@@ -218,6 +226,24 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     summary["seconds"] = steps.times
     write_bytes_atomic(folder / MARKER, (json.dumps(summary, indent=2, default=str) + "\n").encode("utf-8"))
     return summary
+
+
+def exported_cloud_scores(depth_mm: np.ndarray, truth_depth_mm: np.ndarray, kept: np.ndarray) -> dict[str, Any]:
+    """How the exported cloud (the ``kept`` pixels, as ``lfrig export`` chooses them) compares with the
+    truth: the share of pixels kept, the points outside the true depth range widened by 5 %, and the
+    mean and largest absolute depth error relative to the truth over the kept pixels."""
+    truth = np.asarray(truth_depth_mm, np.float64)
+    depth = np.asarray(depth_mm, np.float64)
+    kept = np.asarray(kept, bool) & np.isfinite(depth) & (depth > 0)
+    scored = kept & np.isfinite(truth) & (truth > 0)
+    low, high = float(np.nanmin(truth)), float(np.nanmax(truth))
+    outside = kept & ((depth < 0.95 * low) | (depth > 1.05 * high))
+    rel = np.abs(depth[scored] - truth[scored]) / truth[scored]
+    return {"kept_pct": 100.0 * float(kept.mean()), "points": int(kept.sum()),
+            "truth_range_mm": [low, high], "points_outside_range_5pct": int(outside.sum()),
+            "depth_range_mm": [float(depth[kept].min()), float(depth[kept].max())] if kept.any() else None,
+            "mean_abs_rel_pct": 100.0 * float(rel.mean()) if rel.size else None,
+            "max_abs_rel_pct": 100.0 * float(rel.max()) if rel.size else None}
 
 
 def _fake_centre_mm() -> tuple[float, float, float]:

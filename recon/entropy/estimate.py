@@ -19,8 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import initial_disparity, range_from_initial
+from recon.entropy.noise import filter_flat_views, warp_mask_to_views
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
@@ -121,11 +123,36 @@ class EntropyOptions:
     hole_delta_noise: float = _opt(
         0.2, "... or this times the noise sigma in grey levels, whichever is larger")
     tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
+    noise_filter: float = _opt(
+        0.0, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
+             "pixels (Eq. 12-flat, no valley in the initial cost) land and the view is flat: there "
+             "the noise, not the texture, shapes the cost curve (0: off, the paper and the default; "
+             "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
+             "docs/entropy-method.md)")
+    flat_windows: str = _opt(
+        "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
+                   "offered, the square where it is: the least noisy cost where there is no texture "
+                   "to choose by) or 'all' (the same as the other pixels, the paper)")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
 #: gives each name, type, default and ``metadata["help"]``).
 DEFAULTS = EntropyOptions()
+
+#: Named option sets. ``"paper"`` is the paper's literal configuration as far as the text fixes one
+#: (``docs/entropy-method.md``, "Deviations"): region labels from the median-filtered layers and the
+#: nine views, the square window alone in texture and smooth regions, W1..W8 (no strips) in occlusion
+#: regions, window first by largest entropy and then the line search (Eqs. 6-7 read as two steps),
+#: every pixel's data term kept in Eq. 13 (no black-hole filling), no centroid correction, 256 grey
+#: bins. Where the paper leaves a choice open (the initial estimate, the noise tolerance of Eq. 12)
+#: it keeps lfrig's reading.
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "paper": {"occlusion_views": "nine", "strip_windows": False, "side_windows": "occlusion",
+              "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
+              "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
+              "noise_filter": 0.0, "flat_windows": "all"},
+}
 
 
 @dataclass
@@ -147,6 +174,9 @@ class EntropyResult:
         set (0 all views, k = the set of W_k).
     entropy, cost
         float32 matching entropy of the chosen window and matching cost at the chosen disparity.
+    confidence
+        float32 in ``[0, 1]`` from the cost curve's valley and the refinement's change
+        (:mod:`recon.entropy.confidence`); ``None`` when stopped before the refinement.
     disparity_range
         ``(min, max)`` searched.
     timings
@@ -168,6 +198,9 @@ class EntropyResult:
     timings: dict[str, float]
     options: EntropyOptions
     info: dict = field(default_factory=dict)
+    #: ``(H, W)`` float32 confidence of :attr:`disparity` in ``[0, 1]``
+    #: (:func:`recon.entropy.confidence.confidence_map`); ``None`` before the refinement.
+    confidence: np.ndarray | None = None
 
     @property
     def refined_disparity(self) -> np.ndarray:
@@ -177,6 +210,8 @@ class EntropyResult:
 
 #: Values of :attr:`EntropyOptions.side_windows`.
 SIDE_WINDOW_SCOPES = ("occlusion", "edges", "everywhere")
+#: Values of :attr:`EntropyOptions.flat_windows`.
+FLAT_WINDOW_SCOPES = ("largest", "all")
 #: Values of :attr:`EntropyOptions.visible_sets`.
 VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
 
@@ -232,8 +267,16 @@ class _Reporter:
 MATCH_CANDIDATE_WEIGHT = 1.8
 
 
-def make_options(options: EntropyOptions | None = None, **overrides) -> EntropyOptions:
-    """``options`` (default :data:`DEFAULTS`) with ``overrides`` applied; unknown names raise."""
+def make_options(options: EntropyOptions | None = None, *, preset: str | None = None,
+                 **overrides) -> EntropyOptions:
+    """``options`` (default :data:`DEFAULTS`, or the named :data:`PRESETS` entry ``preset`` applied
+    to the defaults) with ``overrides`` applied; unknown names raise."""
+    if preset is not None:
+        if options is not None:
+            raise ValueError("give either options or preset, not both")
+        if preset not in PRESETS:
+            raise ValueError(f"unknown entropy preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        options = dataclasses.replace(DEFAULTS, **PRESETS[preset])
     base = DEFAULTS if options is None else options
     names = {f.name for f in dataclasses.fields(EntropyOptions)}
     unknown = sorted(set(overrides) - names)
@@ -260,6 +303,10 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"side_windows must be one of {SIDE_WINDOW_SCOPES}, got {opts.side_windows!r}")
     if opts.visible_sets not in VISIBLE_SET_SCOPES:
         raise ValueError(f"visible_sets must be one of {VISIBLE_SET_SCOPES}, got {opts.visible_sets!r}")
+    if opts.flat_windows not in FLAT_WINDOW_SCOPES:
+        raise ValueError(f"flat_windows must be one of {FLAT_WINDOW_SCOPES}, got {opts.flat_windows!r}")
+    if not opts.noise_filter >= 0:
+        raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
     rng = opts.disparity_range
     if rng is not None and not rng[0] < rng[1]:
         raise ValueError(f"disparity_range must be (min, max) with min < max, got {rng}")
@@ -271,6 +318,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
                        stop_after: str | None = None,
+                       preset: str | None = None,
                        **overrides) -> EntropyResult:
     """Disparity of the centre view by the matching-entropy method.
 
@@ -295,6 +343,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
         layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
         whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+    preset
+        A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
+        ``overrides``; not together with ``options``.
     **overrides
         Any :class:`EntropyOptions` field by name, e.g. ``step=0.05``.
 
@@ -303,7 +354,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     :class:`EntropyResult` with the disparity (pixels per view step, ``docs/conventions.md`` sign)
     and the intermediate maps.
     """
-    opts = make_options(options, **overrides)
+    opts = make_options(options, preset=preset, **overrides)
     _check(lf, opts)
     if stop_after not in (None, "initial", "matching"):
         raise ValueError(f"stop_after must be None, 'initial' or 'matching', got {stop_after!r}")
@@ -324,6 +375,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     flat, flat_info = flat_pixels(gray[u0, v0], size=opts.smooth_neighbourhood,
                                   tolerance=opts.smooth_tolerance, sigma=noise_sigma)
     noise = flat_info["noise_sigma"]
+    raw_gray = gray
     hole_delta = max(opts.hole_delta, opts.hole_delta_noise * noise * opts.intensity_scale)
     known = opts.disparity_range or lf.disparity_range
     initial_rng = known if known is not None else opts.initial_range
@@ -348,6 +400,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         d0, ambiguity0 = (np.asarray(a) for a in initial)
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
+    # Noise-limited pixels (docs/entropy-method.md): flat, and no valley in the initial cost. Matched
+    # on views filtered where they land, with the largest window.
+    noise_limited = flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
+    if opts.noise_filter > 0 and noise_limited.any():
+        gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
+                                 size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
+                                 where=warp_mask_to_views(noise_limited, d0, (U, V)))
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -357,14 +416,14 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
 
     reporter.step("regions", "region types")
     labels, region_info = region_labels(
-        gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
+        raw_gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
         smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance,
         occlusion_views=opts.occlusion_views, noise=noise,
         keep=_layer_keep(ambiguity0, flat, opts))
     lap("regions")
 
     reporter.step("windows", "window selection (matching entropy)")
-    grey_q = quantise_grey(gray[U // 2, V // 2], opts.grey_bins)
+    grey_q = quantise_grey(raw_gray[U // 2, V // 2], opts.grey_bins)
     disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin, origin=disparity_origin)
     sizes = tuple(sorted(opts.window_sizes))
     if opts.side_windows == "edges":
@@ -388,6 +447,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     if opts.joint:
         windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
         penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
+        if opts.flat_windows == "largest":
+            penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
         matched, cost, k, ambiguity = joint_line_search(
             gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
@@ -411,10 +472,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     lap("matching")
 
     if stop_after == "matching":
-        refined, holes = matched, None
+        refined, holes, confidence = matched, None, None
     else:
         reporter.step("refine", "TV refinement of smooth regions")
         refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
+        confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
+                                    step=opts.step, disparity_range=rng, holes=holes,
+                                    valley_px=opts.hole_width)
         lap("refine")
         reporter.done()
 
@@ -427,7 +491,26 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         info={"ambiguity": ambiguity, "initial_ambiguity": ambiguity0, "holes": holes,
               "initial_holes": holes0, "hole_delta": hole_delta, "flat": flat,
               "noise_sigma": region_info["noise_sigma"],
-              "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]})
+              "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
+        confidence=confidence)
+
+
+def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
+    size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
+    size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
+    smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
+    picks whichever window's noise dips lowest, most often the smallest and noisiest."""
+    H, W, K = penalty.shape
+    by_size = np.isfinite(penalty).reshape(H, W, K // n_sizes, n_sizes)
+    offered = by_size.any(axis=2)
+    largest = n_sizes - 1 - np.argmax(offered[..., ::-1], axis=2)
+    size_of = np.arange(K) % n_sizes
+    bar = flat[..., None] & (size_of[None, None, :] != largest[..., None])
+    square = by_size[..., 0, :]
+    has_square = np.take_along_axis(square, largest[..., None], 2)[..., 0]
+    bar |= (flat & has_square)[..., None] & (np.arange(K) >= n_sizes)[None, None, :]
+    return np.where(bar, np.inf, penalty).astype(np.float32)
 
 
 def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:

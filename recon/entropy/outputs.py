@@ -14,7 +14,7 @@ from recon.entropy.windows import N_SHAPES
 from recon.errors import ReconError
 from recon.lf.imageio import write_bytes_atomic, write_png
 from recon.lf.pfm import write_pfm
-from recon.result import (HOLES_PNG, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, REGIONS_NPY,
+from recon.result import (CONFIDENCE_PFM, CONFIDENCE_PNG, HOLES_PNG, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, REGIONS_NPY,
                           REGIONS_PNG, VIEW_SET_NPY, WINDOW_SHAPE_NPY, WINDOW_SHAPE_PNG, WINDOW_SIZE_NPY, WINDOW_SIZE_PNG)
 
 #: One colour per window shape (RGB): grey square, then W1..W8 and the two strips.
@@ -45,7 +45,8 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     ``SHAPE_COLOURS``) and ``window_shape.npy`` (0 square, 1..8 = W1..W8, 9/10 strips);
     ``view_set.npy``; ``initial_disparity.pfm``, ``matched_disparity.pfm`` (before TV) and
     ``refined_disparity.pfm``; ``holes.png`` (white: black holes, filled from their surroundings
-    by the TV refinement). Returns the paths written.
+    by the TV refinement); ``confidence.pfm`` and ``confidence.png`` (0..1, white = sure; see
+    :mod:`recon.entropy.confidence`). Returns the paths written.
     """
     out = Path(out_dir)
     try:
@@ -79,6 +80,9 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     pfm(INITIAL_DISPARITY_PFM, result.initial_disparity)
     pfm(MATCHED_DISPARITY_PFM, result.matched_disparity)
     pfm(REFINED_DISPARITY_PFM, result.disparity)
+    if result.confidence is not None:  # 0..1, white = sure (recon.entropy.confidence)
+        pfm(CONFIDENCE_PFM, result.confidence)
+        png(CONFIDENCE_PNG, (np.clip(result.confidence, 0, 1) * 255).astype(np.uint8))
     holes = result.info.get("holes") if result.info else None
     if holes is not None:  # black holes: filled by the TV refinement without a data term
         png(HOLES_PNG, (np.asarray(holes, bool) * 255).astype(np.uint8))

@@ -172,6 +172,8 @@ def write_report(
     region_map: np.ndarray | None = None,
     region_names: Sequence[str] = REGION_NAMES,
     window_size_px: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
+    min_confidence: float | None = None,
     rows: Sequence[int] | None = None,
     disparity_range: tuple[float, float] | None = None,
     error_range_px: float = 0.2,
@@ -204,6 +206,10 @@ def write_report(
         picture already in the paper's colours, or ``None``.
     window_size_px
         ``(H, W)`` chosen window side in pixels, or ``None``.
+    confidence, min_confidence
+        ``(H, W)`` per-pixel confidence in ``[0, 1]`` (``confidence.pfm``) and the export's threshold,
+        or ``None``: a figure, the share of pixels the export keeps and, with the truth, the scores of
+        the kept pixels.
     rows
         Image rows for the profiles; default three rows near 1/4, 1/2, 3/4 of the height, moved to
         where the truth has most structure.
@@ -228,7 +234,11 @@ def write_report(
     rows = [int(r) for r in rows if 0 <= int(r) < maps.height]
     figures = _map_figures(out, maps, rows=rows, disparity_range=disparity_range, error_range_px=error_range_px)
     figures += _method_figures(out, maps, region_map=region_map, region_names=region_names,
-                               window_size_px=window_size_px)
+                               window_size_px=window_size_px, confidence=confidence,
+                               min_confidence=min_confidence)
+    if confidence is not None and min_confidence is not None and general is not None:
+        kept = np.asarray(confidence) >= min_confidence
+        region_rows = region_rows + [_score_rows(maps, kept.astype(np.int64), ("dropped by the export", "kept by the export"))[1][1]]
     profiles = _profiles(out, maps, rows)
 
     parts = [f"<header><h1>{html.escape(title)}</h1>"]
@@ -423,9 +433,22 @@ def _map_figures(out: Path, maps: _Maps, *, rows: list[int], disparity_range, er
     return figures
 
 
-def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequence[str], window_size_px) -> list[str]:
-    """What the method explains itself with: region types and window sizes; returns their HTML."""
+def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequence[str], window_size_px,
+                    confidence=None, min_confidence=None) -> list[str]:
+    """What the method explains itself with: region types, window sizes, confidence; returns their HTML."""
     figures = []
+    if confidence is not None:
+        conf = np.asarray(confidence, dtype=np.float64)
+        if conf.shape != maps.shape:
+            raise ValueError(f"confidence is {conf.shape} but disparity_px is {maps.shape}")
+        picture = colour_map(conf, low=0.0, high=1.0, lut="viridis")
+        write_png(out / "confidence.png", colourbar_figure(picture, low=0.0, high=1.0, lut="viridis",
+                                                            label="confidence", scale=maps.factor))
+        caption = "from the cost curve's valley width and the refinement's change (recon.entropy.confidence)"
+        if min_confidence is not None:
+            caption += (f"; the export keeps {100.0 * np.mean(conf >= min_confidence):.1f} % of pixels "
+                        f"(confidence ≥ {min_confidence:g})")
+        figures.append(_figure("confidence.png", "Confidence", caption))
     if region_map is not None:
         region = np.asarray(region_map)
         picture = region_picture(region, names=region_names) if region.ndim == 2 else as_rgb8(region)
@@ -515,6 +538,7 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
 
         regions = read_image(folder / REGIONS_PNG)
     window = np.load(folder / WINDOW_SIZE_NPY) if (folder / WINDOW_SIZE_NPY).is_file() else None
+    from recon.export import MIN_CONFIDENCE
     view = result.image
     if view is None:
         view = np.zeros(shape, np.uint8)
@@ -533,6 +557,8 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
         camera=camera,
         region_map=regions if regions is not None and regions.shape[:2] == shape else None,
         window_size_px=window if window is not None and window.shape == shape else None,
+        confidence=result.confidence,
+        min_confidence=MIN_CONFIDENCE if result.confidence is not None else None,
         scores=extra,
         info=info or None,
     )

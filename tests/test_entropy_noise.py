@@ -1,0 +1,158 @@
+"""Noise-limited matching (recon.entropy.noise), flat pixels' windows, presets and the confidence map."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from recon.entropy import DEFAULTS, estimate_disparity, make_options
+from recon.entropy.confidence import confidence_map
+from recon.entropy.estimate import PRESETS, _largest_windows_only
+from recon.entropy.noise import filter_flat_views, filter_gain, filter_reach_px
+from recon.lf.lightfield import LightField
+from recon.synthetic import noise_texture
+
+
+def _views(centre_rows: np.ndarray, n: int = 3) -> np.ndarray:
+    return np.broadcast_to(centre_rows, (n, n) + centre_rows.shape).astype(np.float32).copy()
+
+
+def test_filter_leaves_a_constant_light_field_constant():
+    views = np.full((3, 3, 20, 24), 0.4, np.float32)
+    out = filter_flat_views(views, sigma_px=1.5, noise_sigma=2 / 255, size=5, tolerance=2.0)
+    np.testing.assert_allclose(out, 0.4, atol=1e-6)
+
+
+def test_filter_off_returns_the_views():
+    views = np.random.default_rng(0).random((3, 3, 8, 8)).astype(np.float32)
+    assert filter_flat_views(views, sigma_px=0.0, noise_sigma=0.01, size=5, tolerance=2.0) is views
+
+
+def test_filter_reduces_noise_where_flat_and_keeps_texture():
+    rng = np.random.default_rng(1)
+    sigma = 2 / 255
+    image = np.full((64, 64), 0.5, np.float32)
+    image[:, 32:] = 0.25 + 0.5 * rng.random((64, 32))  # strong texture on the right
+    views = _views(image) + rng.normal(0, sigma, (3, 3, 64, 64)).astype(np.float32)
+    out = filter_flat_views(views, sigma_px=1.5, noise_sigma=sigma, size=5, tolerance=2.0)
+    left = (slice(None), slice(None), slice(8, -8), slice(4, 22))
+    right = (slice(None), slice(None), slice(8, -8), slice(42, 60))
+    assert np.std(out[left] - 0.5) < 0.3 * np.std(views[left] - 0.5)  # gain 0.19 for white noise
+    np.testing.assert_array_equal(out[right], views[right])  # textured: untouched
+    assert 0.18 < filter_gain(1.5) < 0.2 and filter_gain(0) == 1.0
+
+
+def test_filter_is_local_within_its_reach():
+    """What tiling relies on: a crop filtered alone equals the whole, filtered, beyond the reach."""
+    rng = np.random.default_rng(3)
+    image = np.full((60, 60), 0.5, np.float32)
+    image[20:40, 10:50] = noise_texture((20, 40), seed=4)
+    views = _views(image) + rng.normal(0, 0.01, (3, 3, 60, 60)).astype(np.float32)
+    opts = {"sigma_px": 1.5, "noise_sigma": 0.01, "size": 5, "tolerance": 2.0}
+    whole = filter_flat_views(views, **opts)
+    crop = filter_flat_views(np.ascontiguousarray(views[:, :, 5:55, 5:55]), **opts)
+    r = filter_reach_px(1.5, size=5)
+    np.testing.assert_allclose(crop[:, :, r:-r, r:-r], whole[:, :, 5 + r:55 - r, 5 + r:55 - r], atol=1e-6)
+
+
+def test_flat_pixels_get_only_the_largest_offered_windows():
+    n_sizes, n_shapes = 3, 4
+    penalty = np.zeros((2, 2, n_shapes * n_sizes), np.float32)
+    penalty[0, 0, [2, 5, 8, 11]] = np.inf  # largest size barred everywhere for pixel (0, 0)
+    penalty[1, 1, 0:n_sizes] = np.inf  # no square for pixel (1, 1) (an occlusion pixel)
+    flat = np.array([[True, False], [False, True]])
+    out = _largest_windows_only(penalty, flat, n_sizes)
+    assert np.flatnonzero(np.isfinite(out[0, 0])).tolist() == [1]  # the square of the middle size
+    assert np.array_equal(out[0, 1], penalty[0, 1]) and np.array_equal(out[1, 0], penalty[1, 0])
+    assert np.flatnonzero(np.isfinite(out[1, 1])).tolist() == [5, 8, 11]  # every shape, largest size
+
+
+def test_noise_filter_removes_the_interpolation_bias_on_a_faint_wall():
+    """A wall whose texture (0.7 grey levels) is weaker than the noise (1.5 levels in every view):
+    unfiltered, the least cost sits where the views' sub-pixel shifts average the noise most."""
+    rng = np.random.default_rng(5)
+    n, d = 72, -1.75
+    texture = cv2.GaussianBlur(rng.standard_normal((n + 40, n + 40)).astype(np.float32), (0, 0), 1.0)
+    texture = 0.5 + texture * (0.7 / 255) / texture.std()
+    views = np.empty((9, 9, n, n), np.float32)
+    for u in range(9):
+        for v in range(9):
+            m = np.float32([[1, 0, 20 - (v - 4) * d], [0, 1, 20 - (u - 4) * d]])
+            views[u, v] = cv2.warpAffine(texture, m, (n, n), flags=cv2.INTER_CUBIC)
+    views += rng.normal(0, 1.5 / 255, views.shape).astype(np.float32)
+    lf = LightField(views=np.clip(views, 0, 1), disparity_range=(-2.5, 0.5))
+    inner = (slice(15, -15), slice(15, -15))
+    new = np.abs(estimate_disparity(lf, noise_filter=1.5, flat_windows="largest").disparity[inner] - d)
+    old = np.abs(estimate_disparity(lf).disparity[inner] - d)  # the defaults: off
+    assert np.median(new) < 0.05
+    assert np.mean(new > 0.07) < 0.6 * np.mean(old > 0.07)
+
+
+def test_paper_preset_and_unknown_preset():
+    paper = make_options(preset="paper")
+    for name, value in PRESETS["paper"].items():
+        assert getattr(paper, name) == value
+    assert paper.gamma == DEFAULTS.gamma and paper.window_sizes == DEFAULTS.window_sizes
+    with pytest.raises(ValueError, match="unknown entropy preset 'papr'"):
+        make_options(preset="papr")
+    with pytest.raises(ValueError, match="either options or preset"):
+        make_options(DEFAULTS, preset="paper")
+    assert dataclasses.replace(paper, noise_filter=1.0).noise_filter == 1.0
+
+
+def test_confidence_orders_valleys_and_zeroes_out_of_range():
+    refined = np.array([[0.5, 0.5, 0.5, 2.0, np.nan]], np.float32)
+    matched = np.array([[0.5, 0.5, 0.8, 2.0, np.nan]], np.float32)
+    ambiguity = np.array([[1, 20, 1, 1, 1]])
+    conf = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=0.02,
+                          disparity_range=(0.0, 1.0))
+    assert conf.dtype == np.float32 and ((conf >= 0) & (conf <= 1)).all()
+    assert conf[0, 0] == pytest.approx(1.0)
+    assert conf[0, 1] < conf[0, 0] and conf[0, 2] < conf[0, 0]  # wide valley; moved by the refinement
+    assert conf[0, 3] == 0 and conf[0, 4] == 0  # outside the range searched; no value
+    holes = np.array([[True, False, False, False, False]])
+    with_holes = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=0.02,
+                                disparity_range=(0.0, 1.0), holes=holes)
+    assert with_holes[0, 0] == pytest.approx(0.5)
+    on_end = confidence_map(refined=refined, matched=np.full_like(matched, 0.0), ambiguity=ambiguity, step=0.02,
+                            disparity_range=(0.0, 1.0))
+    assert (on_end == 0).all()  # the least cost on the first candidate: no minimum inside the range
+
+
+def test_confidence_drops_a_speck():
+    refined = np.full((9, 9), 1.0, np.float32)
+    refined[4, 4] = 1.6  # sharp valley, wrong place
+    conf = confidence_map(refined=refined, matched=refined, ambiguity=np.ones((9, 9), int), step=0.02,
+                          disparity_range=(0.0, 2.0))
+    assert conf[4, 4] < 0.01 and conf[0, 0] == pytest.approx(1.0)
+
+
+def test_the_estimator_returns_a_confidence_map():
+    rng = np.random.default_rng(7)
+    tex = noise_texture((40, 40), seed=8)
+    lf = LightField(views=_views(tex, 5) + rng.normal(0, 0.002, (5, 5, 40, 40)).astype(np.float32),
+                    disparity_range=(-0.5, 0.5))
+    result = estimate_disparity(lf)
+    assert result.confidence.shape == (40, 40)
+    assert np.median(result.confidence[8:-8, 8:-8]) > 0.5  # a textured plane at disparity 0
+
+
+def test_reconstruct_command_takes_the_paper_preset(tmp_path, capsys):
+    import json
+    from pathlib import Path
+
+    from rig.main import main
+
+    capture = Path(__file__).resolve().parents[1] / "fixtures" / "tiny_capture"
+    assert main(["reconstruct", str(capture), "-o", str(tmp_path / "out"), "--preset", "paper",
+                 "--window-sizes", "3", "5", "--quiet"]) == 0
+    options = json.loads((tmp_path / "out" / "result.json").read_text())["options"]
+    assert options["noise_filter"] == 0.0 and options["joint"] is False and options["window_sizes"] == [3, 5]
+    assert (tmp_path / "out" / "confidence.pfm").is_file()
+    assert main(["reconstruct", str(capture), "-o", str(tmp_path / "b"), "--method", "baseline",
+                 "--preset", "paper"]) != 0
+    assert "--preset belongs to the entropy method" in capsys.readouterr().err
+
