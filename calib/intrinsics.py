@@ -35,6 +35,11 @@ from calib.errors import CalibError
 DEFAULT_LENSMODEL = "LENSMODEL_OPENCV8"
 #: Fewest images with a detected board that :func:`calibrate_intrinsics` accepts.
 MIN_IMAGES = 4
+#: Floor of the corner noise (px) from which :func:`calibrate_intrinsics` weights the corners:
+#: weights stay below 1 / this even for corners that fit exactly (rendered, noise-free boards).
+MIN_CORNER_SIGMA_PX = 1e-3
+#: Re-solves with corner weights 1 / (measured noise) after the first full solve.
+MAX_REWEIGHTINGS = 3
 
 
 @dataclass(frozen=True)
@@ -427,9 +432,24 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
                                do_optimize_extrinsics=False, do_optimize_frames=True,
                                do_apply_outlier_rejection=True, do_apply_regularization=True, **common)
     stats = mrcal.optimize(**optimization_inputs)
+    # Stage 4: weight the corners by their measured noise and solve again. mrcal's regularisation
+    # (distortions towards 0, principal point towards the centre) is sized for residuals of about
+    # one unit; corners good to 0.01-0.03 px with weight 1 let it dominate and bias the model
+    # (docs/calibration.md, "Why lfrig was behind OpenCV"). Weights 1/sigma make the weighted
+    # residuals about 1, as mrcal expects; every seen corner gets a new chance as an inlier.
+    seen = np.array(observations, dtype=float)[..., 2] > 0
+    weight = 1.0
+    for _ in range(MAX_REWEIGHTINGS):
+        sigma_px = _inlier_rms(stats["x"], obs, n, board) / weight
+        new_weight = 1.0 / max(sigma_px, MIN_CORNER_SIGMA_PX)
+        if new_weight <= 1.0 or abs(new_weight / weight - 1.0) < 0.25:
+            break
+        weight = new_weight
+        obs[..., 2] = np.where(seen, weight, -1.0)
+        stats = mrcal.optimize(**optimization_inputs)
     model = mrcal.cameramodel(optimization_inputs=optimization_inputs, icam_intrinsics=0)
 
-    residuals = stats["x"][: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2)
+    residuals = stats["x"][: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2) / weight
     inlier = obs[..., 2] > 0
     err = np.linalg.norm(residuals, axis=-1)
     if not inlier.any():
@@ -437,7 +457,6 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
     rms = float(np.sqrt(np.mean(err[inlier] ** 2) / 2))
     per_image = np.array([float(np.sqrt(np.mean(e[m] ** 2) / 2)) if m.any() else math.nan
                           for e, m in zip(err, inlier)])
-    seen = np.array(observations, dtype=float)[..., 2] > 0
     outliers = np.argwhere(seen & ~inlier)
     if not np.isfinite(rms) or rms > 10.0:
         raise CalibError(f"the calibration did not converge (RMS {rms:.1f} px); check --board COLSxROWS "
@@ -447,6 +466,15 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
                             n_corners=int(seen.sum()), per_image_rms_px=per_image, residuals_px=residuals,
                             observations=obs, uncertainty_px=uncertainty,
                             working_distance_mm=float(working_distance_mm), used=names)
+
+
+def _inlier_rms(x: np.ndarray, obs: np.ndarray, n: int, board: Board) -> float:
+    """RMS per coordinate of the (weighted) residuals ``x`` of the inlier corners of ``obs``."""
+    residuals = np.asarray(x)[: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2)
+    inlier = obs[..., 2] > 0
+    if not inlier.any():
+        return math.inf
+    return float(np.sqrt(np.mean(residuals[inlier] ** 2)))
 
 
 def projection_uncertainty_summary(model: Any, *, distance_mm: float, grid: tuple[int, int] = (12, 9)) -> dict[str, float]:
