@@ -1,6 +1,6 @@
 """Benchmark: lfrig's intrinsics calibration against plain OpenCV's, both scored against the truth.
 
-    .venv/bin/python bench/calibration.py [--cases issue near far wide rational] [--ablate]
+    .venv/bin/python bench/calibration.py [--cases issue near ...] [--realizations 5] [--ablate]
                                           [--cache DIR] [--json FILE]
 
 Each case renders board images through a known lens with the simulated camera's renderer
@@ -22,8 +22,10 @@ seeded starts), a 40 x 31 grid over the imager; the table gives its median and m
 corner error against the true corner positions, and each solver on each detector's corners
 (and on the true corners plus nothing, the floor of the model's fit).
 
-Images are cached in ``--cache`` (default ``.cache/bench-calibration``) keyed by every parameter
-of the case, so re-runs skip the rendering (about 3 s per 1280x980 frame on one core).
+Each case's boards are rendered once and saved with ``--realizations`` independent draws of the
+noise (default 5); the table gives the median over the draws of each figure, and in brackets the
+worst max. Images are cached in ``--cache`` (default ``.cache/bench-calibration``) keyed by every
+parameter of the case, so re-runs skip the rendering (about 1-3 s per 1280x980 frame on one core).
 Everything is seeded.
 """
 
@@ -110,51 +112,41 @@ def make_camera(case: Case):
                       noise_sigma=case.noise_grey / 255.0, seed=case.seed, exposure_us=10000.0 * case.exposure)
 
 
-def render_case(case: Case, cache: Path | None) -> tuple[list[np.ndarray], np.ndarray, object]:
-    """``(images, true_corners, true_model)``: 8-bit grey images, ``(N, rows, cols, 2)`` true corner
-    pixels (mrcal's board layout, first corner at the board's negative ``a``/``b``), mrcal model."""
+def render_case(case: Case, cache: Path, *, realizations: int) -> tuple[list[list[Path]], np.ndarray, object]:
+    """Render the case's boards once and write ``realizations`` noisy 8-bit copies of each.
+
+    Returns ``(paths, true_corners, true_model)``: ``paths[j][k]`` is board ``k`` with noise
+    realization ``j`` (PNG), ``true_corners`` ``(N, rows, cols, 2)`` the true corner pixels (mrcal's
+    board layout, first corner at the board's negative ``a``/``b``), and the true mrcal model.
+    """
+    import cv2
+
     from rig.fakecam import board_corners_world, calibration_poses, chessboard_scene
 
     camera = make_camera(case)
-    folder = cache / f"{case.name}-{case.key()}" if cache is not None else None
-    truth_file = folder / "corners.npy" if folder is not None else None
-    if truth_file is not None and truth_file.exists():
-        import cv2
-
-        images = [cv2.imread(str(folder / f"board{k:02d}.png"), cv2.IMREAD_UNCHANGED) for k in range(case.frames)]
-        if all(img is not None for img in images):
-            return images, np.load(truth_file), camera.model
+    folder = cache / f"{case.name}-{case.key()}"
+    paths = [[folder / f"r{j}" / f"board{k:02d}.png" for k in range(case.frames)] for j in range(realizations)]
+    truth_file = folder / "corners.npy"
+    if truth_file.exists() and all(p.exists() for row in paths for p in row):
+        return paths, np.load(truth_file), camera.model
     poses = calibration_poses(camera, count=case.frames, inner=case.inner, square_mm=case.square_mm,
                               distance_mm=case.distance_mm, tilt_deg=case.tilt_deg, seed=case.seed)
-    images, corners = [], []
+    corners = []
     for k, (centre, rot) in enumerate(poses):
         scene = chessboard_scene(inner=case.inner, square_mm=case.square_mm, centre_mm=centre, rotation_deg=rot)
         frame_camera = camera.with_scene(scene)
-        frame_camera.seed = case.seed * 1000 + k  # fresh noise per frame (all frames share one stage position)
-        images.append(frame_camera.frame(camera.rig.ref_mm))
+        clean = frame_camera.render(camera.rig.ref_mm)
+        # FakeCamera.frame adds the seeded noise and quantises; render once, then take fresh noise
+        # per realization and frame (every frame is at the same stage position, so the seed varies).
+        frame_camera.render = lambda *args, clean=clean, **kwargs: clean
+        for j in range(realizations):
+            frame_camera.seed = (case.seed * 1000 + j) * 1000 + k
+            paths[j][k].parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(paths[j][k]), frame_camera.frame(camera.rig.ref_mm))
         corners.append(camera.project(board_corners_world(scene), camera.rig.ref_mm))
     corners = np.stack(corners)
-    if folder is not None:
-        import cv2
-
-        folder.mkdir(parents=True, exist_ok=True)
-        for k, img in enumerate(images):
-            cv2.imwrite(str(folder / f"board{k:02d}.png"), img)
-        np.save(truth_file, corners)
-    return images, corners, camera.model
-
-
-def image_paths(case: Case, images: list[np.ndarray], cache: Path | None, tmp: Path) -> list[Path]:
-    folder = cache / f"{case.name}-{case.key()}" if cache is not None else tmp
-    paths = []
-    for k, img in enumerate(images):
-        path = folder / f"board{k:02d}.png"
-        if not path.exists():
-            import cv2
-
-            cv2.imwrite(str(path), img)
-        paths.append(path)
-    return paths
+    np.save(truth_file, corners)
+    return paths, corners, camera.model
 
 
 # ----------------------------------------------------------------------------------------------
@@ -226,26 +218,23 @@ def corner_error(found: list[np.ndarray | None], truth: np.ndarray) -> dict[str,
     return {"rms_px": float(np.sqrt(np.mean(e**2))), "max_px": float(e.max())}
 
 
-def run_case(case: Case, *, cache: Path | None, ablate: bool) -> dict:
-    import tempfile
+def run_once(case: Case, paths: list[Path], truth_corners: np.ndarray, truth, *, ablate: bool) -> dict:
+    """Both pipelines on one noise realization of the case's boards."""
+    import cv2
 
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, detect_corners
 
-    t0 = time.perf_counter()
-    images, truth_corners, truth = render_case(case, cache)
-    t_render = time.perf_counter() - t0
     board = Board(case.inner[0], case.inner[1], case.square_mm)
     D = case.working_distance_mm
-    out: dict = {"case": case.name, "description": case.description, "render_s": t_render}
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = image_paths(case, images, cache, Path(tmp))
-        t0 = time.perf_counter()
-        result = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=D)
-        out["lfrig"] = score(result.model, truth, distance_mm=D) | {
-            "used": len(result.used), "seconds": time.perf_counter() - t0,
-            "uncertainty_median_px": result.uncertainty_px["median"], "rms_px": result.rms_px,
-            "outliers": int(len(result.outliers))}
+    out: dict = {}
     t0 = time.perf_counter()
+    result = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=D)
+    out["lfrig"] = score(result.model, truth, distance_mm=D) | {
+        "used": len(result.used), "seconds": time.perf_counter() - t0,
+        "uncertainty_median_px": result.uncertainty_px["median"], "rms_px": result.rms_px,
+        "outliers": int(len(result.outliers))}
+    t0 = time.perf_counter()
+    images = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in paths]
     cv_found = [opencv_corners(img, case.inner) for img in images]
     cv_ok = [c for c in cv_found if c is not None]
     cv_model, cv_rms = opencv_solve(cv_ok, inner=case.inner, square_mm=case.square_mm, image_size=case.image_size)
@@ -257,20 +246,33 @@ def run_case(case: Case, *, cache: Path | None, ablate: bool) -> dict:
             c = detect_corners(img, board)
             lf_found.append(None if c is None else c[..., :2])
         lf_ok = [c for c in lf_found if c is not None]
-        ab: dict = {
+        sq = dict(inner=case.inner, square_mm=case.square_mm, image_size=case.image_size)
+        out["ablation"] = {
             "corners_lfrig": corner_error(lf_found, truth_corners) | {"found": len(lf_ok)},
             "corners_opencv": corner_error(cv_found, truth_corners) | {"found": len(cv_ok)},
+            "mrcal_on_opencv_corners": score(lfrig_solve(cv_ok, case=case), truth, distance_mm=D),
+            "opencv_on_lfrig_corners": score(opencv_solve(lf_ok, **sq)[0], truth, distance_mm=D),
+            "mrcal_on_true_corners": score(lfrig_solve(list(truth_corners), case=case), truth, distance_mm=D),
+            "opencv_on_true_corners": score(opencv_solve(list(truth_corners), **sq)[0], truth, distance_mm=D),
         }
-        true_list = [match_truth(c, t) for c, t in zip(lf_found, truth_corners) if c is not None]
-        ab["mrcal_on_opencv_corners"] = score(lfrig_solve(cv_ok, case=case), truth, distance_mm=D)
-        ab["opencv_on_lfrig_corners"] = score(opencv_solve(lf_ok, inner=case.inner, square_mm=case.square_mm,
-                                                           image_size=case.image_size)[0], truth, distance_mm=D)
-        ab["mrcal_on_true_corners"] = score(lfrig_solve(list(truth_corners), case=case), truth, distance_mm=D)
-        ab["opencv_on_true_corners"] = score(opencv_solve(list(truth_corners), inner=case.inner, square_mm=case.square_mm,
-                                                          image_size=case.image_size)[0], truth, distance_mm=D)
-        del true_list
-        out["ablation"] = ab
     return out
+
+
+def run_case(case: Case, *, cache: Path, realizations: int, ablate: bool) -> dict:
+    """Every realization of a case, and the medians over them."""
+    t0 = time.perf_counter()
+    paths, truth_corners, truth = render_case(case, cache, realizations=realizations)
+    runs = [run_once(case, row, truth_corners, truth, ablate=ablate) for row in paths]
+    summary = {}
+    for who in ("lfrig", "opencv"):
+        summary[who] = {key: float(np.median([r[who][key] for r in runs])) for key in runs[0][who] if key != "used"}
+        summary[who]["used_min"] = int(min(r[who]["used"] for r in runs))
+        summary[who]["worst_max_px"] = float(max(r[who]["max_px"] for r in runs))
+    if ablate:
+        summary["ablation"] = {k: {kk: float(np.median([r["ablation"][k][kk] for r in runs])) for kk in v}
+                               for k, v in runs[0]["ablation"].items()}
+    return {"case": case.name, "description": case.description, "case_parameters": asdict(case),
+            "seconds": time.perf_counter() - t0, "summary": summary, "runs": runs}
 
 
 def machine() -> str:
@@ -284,26 +286,28 @@ def machine() -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--realizations", type=int, default=5, help="noise realizations per case (default 5)")
     parser.add_argument("--ablate", action="store_true", help="also cross detectors and solvers")
     parser.add_argument("--cache", default=str(ROOT / ".cache" / "bench-calibration"),
-                        help="folder for the rendered images ('' for none)")
+                        help="folder for the rendered images")
     parser.add_argument("--json", help="write every figure to this file")
     args = parser.parse_args(argv)
-    cache = Path(args.cache) if args.cache else None
     rows = []
-    print(f"# {machine()}")
-    print("| case | lfrig median / max px | OpenCV median / max px | boards used lfrig / OpenCV | lfrig uncertainty median px |")
+    print(f"# {machine()}; medians over {args.realizations} noise realizations (worst max in brackets)")
+    print("| case | lfrig median / max px | OpenCV median / max px | boards used lfrig / OpenCV "
+          "| lfrig uncertainty median px |")
     print("|---|---|---|---|---|")
     for name in args.cases:
-        r = run_case(CASES[name], cache=cache, ablate=args.ablate)
+        case = CASES[name]
+        r = run_case(case, cache=Path(args.cache), realizations=args.realizations, ablate=args.ablate)
         rows.append(r)
-        lf, cv = r["lfrig"], r["opencv"]
-        print(f"| {name} | {lf['median_px']:.3f} / {lf['max_px']:.3f} | {cv['median_px']:.3f} / {cv['max_px']:.3f} | "
-              f"{lf['used']} / {cv['used']} of {CASES[name].frames} | {lf['uncertainty_median_px']:.3f} |", flush=True)
+        lf, cv = r["summary"]["lfrig"], r["summary"]["opencv"]
+        print(f"| {name} | {lf['median_px']:.3f} / {lf['max_px']:.3f} ({lf['worst_max_px']:.3f}) | "
+              f"{cv['median_px']:.3f} / {cv['max_px']:.3f} ({cv['worst_max_px']:.3f}) | "
+              f"{lf['used_min']} / {cv['used_min']} of {case.frames} | {lf['uncertainty_median_px']:.3f} |", flush=True)
         if args.ablate:
-            for k, v in r["ablation"].items():
-                print(f"|   {k} | " + ", ".join(f"{kk} {vv:.4f}" if isinstance(vv, float) else f"{kk} {vv}"
-                                             for kk, vv in v.items()) + " |||||", flush=True)
+            for k, v in r["summary"]["ablation"].items():
+                print(f"|   {k} | " + ", ".join(f"{kk} {vv:.4f}" for kk, vv in v.items()) + " ||||", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": machine(), "cases": rows}, indent=1))
     return 0

@@ -2,15 +2,18 @@
 
 Pipeline (``calibrate_intrinsics_from_images``):
 
-1. **Corners** (:func:`detect_corners`): ``cv2.findChessboardCornersSB`` for a chessboard, or the
-   ChArUco detector of opencv-contrib (partial views allowed). Corners come back in mrcal's board
+1. **Corners** (:func:`detect_corners`): ``cv2.findChessboardCornersSB`` for a chessboard (and
+   ``cv2.findChessboardCorners`` where it fails), or the ChArUco detector of opencv-contrib (partial
+   views allowed), then Förstner refinement (:func:`refine_corners`). Corners come back in mrcal's board
    layout, ``(rows, cols, 3)`` = ``(x, y, weight)`` with ``weight = -1`` for a corner not seen, the
    first corner the one nearer the image's top-left (the 180 deg ambiguity of a chessboard is
    resolved the same way in every image). Images without a board are listed and skipped.
 2. **Solve** (:func:`calibrate_intrinsics`), in stages as mrcal's own tool does: a focal-length
    estimate from the boards' homographies (``cv2.initCameraMatrix2D``), mrcal's stereographic seed,
    a geometry-only solve, then the stereographic core, then the requested lens model (OPENCV8 by
-   default) with all intrinsics, mrcal's outlier rejection and regularisation.
+   default) with all intrinsics, mrcal's outlier rejection and regularisation; then again with every
+   corner weighted by ``1 / sigma``, ``sigma`` the corners' noise measured by that solve (mrcal sizes
+   its regularisation for residuals of about one weighted unit, see ``docs/calibration.md``).
 3. **Report** (:class:`IntrinsicsResult`): RMS and worst reprojection error, the outliers, the
    projection uncertainty (``mrcal.projection_uncertainty``) at the working distance across the
    imager, and a residual picture (:func:`write_residual_picture`).
@@ -324,7 +327,9 @@ class IntrinsicsResult:
     residuals_px
         ``(N, rows, cols, 2)`` reprojection residuals (observed minus predicted is mrcal's sign).
     observations
-        ``(N, rows, cols, 3)`` the corners as solved (weight < 0: outlier or not seen).
+        ``(N, rows, cols, 3)`` the corners as solved: weight ``1 / sigma`` with ``sigma`` the corners'
+        measured noise in pixels (at most 1 / :data:`MIN_CORNER_SIGMA_PX`, at least 1), or < 0 for an
+        outlier or a corner not seen.
     uncertainty_px
         Worst-direction projection standard deviation at ``working_distance_mm``:
         ``{"centre": ..., "median": ..., "max": ...}`` over a grid on the imager.
