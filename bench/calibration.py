@@ -92,6 +92,8 @@ CASES = {
                      description="f 4000 px, pincushion with all 8 rational terms, 10 mm squares at 0.55-0.8 m"),
     "small": Case("small", inner=(11, 8), distance_mm=(1500.0, 2400.0), tilt_deg=35.0, seed=6,
                   description="the issue's lens, 11x8 inner corners of 10 mm at 1.5-2.4 m (squares of 29-47 px)"),
+    "tiny": Case("tiny", square_mm=3.0, distance_mm=(750.0, 1000.0), seed=9,
+                 description="the issue's lens, 3 mm squares at 0.75-1 m (squares of 21-28 px)"),
     "steep": Case("steep", tilt_deg=55.0, seed=7, description="the issue's setup with boards tilted up to 55 deg"),
     "dim": Case("dim", exposure=0.3, seed=8, description="the issue's setup at 30 % exposure (board 2-28 % grey)"),
     "sharp": Case("sharp", blur_px=0.3, noise_grey=1.0, seed=5,
