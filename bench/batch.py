@@ -35,9 +35,9 @@ sys.path.insert(0, str(ROOT))
 def render_captures(root: Path, *, count: int, size: int, grid: int) -> list[Path]:
     import numpy as np
 
-    from recon.lightfield import LightField
+    from recon.lf.lightfield import LightField
     from recon.synthetic import occluding_square_scene
-    from rig.layout import write_lightfield
+    from recon.lf.capture import write_lightfield
 
     paths = []
     for i in range(count):
@@ -53,7 +53,7 @@ def render_captures(root: Path, *, count: int, size: int, grid: int) -> list[Pat
 def warm_up(capture: Path, method: str) -> None:
     """Run the method once here so numba's on-disk cache holds every kernel: the workers then load
     them instead of compiling inside the first timed task (which would favour whichever run is second)."""
-    from recon.io import read_lightfield
+    from recon.lf import read_lightfield
     from recon.methods import run_method
 
     run_method(method, read_lightfield(capture))

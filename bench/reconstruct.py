@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, resource, sys, time
-from recon.io import read_lightfield, read_ground_truth
+from recon.lf import read_lightfield, read_ground_truth
 from recon.evaluate import score
 from recon.methods import run_method
 method, scene = sys.argv[1], sys.argv[2]

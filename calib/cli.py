@@ -93,37 +93,18 @@ def _board(args: argparse.Namespace):
     return parse_board(args.board, square_mm=args.square_mm, charuco=args.charuco, marker_mm=args.marker_mm)
 
 
-def _progress(label: str, quiet: bool):
-    from recon.progress import Progress
-
-    state: dict = {}
-
-    def update(done: int, total: int, *_: object) -> None:
-        if "bar" not in state:
-            state["bar"] = Progress(label, total, quiet=quiet)
-        state["bar"].update(done)
-
-    def close() -> None:
-        if "bar" in state:
-            state["bar"].close()
-
-    return update, close
-
-
 def _intrinsics(args: argparse.Namespace) -> int:
     from calib.errors import CalibError
     from calib.intrinsics import calibrate_intrinsics_from_images, write_residual_picture
+    from recon.progress import Progress
 
     board = _board(args)
     if not args.output.parent.is_dir():
         raise CalibError(f"{args.output.parent}: no such folder for the camera model")
-    update, close = _progress("finding corners", args.quiet)
-    try:
+    with Progress("finding corners", quiet=args.quiet) as bar:
         result = calibrate_intrinsics_from_images(args.images, board=board, lensmodel=args.lensmodel,
                                                   focal_estimate_px=args.focal_px,
-                                                  working_distance_mm=args.working_distance_mm, progress=update)
-    finally:
-        close()
+                                                  working_distance_mm=args.working_distance_mm, progress=bar)
     note = "lfrig calibrate intrinsics\n" + result.report()
     result.model.write(str(args.output), note=note)
     picture = args.residuals or args.output.with_suffix(".residuals.png")
@@ -135,14 +116,12 @@ def _intrinsics(args: argparse.Namespace) -> int:
 
 def _stage(args: argparse.Namespace) -> int:
     from calib.stage import calibrate_stage_from_capture, load_model
+    from recon.progress import Progress
 
     model = load_model(args.model)
     board = _board(args)
-    update, close = _progress("finding corners", args.quiet)
-    try:
-        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=update)
-    finally:
-        close()
+    with Progress("finding corners", quiet=args.quiet) as bar:
+        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar)
     stage.save(args.output)
     print(stage.report())
     print(f"wrote {args.output}")

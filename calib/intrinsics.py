@@ -570,7 +570,7 @@ def projection_difference(model_a: Any, model_b: Any, *, distance_mm: float, gri
 
 def _read_image(path: Path) -> np.ndarray:
     from recon.errors import LightFieldFormatError
-    from recon.imageio import read_image
+    from recon.lf.imageio import read_image
 
     try:
         return read_image(Path(path))
@@ -584,8 +584,8 @@ def calibrate_intrinsics_from_images(paths: Sequence[str | os.PathLike], *, boar
                                      progress: Any = None) -> IntrinsicsResult:
     """Detect the board in every image and calibrate from those where it was found.
 
-    Images must all have the same size. ``progress``, if given, is called as ``progress(i, n, name)``
-    after each image.
+    Images must all have the same size. ``progress``, if given, is called as
+    ``progress(fraction, file_name)`` (:mod:`recon.progress`) after each image.
 
     Raises
     ------
@@ -613,7 +613,7 @@ def calibrate_intrinsics_from_images(paths: Sequence[str | os.PathLike], *, boar
             observations.append(corners)
             used.append(str(path))
         if progress is not None:
-            progress(i + 1, len(paths), path.name)
+            progress((i + 1) / len(paths), path.name)
     if len(observations) < MIN_IMAGES:
         listed = ", ".join(Path(s).name for s in skipped[:8]) + (" ..." if len(skipped) > 8 else "")
         raise CalibError(

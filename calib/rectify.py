@@ -13,8 +13,10 @@ pinhole camera whose frame is aligned with the stage motion:
   the in-plane rotation, tilt, skew and pitch errors of the stage.
 
 ``focal_px`` defaults to the camera's ``sqrt(fx * fy)`` (so resolution is kept) and the principal
-point to the image centre; the output has the input's size. The rectified light field records
-``focal_px`` and ``pitch_mm``, so depth is ``focal_px * pitch_mm / disparity`` with no other input.
+point to the image centre. The output is then cropped to the largest rectangle whose pixels all come
+from inside the camera image (``crop=False`` keeps the input's size), and the principal point moves
+with the crop. The rectified light field records ``focal_px``, ``pitch_mm`` and the principal point,
+so depth is ``focal_px * pitch_mm / disparity`` with no other input (:class:`recon.camera.Camera`).
 
 The pixel maps come from mrcal: a rectified pixel's ray ``R_rect_cam^T K_rect^-1 (x, y, 1)`` is
 projected with the distorted model (``mrcal.project``) and the view is sampled there (cubic
@@ -266,9 +268,9 @@ def pure_translation_fit(tracks: np.ndarray) -> tuple[float, np.ndarray, np.ndar
 
 
 def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
-    """A rectified copy of a :class:`recon.lightfield.LightField` whose ``focal_px`` and ``pitch_mm``
+    """A rectified copy of a :class:`recon.lf.lightfield.LightField` whose ``focal_px`` and ``pitch_mm``
     are the rectification's (``metadata["rectification"]`` records the rest)."""
-    from recon.lightfield import LightField
+    from recon.lf.lightfield import LightField
 
     views = rectify_views(lf.views, rect)
     metadata = {"rectification": rect.metadata(), "source": str(lf.source) if lf.source else None}
@@ -287,8 +289,8 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
     CalibError
         When the model and the views differ in size or the capture has no pitch.
     """
-    from recon.io import read_lightfield
-    from rig.layout import write_lightfield
+    from recon.lf import read_lightfield
+    from recon.lf.capture import write_lightfield
 
     model = load_model(model_path)
     stage = StageCalibration.load(stage_path)

@@ -311,7 +311,7 @@ def calibrate_stage(corners: np.ndarray, *, model: Any, board: Board, pitch_mm: 
 
 def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None) -> np.ndarray:
     """Board corners ``(U, V, rows, cols, 3)`` of every view of a light field ``(U, V, H, W[, 3])``
-    (weight -1 everywhere in a view without a board). ``progress(i, n)`` is called per view."""
+    (weight -1 everywhere in a view without a board). ``progress(fraction, view)`` is called per view (:mod:`recon.progress`)."""
     U, V = views.shape[:2]
     out = np.zeros((U, V, board.rows, board.cols, 3))
     out[..., 2] = -1.0
@@ -321,13 +321,13 @@ def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None
             if c is not None:
                 out[u, v] = c
             if progress is not None:
-                progress(u * V + v + 1, U * V)
+                progress((u * V + v + 1) / (U * V), f"u{u:02d} v{v:02d}")
     return out
 
 
 def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: Board,
                                  progress: Any = None) -> tuple[StageCalibration, np.ndarray]:
-    """Read a capture of a board (``rig.layout`` / benchmark layout), find the corners in every view
+    """Read a capture of a board (``recon.lf.capture`` / benchmark layout), find the corners in every view
     and fit. Returns the calibration and the corners ``(U, V, rows, cols, 3)``.
 
     Raises
@@ -335,7 +335,7 @@ def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: 
     CalibError
         When the views and the model differ in size, the capture has no pitch, or the fit fails.
     """
-    from recon.io import read_lightfield
+    from recon.lf import read_lightfield
 
     lf = read_lightfield(path)
     h, w = lf.image_shape

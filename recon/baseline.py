@@ -6,13 +6,14 @@ takes part, the disparity search is dense, and the cost volume is built by a com
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from recon.progress import ProgressCallback, report
 from recon.costvolume import box_mean, pixel_cost, view_offsets
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)
@@ -59,13 +60,28 @@ def parabolic_refine(volume: np.ndarray, candidates: np.ndarray) -> tuple[np.nda
     return disparity.astype(np.float32), volume[best, rows, cols].astype(np.float32)
 
 
+def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple[float, float] | None = None,
+                  **unknown: object) -> None:
+    """Raise ``ValueError`` naming an option value :func:`estimate_baseline` cannot use."""
+    if unknown:
+        raise ValueError(f"unknown baseline option(s) {sorted(unknown)}; valid names: disparity_range, step, window")
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be an odd number of pixels >= 1; got {window}")
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step must be a positive number of pixels per view step; got {step}")
+    if disparity_range is not None:
+        low, high = disparity_range
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"disparity_range must be finite (min, max) with min < max; got {tuple(disparity_range)}")
+
+
 def estimate_baseline(
     lf: LightField,
     *,
     window: int = 7,
     step: float = 0.02,
     disparity_range: tuple[float, float] | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> BaselineResult:
     """Fixed-window SAD disparity of the centre view.
 
@@ -80,14 +96,13 @@ def estimate_baseline(
     disparity_range
         ``(min, max)`` to search; defaults to ``lf.disparity_range``, else :data:`DEFAULT_DISPARITY_RANGE`.
     progress
-        Called as ``progress(done, total)`` after each candidate.
+        ``progress(fraction, message)`` after each candidate (:mod:`recon.progress`).
 
     Returns
     -------
     BaselineResult with ``disparity`` ``(H, W)`` in the benchmark's sign convention.
     """
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be an odd number of pixels >= 1; got {window}")
+    check_options(window=window, step=step, disparity_range=disparity_range)
     disparity_range = disparity_range or lf.disparity_range or DEFAULT_DISPARITY_RANGE
     candidates = disparity_candidates(disparity_range, step)
     gray = lf.gray()
@@ -96,7 +111,6 @@ def estimate_baseline(
     volume = np.empty((len(candidates),) + lf.image_shape, dtype=np.float32)
     for i, d in enumerate(candidates):
         volume[i] = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
-        if progress:
-            progress(i + 1, len(candidates))
+        report(progress, (i + 1) / len(candidates), "disparity candidates")
     disparity, cost = parabolic_refine(volume, candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)

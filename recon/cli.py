@@ -1,54 +1,426 @@
-"""The ``lfrig`` command: parse, call the library, write files.
+"""recon's commands: ``lfrig info``, ``reconstruct``, ``evaluate``, ``export`` and ``batch reconstruct``.
 
-Each package contributes its subcommands through a ``register(subparsers)`` function in its CLI
-module, listed in :data:`COMMAND_MODULES`. A handler receives the parsed arguments and returns an
-exit code (``None`` means 0). Errors a user can cause are :class:`recon.errors.LfrigError`; they are
-printed as one line, without a traceback, and the command exits with status 2.
+Parse, call the library, write files. Heavy modules (numba kernels, open3d, Dask) are imported inside
+the handlers so that ``lfrig --help`` stays fast. :func:`register` adds the subcommands.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
+import json
 import sys
+from pathlib import Path
+from typing import Any
 
-from recon.errors import LfrigError
-
-#: Modules whose ``register(subparsers)`` adds subcommands, in the order ``--help`` lists them.
-COMMAND_MODULES = [
-    "recon.demo",
-    "recon.commands",
-    "recon.export_cli",
-    "rig.cli",
-    "recon.scale_cli",
-    "calib.cli",
-]
+from recon.methods import DEFAULT_METHOD, METHODS
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="lfrig",
-        description="Light-field capture on a translation stage, calibration, and disparity/depth reconstruction.",
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add recon's subcommands to the ``lfrig`` parser."""
+    _register_reconstruct(subparsers)
+    _register_export(subparsers)
+    _register_batch(subparsers)
+
+
+def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
+    info = subparsers.add_parser(
+        "info",
+        help="describe a light field (folder) or a disparity map (.pfm)",
+        description="Print what a light-field folder (benchmark or capture layout) or a PFM file holds.",
     )
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(subparsers)
-    return parser
+    info.add_argument("path", type=Path, help="light-field folder or .pfm file")
+    info.add_argument("--json", action="store_true", help="print the description as JSON")
+    info.set_defaults(handler=_info)
+
+    rec = subparsers.add_parser(
+        "reconstruct",
+        help="estimate the centre view's disparity",
+        description=(
+            "Estimate the disparity of the centre view (pixels per view step, the benchmark's sign) and write "
+            "OUT_DIR/disparity.pfm, a colour-mapped disparity.png, centre_view.png, the method's own maps "
+            "(entropy: regions.png, window size and shape, initial/matched/refined disparity) and result.json. "
+            "When the light field has ground truth (gt_disp_lowres.pfm), the scores are printed and recorded too."
+        ),
+    )
+    rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")
+    rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
+    add_method_arguments(rec)
+    rec.add_argument("--ply", type=Path, metavar="OUT.ply",
+                     help="also export a PLY mesh (or point cloud with --points) of the metric depth")
+    rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
+    rec.add_argument("--quiet", action="store_true", help="no progress output")
+    rec.set_defaults(handler=_reconstruct)
+
+    ev = subparsers.add_parser(
+        "evaluate",
+        help="score a disparity map against ground truth",
+        description=(
+            "Score ESTIMATE.pfm against GT.pfm as the 4D Light Field Benchmark does: a border of 15 pixels is "
+            "left out; MSE x100 and BadPix 0.07 / 0.03 / 0.01 in percent."
+        ),
+    )
+    ev.add_argument("estimate", type=Path, metavar="ESTIMATE.pfm")
+    ev.add_argument("gt", type=Path, metavar="GT.pfm")
+    ev.add_argument("--border", type=int, default=15, help="pixels left out on every side (default 15)")
+    ev.add_argument("--json", action="store_true", help="print the scores as JSON")
+    ev.set_defaults(handler=_evaluate)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+#: Entropy options that have a shared flag above, or are not useful from the command line.
+_SHARED_OPTIONS = {"disparity_range", "step"}
+
+
+def add_method_arguments(parser: argparse.ArgumentParser) -> None:
+    """The method flags shared by ``lfrig reconstruct`` and ``lfrig batch reconstruct``: ``--method``,
+    ``--disparity-range``, ``--step``, the baseline's ``--window`` and one flag per entropy option.
+    :func:`method_options` turns the parsed flags into the chosen method's options."""
+    parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
+                        help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
+    parser.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
+                        help="disparities to search, pixels per view step (default: the light field's; else "
+                             "entropy finds it from its initial estimate and baseline searches -4 4)")
+    parser.add_argument("--step", type=float, default=None,
+                        help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
+    base = parser.add_argument_group("baseline method")
+    base.add_argument("--window", type=int, default=None, help="square window side in pixels (default 7)")
+    _add_entropy_options(parser.add_argument_group(
+        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
+
+
+def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
+    """One flag per field of :class:`recon.entropy.EntropyOptions`, from its type, default and help.
+
+    Flags default to ``None``, so only what the user sets overrides the estimator's own defaults.
+    """
+    import dataclasses
+
+    from recon.entropy.estimate import DEFAULTS, EntropyOptions
+
+    for f in dataclasses.fields(EntropyOptions):
+        if f.name in _SHARED_OPTIONS:
+            continue
+        default = getattr(DEFAULTS, f.name)
+        flag = "--" + f.name.replace("_", "-")
+        text = f"{f.metadata.get('help', '')} (default {default})".replace("%", "%%")
+        if isinstance(default, bool):
+            group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
+        elif isinstance(default, tuple):
+            kind = type(default[0]) if default else float
+            group.add_argument(flag, type=kind, nargs="+", default=None, metavar="N", help=text)
+        else:
+            group.add_argument(flag, type=type(default), default=None, help=text)
+
+
+def method_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options the user set for the chosen method (others keep the method's defaults)."""
+    import dataclasses
+
+    from recon.errors import ReconError
+
+    chosen: dict[str, Any] = {}
+    if args.disparity_range is not None:
+        if not args.disparity_range[0] < args.disparity_range[1]:
+            raise ReconError(f"--disparity-range {args.disparity_range[0]} {args.disparity_range[1]}: "
+                             "MIN must be less than MAX")
+        chosen["disparity_range"] = tuple(args.disparity_range)
+    if args.step is not None:
+        if not args.step > 0:
+            raise ReconError(f"--step {args.step}: give a positive spacing, e.g. 0.02")
+        chosen["step"] = args.step
+    if args.method == "baseline":
+        if args.window is not None:
+            chosen["window"] = args.window
+        return chosen
+    from recon.entropy.estimate import EntropyOptions
+
+    for f in dataclasses.fields(EntropyOptions):
+        value = getattr(args, f.name, None)
+        if f.name not in _SHARED_OPTIONS and value is not None:
+            chosen[f.name] = tuple(value) if isinstance(value, list) else value
+    if args.window is not None:
+        raise ReconError("--window belongs to the baseline method; the entropy method chooses its windows "
+                         "(see --window-sizes)")
+    return chosen
+
+
+def describe(path: Path) -> dict[str, Any]:
+    """What ``lfrig info`` prints, as a dict."""
+    import numpy as np
+
+    from recon.errors import LightFieldFormatError
+    from recon.lf import read_lightfield
+    from recon.lf.pfm import read_pfm
+
+    if path.is_file():
+        if path.suffix.lower() != ".pfm":
+            raise LightFieldFormatError(f"{path}: lfrig info reads light-field folders and .pfm files")
+        data = read_pfm(path)
+        finite = data[np.isfinite(data)]
+        return {
+            "path": str(path), "kind": "pfm", "width": data.shape[1], "height": data.shape[0],
+            "channels": 1 if data.ndim == 2 else data.shape[2],
+            "finite_pixels": int(finite.size),
+            "min": float(finite.min()) if finite.size else None,
+            "max": float(finite.max()) if finite.size else None,
+        }
+    lf = read_lightfield(path)
+    rows, cols = lf.grid_shape
+    height, width = lf.image_shape
+    out: dict[str, Any] = {
+        "path": str(path), "kind": "lightfield", "layout": lf.metadata.get("layout"),
+        "grid": [rows, cols], "image": [width, height],
+        "colour": "RGB" if lf.is_colour else "grey", "bits": lf.views.dtype.itemsize * 8,
+        "pitch_mm": lf.pitch_mm, "focal_px": lf.focal_px,
+        "disparity_range": list(lf.disparity_range) if lf.disparity_range else None,
+        "disparity_offset": lf.disparity_offset,
+        "ground_truth": lf.metadata.get("ground_truth"),
+    }
+    header = lf.metadata.get("header")
+    if header:
+        out["created"] = header.get("created")
+        out["camera"] = header.get("camera")
+    return out
+
+
+def _info(args: argparse.Namespace) -> None:
+    info = describe(args.path)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return
+    if info["kind"] == "pfm":
+        print(f"{info['path']}: PFM, {info['width']}x{info['height']}, {info['channels']} channel(s)")
+        print(f"  finite pixels: {info['finite_pixels']}, range: {info['min']} .. {info['max']}")
+        return
+    print(f"{info['path']}: light field ({info['layout']} layout)")
+    print(f"  grid:        {info['grid'][0]} x {info['grid'][1]} views (rows x columns)")
+    print(f"  views:       {info['image'][0]} x {info['image'][1]} px, {info['colour']}, {info['bits']}-bit")
+    print(f"  pitch:       {_or_unknown(info['pitch_mm'], '{:.4g} mm')}")
+    print(f"  focal:       {_or_unknown(info['focal_px'], '{:.6g} px')}")
+    rng = info["disparity_range"]
+    print(f"  disparity:   {'unknown' if rng is None else f'{rng[0]:g} .. {rng[1]:g} px per view step'}"
+          f" (offset d0 = {info['disparity_offset']:.4g})")
+    print(f"  ground truth: {info['ground_truth'] or 'none'}")
+    if info.get("created"):
+        print(f"  captured:    {info['created']}")
+
+
+def _or_unknown(value: float | None, fmt: str) -> str:
+    return "unknown" if value is None else fmt.format(value)
+
+
+def _reconstruct(args: argparse.Namespace) -> None:
+    from recon.pipeline import reconstruct_to_folder
+    from recon.progress import Progress
+    from recon.result import DISPARITY_PFM, DISPARITY_PNG
+
+    options = method_options(args)
+    with Progress(args.method, quiet=args.quiet) as bar:
+        folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
+                                       ply_kind="points" if args.points else "mesh", progress=bar)
+    print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
+    if folder.record.scores is not None:
+        print(_format_scores(folder.record.scores))
+    if folder.export is not None:
+        print(f"wrote {folder.export}")
+
+
+def _format_scores(scores: dict[str, float]) -> str:
+    return (f"MSE x100 {scores['mse_x100']:.3f}   BadPix 0.07 {scores['badpix_0.07']:.2f} %   "
+            f"0.03 {scores['badpix_0.03']:.2f} %   0.01 {scores['badpix_0.01']:.2f} %   ({scores['pixels']} px)")
+
+
+def _evaluate(args: argparse.Namespace) -> None:
+    from recon.evaluate import score
+    from recon.lf.pfm import read_pfm
+
+    estimate = read_pfm(args.estimate)
+    gt = read_pfm(args.gt)
+    if estimate.ndim != 2 or gt.ndim != 2:
+        from recon.errors import ReconError
+
+        bad = args.estimate if estimate.ndim != 2 else args.gt
+        raise ReconError(f"{bad}: a disparity map has one channel; this PFM has three")
+    scores = score(estimate, gt, border=args.border)
+    if args.json:
+        print(json.dumps(scores, indent=2))
+    else:
+        print(_format_scores(scores))
+
+
+# --------------------------------------------------------------------------------------------------
+# lfrig export
+
+
+def _register_export(subparsers: argparse._SubParsersAction) -> None:
+    export = subparsers.add_parser(
+        "export",
+        help="turn a reconstruction into metric depth and a PLY point cloud or mesh",
+        description=(
+            "Read RESULT_DIR (written by lfrig reconstruct: disparity.pfm and result.json with focal_px, "
+            "pitch_mm, disparity_offset, source), convert disparity to depth in mm "
+            "(Z = focal_px * pitch_mm / (d + disparity_offset)), and write what is asked for. Pixels without "
+            "a trustworthy disparity are left out; the mesh is cut where depth jumps. Coordinates are mm in "
+            "the centre camera's frame (x right, y down, z forward)."
+        ),
+    )
+    export.add_argument("result_dir", type=Path, metavar="RESULT_DIR", help="output folder of lfrig reconstruct")
+    export.add_argument("--ply", type=Path, metavar="OUT.ply", help="write a PLY point cloud or mesh here")
+    kind = export.add_mutually_exclusive_group()
+    kind.add_argument("--mesh", dest="kind", action="store_const", const="mesh",
+                      help="triangulate the depth grid, cut at depth jumps (the default)")
+    kind.add_argument("--points", dest="kind", action="store_const", const="points",
+                      help="a coloured point cloud with normals")
+    export.set_defaults(kind="mesh")
+    export.add_argument("--ascii", action="store_true", help="ASCII PLY instead of binary")
+    export.add_argument("--poisson", action="store_true",
+                        help="mesh by screened Poisson reconstruction of the point cloud instead of the grid")
+    export.add_argument("--max-jump", type=float, default=None, metavar="FRACTION",
+                        help="neighbours whose depths differ by more than this fraction are not joined "
+                             "(default 0.05)")
+    export.add_argument("--depth", type=Path, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
+                        help="also write the depth map in mm (16-bit PNG records its scale); may repeat")
+    export.add_argument("--report", type=Path, metavar="REPORT_DIR",
+                        help="also write an HTML report (index.html and PNG figures) into this folder")
+    camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
+    camera.add_argument("--focal-px", type=float, help="focal length of the rectified views in pixels")
+    camera.add_argument("--pitch-mm", type=float, help="grid pitch (distance between neighbouring views) in mm")
+    camera.add_argument("--disparity-offset", type=float, help="refocusing shift d0 in pixels per view step")
+    export.set_defaults(handler=_export)
+
+
+def _export(args: argparse.Namespace) -> None:
+    from recon.errors import ExportError
+
+    if args.ply is None and not args.depth and args.report is None:
+        raise ExportError("nothing to do: give --ply OUT.ply, --depth DEPTH.pfm and/or --report REPORT_DIR")
+    if args.poisson and args.kind == "points":
+        raise ExportError("--poisson makes a mesh; drop --points")
+    if args.max_jump is not None and not args.max_jump > 0:
+        raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
+
+    from recon.cloud import MAX_RELATIVE_JUMP
+    from recon.depth import write_depth
+    from recon.export import export_ply
+    from recon.result import read_result
+
+    result = read_result(args.result_dir)
+    overrides = {"focal_px": args.focal_px, "pitch_mm": args.pitch_mm, "disparity_offset": args.disparity_offset}
     try:
-        status = args.handler(args)
-    except LfrigError as error:
-        print(f"lfrig: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("lfrig: interrupted", file=sys.stderr)
-        return 130
-    return 0 if status is None else int(status)
+        camera = result.camera(**overrides)
+    except ExportError:
+        if args.ply or args.depth:
+            raise
+        camera = None  # a report without metric depth
+
+    if args.ply is not None:
+        summary = export_ply(
+            args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
+            kind=args.kind, poisson=args.poisson, ascii=args.ascii,
+            max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
+        )
+        print(f"wrote {summary}")
+    if args.depth:
+        depth = camera.depth_mm(result.disparity_px)
+        if result.mask is not None:
+            depth[~result.mask] = float("nan")
+        for path in args.depth:
+            try:
+                write_depth(path, depth)
+            except ValueError as error:  # a user's path, not a bug
+                raise ExportError(f"{path}: {error}") from None
+            print(f"wrote {path} (depth in mm)")
+    if args.report is not None:
+        from recon.report import report_for_result
+
+        page = report_for_result(result, args.report, camera=camera)
+        print(f"wrote {page}")
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+# --------------------------------------------------------------------------------------------------
+# lfrig batch
+
+
+def _register_batch(subparsers: argparse._SubParsersAction) -> None:
+    batch = subparsers.add_parser(
+        "batch",
+        help="run many reconstructions on a Dask cluster (local or by scheduler address)",
+        description="Run work on a Dask cluster: a local one sized to this machine, or --scheduler tcp://HOST:PORT.",
+    )
+    actions = batch.add_subparsers(dest="batch_command", metavar="ACTION", required=True)
+    rec = actions.add_parser(
+        "reconstruct",
+        help="reconstruct (and export) every capture, one task each",
+        description=(
+            "Reconstruct every CAPTURE_DIR into OUT_DIR/<its folder name>/ (the files of `lfrig reconstruct`, "
+            "a PLY and batch.json), one cluster task per capture. Captures whose results are complete are "
+            "skipped, so the same command resumes an interrupted batch. A failing capture is reported and "
+            "the others go on. Without --scheduler a local cluster starts and stops with the command. "
+            "See docs/scale-out.md."
+        ),
+    )
+    rec.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE_DIR",
+                     help="light-field folders (capture or benchmark layout)")
+    rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
+    rec.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                     help="address of a running `dask scheduler` (default: start a local cluster)")
+    rec.add_argument("--workers", type=int, metavar="N",
+                     help="local cluster: worker processes (default: one per core, at most one per capture "
+                          "unless tiling)")
+    rec.add_argument("--transfer", choices=("auto", "shared", "ship"), default="auto",
+                     help="shared: workers read CAPTURE_DIRs and write OUT_DIR at the same paths; ship: views "
+                          "are sent with each task and results sent back; auto: shared for a local cluster, "
+                          "ship with --scheduler (default auto)")
+    add_method_arguments(rec)  # the flags of `lfrig reconstruct`: the same flags give the same result folder
+    rec.add_argument("--export", choices=("mesh", "points", "none"), default="mesh",
+                     help="PLY written beside each result: mesh.ply, points.ply or none (default mesh)")
+    rec.add_argument("--tile", type=int, metavar="SIZE",
+                     help="split each centre view into SIZE x SIZE tiles run as separate tasks, then stitch")
+    rec.add_argument("--halo", type=int, metavar="PX", help="with --tile: halo in pixels (default: the method's)")
+    rec.add_argument("--force", action="store_true", help="redo captures whose results are complete")
+    rec.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
+                     help="local cluster: where the dashboard listens, a free port if this one is taken "
+                          "(default 127.0.0.1:8787)")
+    rec.set_defaults(handler=_batch_reconstruct)
+
+
+def _batch_reconstruct(args: argparse.Namespace) -> int:
+    from recon.scale import ScaleError
+    from recon.scale.batch import BatchRequest, format_summary, prepare_batch, run_batch
+    from recon.scale.cluster import connect
+
+    options = method_options(args)
+    if args.tile is not None and args.tile < 8:
+        raise ScaleError(f"--tile {args.tile}: tiles smaller than 8 pixels cost more in halo than they save")
+    if args.halo is not None and args.tile is None:
+        raise ScaleError("--halo needs --tile")
+    if args.tile is not None:
+        from recon.scale.tiles import tile_rule
+
+        tile_rule(args.method)  # fail now, not on every capture
+    request = BatchRequest(method=args.method, options=options,
+                           export=None if args.export == "none" else args.export, tile=args.tile, halo=args.halo)
+    plan = prepare_batch(args.captures, args.output, request=request, force=args.force)
+    transfer = args.transfer if args.transfer != "auto" else ("ship" if args.scheduler else "shared")
+
+    def show(outcome, done: int, total: int) -> None:
+        what = {"ok": "done", "skipped": "already complete", "failed": "FAILED"}[outcome.status]
+        took = f" in {outcome.seconds:.1f} s" if outcome.seconds is not None and outcome.status == "ok" else ""
+        error = f": {outcome.error}" if outcome.error else ""
+        print(f"[{done}/{total}] {outcome.name}: {what}{took}{error}", flush=True)
+
+    if not plan.todo:
+        outcomes = run_batch(None, plan, transfer=transfer, on_outcome=show)
+    else:
+        with connect(scheduler=args.scheduler, workers=args.workers, tasks=None if args.tile else len(plan.todo),
+                     dashboard_address=args.dashboard_address) as connection:
+            print(connection.describe() + f"; data: {transfer}", flush=True)
+            print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
+            outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
+                                 on_outcome=show)
+    print()
+    print(format_summary(outcomes))
+    failed = [o for o in outcomes if o.status == "failed"]
+    for o in failed:
+        if o.detail:
+            print(f"\n{o.name}: {o.detail}", file=sys.stderr)
+    return 1 if failed else 0

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon.lightfield import to_float
+from recon.lf.lightfield import to_float
 
 #: Default for ``max_relative_jump``: neighbours whose depths differ by more than 5 % of the nearer
 #: one are not joined. At 1 m with ``focal_px = 1000`` a surface must be seen within about 1.1 deg of

@@ -1,19 +1,7 @@
-"""Disparity to metric depth and back, and depth maps on disk.
+"""Depth scores, the benchmark's camera, and depth maps on disk.
 
-Frames and signs follow ``docs/conventions.md``. For a rectified light field whose views were taken
-``pitch_mm`` apart by a camera with focal length ``focal_px`` (pixels), a point at depth ``Z`` (mm,
-along the optical axis of the centre view, camera frame ``z``) has disparity::
-
-    d = focal_px * pitch_mm / Z - d0
-
-in pixels per view step, where ``d0`` (``disparity_offset``) is the shift applied when the views were
-refocused (0 for an unshifted capture). Hence::
-
-    Z = focal_px * pitch_mm / (d + d0)
-
-``d + d0`` is the *effective* disparity. Where it is not positive (``<= 0``) the point would lie at
-or behind infinity: no depth exists and the result is ``NaN``. ``NaN`` disparity gives ``NaN`` depth
-and vice versa, so masks survive the conversion.
+The conversion itself, ``Z = focal_px * pitch_mm / (d + d0)``, is :mod:`recon.camera`'s
+(:class:`recon.camera.Camera`, :func:`recon.camera.disparity_to_depth`).
 
 The 4D Light Field Benchmark (Honauer et al., ACCV 2016) records its camera in ``parameters.cfg``;
 its toolkit converts with::
@@ -23,7 +11,8 @@ its toolkit converts with::
 
 which is the formula above with ``focal_px = focal_length_mm * max(W, H) / sensor_size_mm``,
 ``pitch_mm = baseline_mm`` and ``d0 = focal_px * baseline_mm / (1000 * focus_distance_m)``
-(:func:`benchmark_camera`). Depth here is always in millimetres.
+(:func:`benchmark_camera`, :func:`recon.lf.params.benchmark_focal_px`,
+:func:`recon.lf.params.focus_disparity_px`). Depth here is always in millimetres.
 """
 
 from __future__ import annotations
@@ -36,96 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.camera import Camera
 from recon.errors import ReconError
+from recon.lf.params import benchmark_focal_px, focus_disparity_px, read_parameters
 
 
 class DepthFormatError(ReconError):
     """A depth map or camera-parameter file is missing, malformed, or cannot be written."""
-
-
-# --------------------------------------------------------------------------------------------------
-# the inverse pair
-# --------------------------------------------------------------------------------------------------
-
-
-def _check_camera(focal_px: float, pitch_mm: float, disparity_offset: float) -> None:
-    if not (np.isfinite(focal_px) and focal_px > 0):
-        raise ValueError(f"focal_px must be a positive number of pixels; got {focal_px!r}")
-    if not (np.isfinite(pitch_mm) and pitch_mm > 0):
-        raise ValueError(f"pitch_mm must be a positive distance in mm; got {pitch_mm!r}")
-    if not np.isfinite(disparity_offset):
-        raise ValueError(f"disparity_offset must be finite (pixels per view step); got {disparity_offset!r}")
-
-
-def _float_array(values, name: str) -> np.ndarray:
-    array = np.asarray(values)
-    if array.dtype.kind not in "fiu":
-        raise ValueError(f"{name} must be a numeric array; got dtype {array.dtype}")
-    if array.dtype.kind != "f":
-        array = array.astype(np.float64)
-    return array
-
-
-def disparity_to_depth(
-    disparity_px, *, focal_px: float, pitch_mm: float, disparity_offset: float = 0.0
-) -> np.ndarray:
-    """Depth along the optical axis from light-field disparity.
-
-    ``Z_mm = focal_px * pitch_mm / (disparity_px + disparity_offset)``.
-
-    Parameters
-    ----------
-    disparity_px
-        Array of any shape, pixels per view step (sign as in ``docs/conventions.md``). ``NaN`` marks
-        pixels without a value.
-    focal_px
-        Focal length of the rectified views in pixels.
-    pitch_mm
-        Distance between neighbouring grid positions in mm.
-    disparity_offset
-        ``d0`` in pixels per view step: the refocusing shift (0 for an unshifted capture).
-
-    Returns
-    -------
-    depth_mm
-        Same shape as ``disparity_px``, floating point (``float32`` stays ``float32``, anything else
-        becomes ``float64``), mm. ``NaN`` where the effective disparity ``disparity_px +
-        disparity_offset`` is not positive or not finite.
-    """
-    _check_camera(focal_px, pitch_mm, disparity_offset)
-    disparity = _float_array(disparity_px, "disparity_px")
-    effective = disparity + disparity.dtype.type(disparity_offset)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = disparity.dtype.type(focal_px * pitch_mm) / effective
-    return np.where(np.isfinite(effective) & (effective > 0), depth, np.nan).astype(disparity.dtype)
-
-
-def depth_to_disparity(
-    depth_mm, *, focal_px: float, pitch_mm: float, disparity_offset: float = 0.0
-) -> np.ndarray:
-    """Light-field disparity from depth along the optical axis; the inverse of :func:`disparity_to_depth`.
-
-    ``disparity_px = focal_px * pitch_mm / depth_mm - disparity_offset``.
-
-    Parameters
-    ----------
-    depth_mm
-        Array of any shape, mm along the camera ``z`` axis. ``NaN`` marks pixels without a value.
-    focal_px, pitch_mm, disparity_offset
-        As in :func:`disparity_to_depth`.
-
-    Returns
-    -------
-    disparity_px
-        Same shape and float dtype rule as :func:`disparity_to_depth`, pixels per view step. ``NaN``
-        where ``depth_mm`` is not positive or not finite (``+inf`` is not a depth here either: store
-        "at infinity" as disparity ``-disparity_offset`` yourself if you mean it).
-    """
-    _check_camera(focal_px, pitch_mm, disparity_offset)
-    depth = _float_array(depth_mm, "depth_mm")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        disparity = depth.dtype.type(focal_px * pitch_mm) / depth - depth.dtype.type(disparity_offset)
-    return np.where(np.isfinite(depth) & (depth > 0), disparity, np.nan).astype(depth.dtype)
 
 
 def depth_error_scores(
@@ -184,8 +90,7 @@ def depth_error_scores(
 class BenchmarkCamera:
     """The camera of a 4D Light Field Benchmark scene as ``parameters.cfg`` records it.
 
-    Attributes are in the file's own units; :attr:`focal_px`, :attr:`pitch_mm` and
-    :attr:`disparity_offset` give lfrig's parameters for :func:`disparity_to_depth`.
+    Attributes are in the file's own units; :meth:`camera` gives lfrig's :class:`recon.camera.Camera`.
     """
 
     focal_length_mm: float
@@ -197,8 +102,9 @@ class BenchmarkCamera:
 
     @property
     def focal_px(self) -> float:
-        """Focal length in pixels: ``focal_length_mm * max(W, H) / sensor_size_mm``."""
-        return self.focal_length_mm * max(self.width_px, self.height_px) / self.sensor_size_mm
+        """Focal length in pixels (:func:`recon.lf.params.benchmark_focal_px`)."""
+        return benchmark_focal_px(focal_length_mm=self.focal_length_mm, sensor_size_mm=self.sensor_size_mm,
+                                  width_px=self.width_px, height_px=self.height_px)
 
     @property
     def pitch_mm(self) -> float:
@@ -207,12 +113,13 @@ class BenchmarkCamera:
 
     @property
     def disparity_offset(self) -> float:
-        """``d0``: the disparity (pixels per view step) of the focus plane, which the benchmark maps to 0."""
-        return self.focal_px * self.baseline_mm / (1000.0 * self.focus_distance_m)
+        """``d0`` (:func:`recon.lf.params.focus_disparity_px`)."""
+        return focus_disparity_px(focal_px=self.focal_px, pitch_mm=self.baseline_mm,
+                                  focus_distance_m=self.focus_distance_m)
 
-    def depth_parameters(self) -> dict[str, float]:
-        """``{"focal_px", "pitch_mm", "disparity_offset"}`` for :func:`disparity_to_depth`."""
-        return {"focal_px": self.focal_px, "pitch_mm": self.pitch_mm, "disparity_offset": self.disparity_offset}
+    def camera(self) -> Camera:
+        """lfrig's camera for this scene (:class:`recon.camera.Camera`)."""
+        return Camera(focal_px=self.focal_px, pitch_mm=self.pitch_mm, disparity_offset=self.disparity_offset)
 
 
 def benchmark_camera(parameters) -> BenchmarkCamera:
@@ -234,8 +141,6 @@ def benchmark_camera(parameters) -> BenchmarkCamera:
                 "(focal_length_mm, sensor_size_mm, image resolution, baseline_mm, focus_distance_m). "
                 "Copy it next to the views or pass focal_px/pitch_mm/disparity_offset yourself."
             )
-        from recon.params import read_parameters
-
         sections = read_parameters(path)
         where = str(path)
     else:
@@ -269,8 +174,8 @@ def benchmark_disparity_to_depth(disparity_px, *, camera: BenchmarkCamera) -> np
     """The benchmark toolkit's conversion, written out as it states it, in mm.
 
     ``depth_mm = 1000 / (disparity_px * 1000 * sensor_size_mm / (baseline_mm * focal_length_mm *
-    max(W, H)) + 1 / focus_distance_m)``. Agrees with :func:`disparity_to_depth` using
-    ``camera.depth_parameters()`` (a test checks it); non-positive effective disparity gives ``NaN``.
+    max(W, H)) + 1 / focus_distance_m)``. Agrees with :meth:`recon.camera.Camera.depth_mm` of
+    ``camera.camera()`` (a test checks it); non-positive effective disparity gives ``NaN``.
 
     Parameters
     ----------
@@ -391,7 +296,7 @@ def decode_depth_png(stored: np.ndarray, metadata: dict) -> np.ndarray:
 def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, offset_mm: float | None = None) -> Path:
     """Write an ``(H, W)`` depth map in mm; the format follows the suffix.
 
-    - ``.pfm``: ``float32``, ``NaN`` where there is no depth (``recon.pfm``; rows top-down in memory).
+    - ``.pfm``: ``float32``, ``NaN`` where there is no depth (``recon.lf.pfm``; rows top-down in memory).
     - ``.npy``: ``float32`` as given (``NaN`` kept).
     - ``.png``: 16-bit grey, quantised by :func:`encode_depth_png`; the scale is stored in a PNG
       ``tEXt`` chunk under :data:`PNG_SCALE_KEY` and in the sidecar ``<name>.png.json``.
@@ -406,7 +311,7 @@ def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, of
         raise DepthFormatError(f"{path}: folder {path.parent} does not exist; create it first")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
-        from recon.pfm import write_pfm
+        from recon.lf.pfm import write_pfm
 
         write_pfm(path, depth.astype(np.float32))
     elif suffix == ".npy":
@@ -436,7 +341,7 @@ def read_depth(path) -> np.ndarray:
         raise DepthFormatError(f"{path}: no such depth map")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
-        from recon.pfm import read_pfm
+        from recon.lf.pfm import read_pfm
 
         return read_pfm(path)
     if suffix == ".npy":

@@ -22,3 +22,11 @@ class ReconError(LfrigError):
 
 class LightFieldFormatError(ReconError):
     """A light-field folder or file is missing, incomplete or unreadable."""
+
+
+class CaptureLayoutError(LightFieldFormatError):
+    """A capture folder does not match lfrig's capture layout, or conflicts with the settings."""
+
+
+class ExportError(ReconError):
+    """A reconstruction folder cannot be read or exported, or a PLY or depth file cannot be written."""

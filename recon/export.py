@@ -13,27 +13,22 @@ Entry points
 ------------
 - :func:`export_ply`: disparity (+ centre view and camera) -> PLY file; what ``lfrig reconstruct
   --ply`` and the simulated session call.
-- :func:`export_result`: the same from a reconstruction folder (``lfrig export``).
+- :func:`export_result`: the same from a reconstruction folder (``lfrig export``; the folder is
+  read by :func:`recon.result.read_result`).
 - :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`poisson_mesh`: the pieces.
 """
 
 from __future__ import annotations
 
-import json
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
 from recon.cloud import MAX_RELATIVE_JUMP, Mesh, PointCloud, depth_mesh, point_cloud
-from recon.depth import disparity_to_depth
-from recon.errors import ReconError
-
-
-class ExportError(ReconError):
-    """A result folder cannot be exported, or a PLY file cannot be written."""
+from recon.camera import Camera
+from recon.errors import ExportError
 
 
 def _open3d():
@@ -188,10 +183,7 @@ def export_ply(
     *,
     disparity_px: np.ndarray,
     image: np.ndarray | None,
-    focal_px: float,
-    pitch_mm: float,
-    disparity_offset: float = 0.0,
-    principal_point_px=None,
+    camera: Camera,
     mask: np.ndarray | None = None,
     kind: Kind = "mesh",
     poisson: bool = False,
@@ -209,10 +201,9 @@ def export_ply(
         ``(H, W)`` disparity of the centre view, pixels per view step; ``NaN`` where not trusted.
     image
         ``(H, W, 3)`` RGB or ``(H, W)`` grey centre view for the colours, or ``None``.
-    focal_px, pitch_mm, disparity_offset
-        Camera of the rectified light field (:func:`recon.depth.disparity_to_depth`).
-    principal_point_px
-        ``(cx, cy)``; default the image centre.
+    camera
+        The rectified camera (:class:`recon.camera.Camera`: focal length, pitch, disparity offset,
+        principal point).
     mask
         ``(H, W)`` bool, ``True`` where the disparity is trustworthy; ``NaN`` disparities and
         non-positive effective disparities are left out in any case.
@@ -236,10 +227,8 @@ def export_ply(
     disparity = np.asarray(disparity_px)
     if disparity.ndim != 2:
         raise ValueError(f"disparity_px must be an (H, W) map; got shape {disparity.shape}")
-    depth = disparity_to_depth(
-        disparity.astype(np.float64), focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset
-    )
-    options = {"focal_px": focal_px, "principal_point_px": principal_point_px, "mask": mask,
+    depth = camera.depth_mm(disparity.astype(np.float64))
+    options = {"focal_px": camera.focal_px, "principal_point_px": camera.principal_point_px, "mask": mask,
                "max_relative_jump": max_relative_jump}
     cloud = point_cloud(depth, image, **options)
     depth_range = (float(cloud.points_mm[:, 2].min()), float(cloud.points_mm[:, 2].max())) if len(cloud) else None
@@ -255,144 +244,6 @@ def export_ply(
     )
 
 
-# --------------------------------------------------------------------------------------------------
-# reconstruction folders
-# --------------------------------------------------------------------------------------------------
-
-RESULT_JSON = "result.json"
-DISPARITY_FILE = "disparity.pfm"
-CENTRE_VIEW_FILE = "centre_view.png"
-
-
-@dataclass
-class ResultFolder:
-    """What :func:`read_result` takes from a reconstruction folder.
-
-    ``focal_px``/``pitch_mm`` may be ``None`` when ``result.json`` did not know them (e.g. a
-    benchmark scene without ``parameters.cfg``); :func:`export_result` then needs them passed in.
-    """
-
-    path: Path
-    disparity_px: np.ndarray
-    image: np.ndarray | None
-    focal_px: float | None
-    pitch_mm: float | None
-    disparity_offset: float
-    principal_point_px: tuple[float, float] | None
-    mask: np.ndarray | None
-    record: dict[str, Any] = field(default_factory=dict)
-
-
-def _number(record: dict, key: str, where: Path, *, positive: bool) -> float | None:
-    value = record.get(key)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
-        need = "a positive number" if positive else "a finite number"
-        raise ExportError(f"{where}: {key} = {value!r} must be {need}")
-    return float(value)
-
-
-def read_result(result_dir) -> ResultFolder:
-    """Read a reconstruction folder written by ``lfrig reconstruct``.
-
-    Reads ``disparity.pfm`` and ``result.json`` with the keys ``focal_px``, ``pitch_mm``,
-    ``disparity_offset`` (default 0), and optionally ``principal_point_px`` (``[cx, cy]``), ``mask``
-    (a PNG in the folder, non-zero = trusted) and ``source`` (the light-field folder, absolute or
-    relative to the result folder). Colours come from ``centre_view.png`` in the folder if present,
-    else from the centre view of ``source``; without either the export has no colours.
-    """
-    from recon.pfm import read_pfm
-
-    folder = Path(result_dir)
-    if not folder.is_dir():
-        raise ExportError(f"{folder}: no such reconstruction folder (run lfrig reconstruct first)")
-    record_path = folder / RESULT_JSON
-    if not record_path.is_file():
-        raise ExportError(f"{record_path}: missing; RESULT_DIR must be a folder written by lfrig reconstruct")
-    try:
-        record = json.loads(record_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ExportError(f"{record_path}: not valid JSON ({error})") from None
-    if not isinstance(record, dict):
-        raise ExportError(f"{record_path}: expected a JSON object with focal_px, pitch_mm, disparity_offset")
-    disparity_path = folder / DISPARITY_FILE
-    if not disparity_path.is_file():
-        raise ExportError(f"{disparity_path}: missing; the reconstruction did not finish, run it again")
-    disparity = read_pfm(disparity_path)
-    if disparity.ndim != 2:
-        raise ExportError(f"{disparity_path}: expected a one-channel disparity map, got shape {disparity.shape}")
-
-    principal = record.get("principal_point_px")
-    if principal is not None:
-        if not (isinstance(principal, list) and len(principal) == 2 and all(isinstance(c, (int, float)) for c in principal)):
-            raise ExportError(f"{record_path}: principal_point_px = {principal!r} must be [cx, cy] in pixels")
-        principal = (float(principal[0]), float(principal[1]))
-
-    mask = None
-    if record.get("mask"):
-        mask = _read_image(folder / str(record["mask"]), what="mask")
-        mask = (mask if mask.ndim == 2 else mask.max(axis=-1)) > 0
-        if mask.shape != disparity.shape:
-            raise ExportError(f"{folder / record['mask']}: mask is {mask.shape}, disparity is {disparity.shape}")
-
-    image = None
-    if (folder / CENTRE_VIEW_FILE).is_file():
-        image = _read_image(folder / CENTRE_VIEW_FILE, what="centre view")
-    elif record.get("source"):
-        source = Path(str(record["source"]))
-        source = source if source.is_absolute() else folder / source
-        if source.is_dir():
-            from recon.io import read_lightfield
-
-            image = read_lightfield(source).centre_view()
-    if image is not None and image.shape[:2] != disparity.shape:
-        raise ExportError(
-            f"{folder}: centre view is {image.shape[:2]} but disparity.pfm is {disparity.shape}; "
-            "they must come from the same reconstruction"
-        )
-    return ResultFolder(
-        path=folder,
-        disparity_px=disparity,
-        image=image,
-        focal_px=_number(record, "focal_px", record_path, positive=True),
-        pitch_mm=_number(record, "pitch_mm", record_path, positive=True),
-        disparity_offset=_number(record, "disparity_offset", record_path, positive=False) or 0.0,
-        principal_point_px=principal,
-        mask=mask,
-        record=record,
-    )
-
-
-def _read_image(path: Path, *, what: str) -> np.ndarray:
-    from recon.imageio import read_image
-
-    if not path.is_file():
-        raise ExportError(f"{path}: the {what} named by result.json is missing")
-    return read_image(path)
-
-
-def result_camera(result: ResultFolder, *, focal_px: float | None = None, pitch_mm: float | None = None,
-                  disparity_offset: float | None = None) -> tuple[dict[str, float | None], list[str]]:
-    """The camera of a reconstruction folder with the caller's overrides: ``({"focal_px", "pitch_mm",
-    "disparity_offset"}, missing)``, where ``missing`` names the flags (``--focal-px``, ``--pitch-mm``)
-    of what is still unknown (metric depth needs both)."""
-    camera = {
-        "focal_px": focal_px if focal_px is not None else result.focal_px,
-        "pitch_mm": pitch_mm if pitch_mm is not None else result.pitch_mm,
-        "disparity_offset": disparity_offset if disparity_offset is not None else result.disparity_offset,
-    }
-    missing = ["--" + name.replace("_", "-") for name in ("focal_px", "pitch_mm") if camera[name] is None]
-    return camera, missing
-
-
-def missing_camera_error(result: ResultFolder, missing: list[str]) -> ExportError:
-    return ExportError(
-        f"{result.path / RESULT_JSON}: {', '.join(m[2:].replace('-', '_') for m in missing)} unknown (the light field "
-        f"had no camera parameters); metric depth needs them, pass {' and '.join(missing)}"
-    )
-
-
 def export_result(
     result_dir,
     ply_path,
@@ -405,20 +256,19 @@ def export_result(
     disparity_offset: float | None = None,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
 ) -> ExportSummary:
-    """:func:`export_ply` for a reconstruction folder (:func:`read_result`).
+    """:func:`export_ply` for a reconstruction folder (:func:`recon.result.read_result`).
 
     ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given.
     """
+    from recon.result import read_result
+
     result = read_result(result_dir)
-    camera, missing = result_camera(result, focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset)
-    if missing:
-        raise missing_camera_error(result, missing)
+    camera = result.camera(focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset)
     return export_ply(
         ply_path,
         disparity_px=result.disparity_px,
         image=result.image,
-        **camera,
-        principal_point_px=result.principal_point_px,
+        camera=camera,
         mask=result.mask,
         kind=kind,
         poisson=poisson,

@@ -1,7 +1,7 @@
 """The reconstruction methods by name, with one calling convention for the CLI, benchmark and batch.
 
-A runner takes the light field, an optional progress object (:class:`recon.progress.Progress` or
-anything with ``update(done, total, note=...)``) and the method's keyword options, and returns a
+A runner takes the light field, an optional ``progress(fraction, message)`` callback
+(:mod:`recon.progress`) and the method's keyword options, and returns a
 :class:`MethodResult`: the disparity of the centre view and, where the method has them, the maps
 that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_extras`.
 """
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 
 @dataclass
@@ -33,36 +33,63 @@ class MethodResult:
 def _baseline(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.baseline import estimate_baseline
 
-    update = (lambda done, total: progress.update(done, total, note="disparity candidates")) if progress else None
-    result = estimate_baseline(lf, progress=update, **options)
+    result = estimate_baseline(lf, progress=progress, **options)
     return MethodResult(disparity=result.disparity, extras=result, options=options)
 
 
 def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
     from recon.entropy import estimate_disparity, write_outputs
 
-    def report(fraction: float, note: str) -> None:  # the estimator's share of its work done, never decreasing
-        if progress:
-            progress.update(int(round(1000 * fraction)), 1000, note=note)
-
-    result = estimate_disparity(lf, progress_fraction=report, **options)
+    result = estimate_disparity(lf, progress=progress, **options)
     used = dataclasses.asdict(result.options) if dataclasses.is_dataclass(getattr(result, "options", None)) else options
     return MethodResult(disparity=result.disparity, extras=result, options=used,
                         write_extras=lambda folder: write_outputs(result, folder))
 
 
-#: name -> (runner, one-line description). The first is the default.
-METHODS: dict[str, tuple[Callable[..., MethodResult], str]] = {
-    "entropy": (_entropy, "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions"),
-    "baseline": (_baseline, "fixed square window, SAD over all views, parabolic sub-pixel refinement"),
+def _check_baseline(options: dict[str, Any]) -> None:
+    from recon.baseline import check_options
+
+    check_options(**options)
+
+
+def _check_entropy(options: dict[str, Any]) -> None:
+    from recon.entropy.estimate import check_options, make_options
+
+    check_options(make_options(**options))
+
+
+@dataclass(frozen=True)
+class Method:
+    """A reconstruction method: ``run(lf, progress, **options)``, ``check(options)`` (raises
+    ``ValueError`` for an option value it cannot use, before any work) and a one-line description."""
+
+    run: Callable[..., MethodResult]
+    check: Callable[[dict[str, Any]], None]
+    description: str
+
+
+#: name -> :class:`Method`. The first is the default.
+METHODS: dict[str, Method] = {
+    "entropy": Method(_entropy, _check_entropy,
+                      "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions"),
+    "baseline": Method(_baseline, _check_baseline,
+                       "fixed square window, SAD over all views, parabolic sub-pixel refinement"),
 }
 DEFAULT_METHOD = next(iter(METHODS))
 
 
-def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:
-    """Run the method ``name`` on ``lf`` with keyword ``options`` (the method's own defaults otherwise)."""
+def _method(name: str) -> Method:
     try:
-        runner = METHODS[name][0]
+        return METHODS[name]
     except KeyError:
         raise ValueError(f"unknown method {name!r}; choose one of {', '.join(sorted(METHODS))}") from None
-    return runner(lf, progress, **options)
+
+
+def check_method_options(name: str, options: dict[str, Any]) -> None:
+    """Raise ``ValueError`` naming the method or option value that cannot be used."""
+    _method(name).check(dict(options))
+
+
+def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:
+    """Run the method ``name`` on ``lf`` with keyword ``options`` (the method's own defaults otherwise)."""
+    return _method(name).run(lf, progress, **options)

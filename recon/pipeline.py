@@ -1,17 +1,10 @@
 """One light field in, one result folder out: what ``lfrig reconstruct`` and ``lfrig batch`` both do.
 
 :func:`reconstruct_to_folder` reads a light-field folder, estimates the centre view's disparity and
-writes the result folder:
-
-- ``disparity.pfm``: ``(H, W)`` float32 disparity, pixels per view step (``docs/conventions.md``),
-- ``disparity.png``: the same, colour-mapped,
-- ``centre_view.png``: the centre view as stored,
-- the method's own maps, if it has any (:attr:`recon.methods.MethodResult.write_extras`),
-- ``result.json``: method, options (as the method reports them), source, image ``[W, H]``, grid ``[U, V]``, ``focal_px``,
-  ``pitch_mm``, ``disparity_offset``, ``disparity_png_range``, ``seconds`` (the estimate alone) and,
-  when the light field has ground truth, ``scores`` (:func:`recon.evaluate.score`),
-
-and, on request, a PLY mesh or point cloud through :func:`recon.export.export_result`.
+writes the result folder (:mod:`recon.result` names its files): ``disparity.pfm``, ``disparity.png``,
+``centre_view.png``, the method's own maps (:attr:`recon.methods.MethodResult.write_extras`) and
+``result.json`` (:class:`recon.result.ResultRecord`, with ``scores`` when the light field has ground
+truth), and, on request, a PLY mesh or point cloud through :func:`recon.export.export_result`.
 
 ``result.json`` is written last and atomically (a temporary file renamed over it), so a folder with a
 readable ``result.json`` holds the disparity maps it describes.
@@ -27,41 +20,34 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.lightfield import LightField
-from recon.methods import DEFAULT_METHOD, MethodResult
-RESULT_JSON = "result.json"
-DISPARITY_PFM = "disparity.pfm"
-DISPARITY_PNG = "disparity.png"
-CENTRE_VIEW_PNG = "centre_view.png"
+from recon.errors import ReconError
+from recon.lf.lightfield import LightField
+from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
+from recon.progress import ProgressCallback
+from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_JSON, ResultRecord, write_record
 
 #: ``estimate(lf, method, options, progress) -> MethodResult``: how the disparity is computed. The
 #: default runs :func:`recon.methods.run_method` in this process; tiled runs on a cluster plug in
-#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or an object with
-#: ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+#: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or
+#: ``progress(fraction, message)`` (:mod:`recon.progress`).
 Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
 
 
 @dataclass
 class FolderResult:
-    """What :func:`reconstruct_to_folder` wrote: the folder, ``result.json``'s content, the PLY (if any)."""
+    """What :func:`reconstruct_to_folder` wrote: the folder, ``result.json``'s record, the PLY (if any)."""
 
     out_dir: Path
-    result: dict[str, Any]
+    record: ResultRecord
     ply: Path | None = None
     export: Any = None  # recon.export.ExportSummary when a PLY was written
     files: list[str] = field(default_factory=list)
 
 
-def run_in_process(lf: LightField, method: str, options: dict[str, Any], progress: Any) -> MethodResult:
-    """The default :data:`Estimator`: :func:`recon.methods.run_method` here and now; an option value
-    the method rejects (``ValueError``) becomes a :class:`recon.errors.ReconError` naming the method."""
-    from recon.errors import ReconError
-    from recon.methods import run_method
-
-    try:
-        return run_method(method, lf, progress=progress, **options)
-    except ValueError as error:
-        raise ReconError(f"{method}: {error}") from None
+def run_in_process(lf: LightField, method: str, options: dict[str, Any],
+                   progress: ProgressCallback | None) -> MethodResult:
+    """The default :data:`Estimator`: :func:`recon.methods.run_method` here and now."""
+    return run_method(method, lf, progress=progress, **options)
 
 
 def jsonable(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -69,18 +55,24 @@ def jsonable(options: Mapping[str, Any]) -> dict[str, Any]:
     return json.loads(json.dumps(dict(options), default=str))
 
 
-def check_options(options: Mapping[str, Any]) -> None:
-    """Reject option values every method would reject, naming the value (a :class:`ReconError`)."""
-    from recon.errors import ReconError
+def check_options(method: str, options: Mapping[str, Any]) -> None:
+    """Reject option values before any work starts, naming the value (a :class:`ReconError`).
 
+    Only this check turns a ``ValueError`` into a user's error: one raised while the estimate runs is
+    a bug and keeps its traceback.
+    """
     rng = options.get("disparity_range")
     if rng is not None and not (len(rng) == 2 and float(rng[0]) < float(rng[1])):
         raise ReconError(f"disparity range {tuple(rng)}: MIN must be less than MAX")
+    try:
+        check_method_options(method, options)
+    except ValueError as error:
+        raise ReconError(f"{method}: {error}") from None
 
 
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
-    from recon.imageio import write_bytes_atomic
+    from recon.lf.imageio import write_bytes_atomic
 
     write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
@@ -93,7 +85,7 @@ def reconstruct_to_folder(
     options: Mapping[str, Any] | None = None,
     ply: str | os.PathLike | None = None,
     ply_kind: Literal["mesh", "points"] = "mesh",
-    progress: Any = None,
+    progress: ProgressCallback | None = None,
     estimate: Estimator | None = None,
     source: str | None = None,
     extra: Mapping[str, Any] | None = None,
@@ -112,7 +104,7 @@ def reconstruct_to_folder(
     ply, ply_kind
         Also export a PLY ``"mesh"`` or ``"points"`` to this path (after ``result.json``).
     progress
-        ``None`` or an object with ``update(done, total, note=...)`` (:class:`recon.progress.Progress`).
+        ``None`` or ``progress(fraction, message)`` (:mod:`recon.progress`).
     estimate
         How the disparity is computed (:data:`Estimator`); default :func:`run_in_process`.
     source
@@ -128,13 +120,13 @@ def reconstruct_to_folder(
     """
     from recon.colour import colourise
     from recon.evaluate import score
-    from recon.imageio import write_png
-    from recon.io import read_ground_truth, read_lightfield
-    from recon.pfm import write_pfm
+    from recon.lf.imageio import write_png
+    from recon.lf import read_ground_truth, read_lightfield
+    from recon.lf.pfm import write_pfm
 
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
     opts: dict[str, Any] = dict(options or {})
-    check_options(opts)
+    check_options(method, opts)
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
     out = Path(out_dir)
@@ -155,23 +147,18 @@ def reconstruct_to_folder(
         files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
-    result: dict[str, Any] = {
-        "method": method, "options": jsonable(method_result.options), "source": source,
-        "image": [lf.image_shape[1], lf.image_shape[0]], "grid": list(lf.grid_shape),
-        "focal_px": lf.focal_px, "pitch_mm": lf.pitch_mm, "disparity_offset": lf.disparity_offset,
-        "principal_point_px": list(lf.principal_point_px) if lf.principal_point_px else None,
-        "disparity_png_range": list(shown), "seconds": round(seconds, 3),
-    }
     gt = read_ground_truth(lf)
-    if gt is not None:
-        result["scores"] = score(disparity, gt)
-    for key, value in (extra or {}).items():
-        if key in result:
-            raise ValueError(f"extra key {key!r} would overwrite result.json's own {key!r}")
-        result[key] = value
-    write_json_atomic(out / RESULT_JSON, result)
+    record = ResultRecord(
+        method=method, options=jsonable(method_result.options), source=source,
+        image=[lf.image_shape[1], lf.image_shape[0]], grid=list(lf.grid_shape),
+        focal_px=lf.focal_px, pitch_mm=lf.pitch_mm, disparity_offset=lf.disparity_offset,
+        principal_point_px=list(lf.principal_point_px) if lf.principal_point_px else None,
+        disparity_png_range=list(shown), seconds=round(seconds, 3),
+        scores=score(disparity, gt) if gt is not None else None, extra=dict(extra or {}),
+    )
+    write_record(out, record)
     files.append(RESULT_JSON)
-    folder = FolderResult(out_dir=out, result=result, files=files)
+    folder = FolderResult(out_dir=out, record=record, files=files)
     if ply is not None:
         from recon.export import export_result
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 
 
 def noise_texture(shape: tuple[int, int], *, seed: int, scale: float = 2.0, contrast: float = 0.35) -> np.ndarray:

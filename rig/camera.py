@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rig.errors import RigError
-from rig.grbl import Clock, SystemClock
+from rig.clock import Clock, SystemClock
 
 log = logging.getLogger(__name__)
 

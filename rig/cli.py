@@ -1,29 +1,15 @@
-"""``lfrig capture`` and ``lfrig stage``: parse, open the devices, call :mod:`rig.session`.
-
-Device specs:
-
-- ``--stage fake`` (default): a simulated GRBL stage (``rig.fakegrbl``) on a virtual clock, driven by
-  the real GRBL driver; ``fake?clock=real`` moves in real time; ``fake?fault=stall&after=10``
-  arms a fault (``lost_ok``, ``garbled``, ``alarm_mid_move``, ``stall``, ``disconnect``).
-- ``--stage grbl:///dev/ttyUSB0``, ``--stage /dev/ttyACM0`` or any pyserial URL
-  (``socket://host:23``, ``rfc2217://host:port``): a GRBL controller.
-- ``--camera fake`` (default): the simulated camera (``rig.fakecam``) seeing its default scene from
-  the stage's position; ``--camera opencv:0`` (device index or path): a camera through OpenCV.
+"""``lfrig capture`` and ``lfrig stage``: parse, open the devices (:mod:`rig.devices`, which lists the
+``--stage`` and ``--camera`` specs), call :mod:`rig.session`.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import urllib.parse
 from pathlib import Path
-from typing import Any
 
+from rig.devices import FAKE_CENTRE_MM, Devices, is_fake_stage, open_camera, open_stage
 from rig.errors import RigError
-
-#: Grid centre used with the fake stage when none is given: well inside its 100 x 100 x 50 mm travel.
-FAKE_CENTRE_MM = (-50.0, -50.0, -10.0)
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     cap = subparsers.add_parser(
@@ -105,106 +91,6 @@ def _stage_argument(parser: argparse.ArgumentParser) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# Opening devices
-
-
-class _Devices:
-    """What the CLI opened: the stage, the fake controller behind it (if any) and the shared clock."""
-
-    def __init__(self) -> None:
-        self.stage: Any = None
-        self.controller: Any = None
-        self.clock: Any = None
-        self.url: str | None = None
-        self.camera: Any = None
-
-    def close(self) -> None:
-        if self.camera is not None:
-            self.camera.close()
-        if self.stage is not None:
-            self.stage.close()
-        if self.url is not None:
-            from rig.fakegrbl import unregister
-
-            unregister(self.url)
-
-
-def is_fake_stage(spec: str) -> bool:
-    return spec == "fake" or spec.startswith("fake?")
-
-
-def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, devices: _Devices | None = None):
-    """Open the stage named by ``spec`` (see the module docstring); returns the :class:`_Devices`."""
-    from rig.grbl import GrblStage, SystemClock
-
-    devices = devices if devices is not None else _Devices()
-    if is_fake_stage(spec):
-        from rig.fakegrbl import FAULTS, FakeGrbl, VirtualClock, register
-
-        options = {k: v[-1] for k, v in urllib.parse.parse_qs(spec.partition("?")[2]).items()}
-        unknown = set(options) - {"clock", "fault", "after"}
-        if unknown:
-            raise RigError(f"--stage {spec!r}: unknown option(s) {', '.join(sorted(unknown))}; known: clock, fault, after")
-        clock_name = options.get("clock", "virtual")
-        if clock_name not in ("virtual", "real"):
-            raise RigError(f"--stage {spec!r}: clock must be 'virtual' or 'real'")
-        devices.clock = VirtualClock() if clock_name == "virtual" else SystemClock()
-        devices.controller = FakeGrbl(clock=devices.clock)
-        if "fault" in options:
-            if options["fault"] not in FAULTS:
-                raise RigError(f"--stage {spec!r}: unknown fault {options['fault']!r}; choose one of {', '.join(FAULTS)}")
-            try:
-                after = int(options.get("after", "0"))
-            except ValueError:
-                raise RigError(f"--stage {spec!r}: after must be a whole number of moves") from None
-            devices.controller.arm_fault(options["fault"], after=after)
-        devices.url = register(devices.controller)
-        devices.stage = GrblStage(devices.url, clock=devices.clock, wake_s=0.05, tolerance_mm=tolerance_mm)
-    else:
-        url = spec[len("grbl://"):] if spec.startswith("grbl://") else spec
-        if not url:
-            raise RigError(f"--stage {spec!r}: give a device, e.g. grbl:///dev/ttyUSB0")
-        devices.clock = SystemClock()
-        devices.stage = GrblStage(url, baudrate=baud, clock=devices.clock, tolerance_mm=tolerance_mm)
-    return devices
-
-
-def open_camera(args: argparse.Namespace, devices: _Devices, *, centre_mm: tuple[float, float, float]):
-    """Open the camera named by ``--camera``; returns ``(camera, requested_settings)``."""
-    spec = args.camera
-    if spec == "fake":
-        from rig.fakecam import FakeCamera, FakeRig
-
-        base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[args.fake_rig]
-        rig = base(ref_mm=tuple(centre_mm))  # the scene is centred on the grid's centre view
-        if devices.controller is not None:
-            position, moving = devices.controller.physical_position, devices.controller.is_moving
-        else:
-            position, moving = devices.stage.position, None
-        try:
-            camera = FakeCamera(position, rig=rig, binning=args.binning, roi=tuple(args.roi) if args.roi else None,
-                                supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth,
-                                is_moving=moving)
-        except ValueError as error:
-            raise RigError(f"--camera fake: {error}") from None
-        request = {"device": "fake", "rig": args.fake_rig, "binning": args.binning,
-                   "roi": list(args.roi) if args.roi else None, "supersample": args.supersample,
-                   "noise_sigma": args.noise, "bit_depth": args.bit_depth}
-        return camera, request
-    if spec.startswith("opencv:"):
-        from rig.camera import OpenCVCamera, parse_source
-
-        source = parse_source(spec[len("opencv:"):])
-        trigger = devices.stage.set_output if args.hw_trigger else None
-        camera = OpenCVCamera(source, width=args.width, height=args.height, exposure=args.exposure, gain=args.gain,
-                              drop_frames=args.drop_frames, hardware_trigger=trigger, clock=devices.clock)
-        request = {"device": spec, "width": args.width, "height": args.height, "exposure": args.exposure,
-                   "gain": args.gain, "hw_trigger": bool(args.hw_trigger)}
-        return camera, request
-    raise RigError(f"--camera {spec!r}: expected 'fake' or 'opencv:INDEX' (e.g. opencv:0) or 'opencv:/dev/videoN'")
-
-
-# --------------------------------------------------------------------------------------------------
 # Handlers
 
 
@@ -233,6 +119,7 @@ def _limits_from_args(args: argparse.Namespace):
 
 def _capture(args: argparse.Namespace) -> int:
     from rig.grid import check_limits, format_plan, grid_extent_mm, plan_moves
+    from recon.progress import Progress
     from rig.session import CaptureInterrupted, plan_summary, run_capture
 
     grid = _grid_from_args(args)
@@ -256,18 +143,18 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
-    devices = _Devices()
+    devices = Devices()
     try:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
         try:
-            result = run_capture(
-                args.out_dir, stage=devices.stage, camera=devices.camera, grid=grid, settle_s=args.settle_s,
-                feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
-                tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
-                progress=None if args.quiet else sys.stderr,
-                header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
-            )
+            with Progress("capture", quiet=args.quiet) as bar:
+                result = run_capture(
+                    args.out_dir, stage=devices.stage, camera=devices.camera, grid=grid, settle_s=args.settle_s,
+                    feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
+                    tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
+                    progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+                )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130

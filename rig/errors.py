@@ -7,7 +7,3 @@ from recon.errors import LfrigError
 
 class RigError(LfrigError):
     """An error of the stage, the camera or a capture session."""
-
-
-class CaptureLayoutError(RigError):
-    """A capture folder does not match lfrig's capture layout, or conflicts with the settings."""

@@ -23,48 +23,21 @@ answered ``error:1``), ``alarm_mid_move`` (``ALARM:1`` hard limit part-way throu
 ``stall`` (the move stops part-way and never completes; the controller stays in ``Run``) and
 ``disconnect`` (the port dies: every read and write raises).
 
-pyserial reaches it by URL: importing this module registers the ``fakegrbl://`` protocol with
-``serial.protocol_handler_packages``, so ``serial.serial_for_url("fakegrbl://NAME")`` opens the
-controller registered under ``NAME`` with :func:`register` (``fakegrbl://`` alone makes a fresh one;
-query options ``clock=virtual|real``, ``fault=KIND``, ``after=N``).
+pyserial reaches it by URL through :mod:`rig.urlhandler.protocol_fakegrbl`:
+``serial.serial_for_url("fakegrbl://NAME")`` opens the controller registered under ``NAME`` with
+:func:`rig.urlhandler.protocol_fakegrbl.register` (``fakegrbl://`` alone makes a fresh one; query
+options ``clock=virtual|real``, ``fault=KIND``, ``after=N``).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-import sys
-import urllib.parse
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-import serial
-from serial.serialutil import PortNotOpenError, SerialBase, SerialException
-
-from rig.grbl import Clock, SystemClock
-
-# --------------------------------------------------------------------------------------------------
-# Clock
-
-
-class VirtualClock:
-    """Simulated time: :meth:`sleep` advances it at once. Share one between the fake controller, the
-    driver and the capture session to simulate a whole session in milliseconds."""
-
-    def __init__(self, start: float = 0.0) -> None:
-        self._now = float(start)
-
-    def monotonic(self) -> float:
-        return self._now
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            self._now += seconds
-
-    def advance(self, seconds: float) -> None:
-        self.sleep(seconds)
-
+from rig.clock import Clock, VirtualClock
 
 # --------------------------------------------------------------------------------------------------
 # Settings
@@ -858,171 +831,3 @@ class FakeGrbl:
             if not (lo - 1e-9 <= value <= hi + 1e-9):
                 return False
         return True
-
-
-# --------------------------------------------------------------------------------------------------
-# pyserial glue
-
-_REGISTRY: dict[str, FakeGrbl] = {}
-_names = itertools.count(1)
-
-
-def register(controller: FakeGrbl, name: str | None = None) -> str:
-    """Make ``controller`` reachable as ``fakegrbl://NAME``; returns the URL."""
-    if name is None:
-        name = f"fake{next(_names)}"
-    if not name.replace("-", "").replace("_", "").isalnum():
-        raise ValueError(f"fake GRBL names are letters, digits, '-' and '_'; got {name!r}")
-    _REGISTRY[name] = controller
-    return f"fakegrbl://{name}"
-
-
-def unregister(name_or_url: str) -> None:
-    _REGISTRY.pop(name_or_url.removeprefix("fakegrbl://"), None)
-
-
-def controller_for_url(url: str) -> FakeGrbl:
-    """The controller a ``fakegrbl://`` URL names (a new one for an unnamed URL)."""
-    parts = urllib.parse.urlsplit(url)
-    if parts.scheme.lower() != "fakegrbl":
-        raise SerialException(f"expected a fakegrbl:// URL; got {url!r}")
-    name = (parts.netloc + parts.path).strip("/")
-    options = {k: v[-1] for k, v in urllib.parse.parse_qs(parts.query).items()}
-    unknown = set(options) - {"clock", "fault", "after"}
-    if unknown:
-        raise SerialException(f"{url!r}: unknown option(s) {', '.join(sorted(unknown))}; known: clock, fault, after")
-    if name:
-        if name not in _REGISTRY:
-            raise SerialException(f"no fake GRBL controller is registered as {name!r} (URL {url!r})")
-        controller = _REGISTRY[name]
-    else:
-        clock_name = options.get("clock", "real")
-        if clock_name not in ("real", "virtual"):
-            raise SerialException(f"{url!r}: clock must be 'real' or 'virtual'; got {clock_name!r}")
-        controller = FakeGrbl(clock=SystemClock() if clock_name == "real" else VirtualClock())
-    if "fault" in options:
-        try:
-            controller.arm_fault(options["fault"], after=int(options.get("after", "0")))
-        except ValueError as error:
-            raise SerialException(f"{url!r}: {error}") from None
-    return controller
-
-
-class FakeGrblSerial(SerialBase):
-    """A pyserial port whose other end is a :class:`FakeGrbl`. Reads wait on the controller's clock."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.controller: FakeGrbl | None = None
-        super().__init__(*args, **kwargs)
-
-    def open(self) -> None:
-        if self.is_open:
-            raise SerialException("port is already open")
-        if self._port is None:
-            raise SerialException("port must be configured before it can be used")
-        self.controller = controller_for_url(self.port)
-        self.controller.power_on()
-        self.is_open = True
-
-    def close(self) -> None:
-        self.is_open = False
-
-    def _reconfigure_port(self, *args: Any, **kwargs: Any) -> None:
-        pass
-
-    def _update_dtr_state(self) -> None:
-        pass
-
-    def _update_rts_state(self) -> None:
-        pass
-
-    def _update_break_state(self) -> None:
-        pass
-
-    def _alive(self) -> FakeGrbl:
-        if not self.is_open or self.controller is None:
-            raise PortNotOpenError()
-        if self.controller.disconnected:
-            raise SerialException(f"device reports readiness to read but returned no data (device disconnected?) [{self.port}]")
-        return self.controller
-
-    @property
-    def in_waiting(self) -> int:
-        return self._alive().pending_output()
-
-    def read(self, size: int = 1) -> bytes:
-        controller = self._alive()
-        clock = controller.clock
-        timeout = self._timeout
-        deadline = None if timeout is None else clock.monotonic() + timeout
-        data = bytearray()
-        while len(data) < size:
-            data += controller.take_output(size - len(data))
-            self._alive()
-            if len(data) >= size or timeout == 0:
-                break
-            now = clock.monotonic()
-            if deadline is not None and now >= deadline:
-                break
-            event = controller.next_event_time()
-            wake = min(t for t in (deadline, event) if t is not None) if (deadline is not None or event is not None) else None
-            if wake is None:
-                raise SerialException(f"{self.port}: read() without a timeout would wait forever (nothing is running)")
-            wait = max(wake - now, 0.0)
-            if isinstance(clock, VirtualClock):
-                clock.sleep(wait)
-            else:
-                clock.sleep(min(wait, 0.005))
-        return bytes(data)
-
-    def write(self, data: bytes) -> int:
-        controller = self._alive()
-        data = bytes(data)
-        controller.receive(data)
-        self._alive()
-        return len(data)
-
-    def flush(self) -> None:
-        self._alive()
-
-    def reset_input_buffer(self) -> None:
-        self._alive().discard_output()
-
-    def reset_output_buffer(self) -> None:
-        self._alive()
-
-    @property
-    def out_waiting(self) -> int:
-        return 0
-
-    @property
-    def cts(self) -> bool:
-        return True
-
-    @property
-    def dsr(self) -> bool:
-        return True
-
-    @property
-    def ri(self) -> bool:
-        return False
-
-    @property
-    def cd(self) -> bool:
-        return True
-
-
-def serial_class_for_url(url: str) -> tuple[str, type]:
-    """pyserial's hook: the port class for a ``fakegrbl://`` URL."""
-    return url, FakeGrblSerial
-
-
-def _install_protocol_handler() -> None:
-    """pyserial finds ``<package>.protocol_<scheme>`` modules in ``serial.protocol_handler_packages``.
-    Expose this module as ``rig.fakegrbl.protocol_fakegrbl`` and list ``rig.fakegrbl`` there."""
-    sys.modules.setdefault(f"{__name__}.protocol_fakegrbl", sys.modules[__name__])
-    if __name__ not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append(__name__)
-
-
-_install_protocol_handler()

@@ -25,39 +25,13 @@ from __future__ import annotations
 import logging
 import math
 import re
-import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Sequence
 
+from rig.clock import Clock, SystemClock
 from rig.errors import RigError
 
 log = logging.getLogger(__name__)
-
-# --------------------------------------------------------------------------------------------------
-# Clocks: the driver, the fake controller and the session share one, so a simulated session can run
-# on virtual time.
-
-
-class Clock(Protocol):
-    """A monotonic clock that can wait. ``rig.fakegrbl.VirtualClock`` advances instantly."""
-
-    def monotonic(self) -> float:
-        """Seconds since an arbitrary origin; never decreases."""
-
-    def sleep(self, seconds: float) -> None:
-        """Wait ``seconds`` (>= 0)."""
-
-
-class SystemClock:
-    """The wall clock: :func:`time.monotonic` and :func:`time.sleep`."""
-
-    def monotonic(self) -> float:
-        return time.monotonic()
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            time.sleep(seconds)
-
 
 # --------------------------------------------------------------------------------------------------
 # Errors
@@ -494,13 +468,18 @@ def motion_time_s(distance_mm: float, *, rate_mm_min: float, accel_mm_s2: float)
 # The driver.
 
 
+#: The package where pyserial finds lfrig's own URL schemes (``protocol_<scheme>`` modules), as it
+#: finds its own ``loop://`` in ``serial.urlhandler``: ``fakegrbl://`` is the simulated controller.
+URL_HANDLERS = "rig.urlhandler"
+
+
 def open_port(url: str, *, baudrate: int = 115200, poll_s: float = 0.05):
     """Open a pyserial port by URL or device path (``/dev/ttyUSB0``, ``socket://host:port``,
     ``fakegrbl://name``). Raises :class:`GrblConnectionError` naming the URL on failure."""
     import serial  # local: keeps `lfrig --help` fast
 
-    if url.lower().startswith("fakegrbl://"):
-        import rig.fakegrbl  # noqa: F401  (registers the fakegrbl:// protocol handler)
+    if URL_HANDLERS not in serial.protocol_handler_packages:  # fakegrbl:// (rig/urlhandler/)
+        serial.protocol_handler_packages.append(URL_HANDLERS)
     try:
         return serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0)
     except (serial.SerialException, ValueError, OSError) as error:

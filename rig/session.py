@@ -2,7 +2,7 @@
 
 For each view of the grid, in scan order: move (with a backlash take-up move when needed), wait until
 the stage reports ``Idle`` at the target, wait the settle time, check that it is still idle there,
-trigger the camera, write the frame atomically and journal it (:class:`rig.layout.CaptureWriter`).
+trigger the camera, write the frame atomically and journal it (:class:`recon.lf.capture.CaptureWriter`).
 A frame is never taken while the stage moves.
 
 Resuming: the same command on the same folder takes only the views the journal does not have (whose
@@ -12,8 +12,8 @@ which differ.
 Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly; a second
 one stops the stage at once (feed hold, then soft reset) and raises :class:`CaptureInterrupted`.
 
-Progress with an ETA goes to ``progress`` (stderr); a human-readable log is appended to
-``OUT_DIR/session.log``.
+Progress goes to ``progress(fraction, message)`` (:mod:`recon.progress`); a human-readable log is
+appended to ``OUT_DIR/session.log``.
 """
 
 from __future__ import annotations
@@ -27,11 +27,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
-from recon.progress import Progress
+from recon.progress import ProgressCallback, report
 from rig.errors import RigError
-from rig.grbl import Clock, SystemClock
+from rig.clock import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
-from rig.layout import CaptureWriter
+from recon.lf.capture import CaptureWriter
 from rig.protocols import Camera, Stage
 
 LOG_NAME = "session.log"
@@ -175,7 +175,7 @@ def run_capture(
     camera_request: dict[str, Any] | None = None,
     header_extra: dict[str, Any] | None = None,
     clock: Clock | None = None,
-    progress: TextIO | None = sys.stderr,
+    progress: ProgressCallback | None = None,
     handle_sigint: bool = True,
     should_stop: Callable[[], bool] | None = None,
 ) -> SessionResult:
@@ -200,6 +200,8 @@ def run_capture(
         Largest allowed drift between the read-back position after settling and the one before.
     camera_request
         Requested camera settings (exposure, gain, size...): part of the settings a resume must match.
+    progress
+        ``progress(fraction, message)`` after each view (:mod:`recon.progress`), or ``None``.
     should_stop
         Called after each view; returning True stops like a first Ctrl-C (for embedding and tests).
 
@@ -210,7 +212,7 @@ def run_capture(
 
     Raises
     ------
-    rig.errors.CaptureLayoutError
+    recon.errors.CaptureLayoutError
         The folder holds a capture with other settings (nothing moved).
     rig.grid.GridError
         A move lies outside the stage's travel (nothing moved).
@@ -232,7 +234,7 @@ def run_capture(
     )
     writer = CaptureWriter(path, header=header)
     log = SessionLog(path / LOG_NAME)
-    interrupts = _Interrupts(log, progress)
+    interrupts = _Interrupts(log, sys.stderr)
     total = grid.rows * grid.cols
     started = clock.monotonic()
     taken = 0
@@ -252,7 +254,7 @@ def run_capture(
         check_limits(moves, limits_mm)
         if handle_sigint:
             interrupts.install()
-        bar = Progress("capture", total, done=done_before, stream=progress, quiet=progress is None)
+        report(progress, done_before / total, f"{done_before} of {total} views on disk")
         try:
             _attach_wire_log(stage, log)
             if home:
@@ -290,7 +292,7 @@ def run_capture(
                 interrupts.end_write()
                 taken += 1
                 log(f"view u={u:02d} v={v:02d} at {_fmt(position)} (commanded {_fmt(move.target_mm)})")
-                bar.update(len(writer.completed), note=f"u{u:02d} v{v:02d}")
+                report(progress, len(writer.completed) / total, f"view {len(writer.completed)}/{total}: u{u:02d} v{v:02d}")
                 if should_stop is not None and should_stop():
                     interrupts.count = max(interrupts.count, 1)
         except _HardStop:
@@ -299,21 +301,18 @@ def run_capture(
                 stage.stop()
             except RigError as error:
                 log(f"stopping the stage failed: {error}")
-            bar.close()
             raise CaptureInterrupted(
                 f"stopped at once by a second Ctrl-C (feed hold + soft reset sent); {len(writer.completed)} of "
                 f"{total} views are in {path}. Home the stage and run the same command again to resume"
             ) from None
         except RigError as error:
             log(f"error: {error}")
-            bar.close()
             raise CaptureAborted(
                 f"{error} [capture stopped with {len(writer.completed)} of {total} views in {path}; "
                 "fix the cause and run the same command again to resume]"
             ) from error
         finally:
             interrupts.uninstall()
-        bar.close()
         completed = len(writer.completed)
         interrupted = completed < total
         if interrupted:
@@ -336,7 +335,7 @@ def _finish(writer: CaptureWriter, grid: GridSpec, camera: Camera, log: Callable
         log("capture already complete")
         return
     first = next(iter(writer.completed.values()))
-    from recon.imageio import read_image  # local: only needed once per capture
+    from recon.lf.imageio import read_image  # local: only needed once per capture
 
     shape = read_image(path / first["file"]).shape[:2]
     settings = camera.settings()

@@ -6,7 +6,7 @@ import pytest
 from recon.baseline import disparity_candidates, estimate_baseline, parabolic_refine
 from recon.costvolume import pixel_cost, pixel_cost_reference, view_offsets
 from recon.evaluate import score
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 from recon.synthetic import Layer, noise_texture, occluding_square_scene, render
 
 

@@ -19,11 +19,11 @@ from calib.intrinsics import (Board, calibrate_intrinsics, calibrate_intrinsics_
                               projection_difference)
 from calib.rectify import pure_translation_fit, rectification, rectify_views, rectifying_frame, undistortion
 from calib.stage import StageCalibration, load_model
-from recon.cli import main
-from recon.io import read_lightfield
-from rig.fakecam import (FakeCamera, FakeRig, board_corners_world, calibration_poses, chessboard_scene,
-                         rectified_geometry)
-from rig.layout import CaptureWriter
+from rig.main import main
+from recon.lf import read_lightfield
+from rig.fakecam import FakeCamera, FakeRig, calibration_poses, rectified_geometry
+from rig.render import board_corners_world, chessboard_scene
+from recon.lf.capture import CaptureWriter
 
 PITCH = 0.5
 GRID = 5

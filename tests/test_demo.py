@@ -11,7 +11,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    from recon.demo import run_demo
+    from rig.demo import run_demo
 
     folder = tmp_path_factory.mktemp("demo") / "run"
     return folder, run_demo(folder, boards=10, quiet=True)
@@ -57,7 +57,7 @@ def test_report_and_the_files_a_user_looks_at(session):
 
 
 def test_a_second_run_refuses_a_folder_it_did_not_write(tmp_path):
-    from recon.demo import run_demo
+    from rig.demo import run_demo
     from recon.errors import LfrigError
 
     (tmp_path / "precious.txt").write_text("keep me")
@@ -69,8 +69,8 @@ def test_a_second_run_refuses_a_folder_it_did_not_write(tmp_path):
 def test_rectified_capture_reconstructs_better_than_the_raw_one(session, tmp_path):
     """Issue 5's check: the same capture, rectified with the session's calibration, gives a lower
     disparity error than unrectified (each against its own truth: raw or rectified centre view)."""
-    from recon.io import read_lightfield
-    from recon.pfm import read_pfm
+    from recon.lf import read_lightfield
+    from recon.lf.pfm import read_pfm
     from recon.pipeline import reconstruct_to_folder
     from rig.fakecam import FakeCamera, FakeRig
 

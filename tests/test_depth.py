@@ -7,14 +7,13 @@ import json
 import numpy as np
 import pytest
 
+from recon.camera import depth_to_disparity, disparity_to_depth
 from recon.depth import (
     PNG_SCALE_KEY,
     BenchmarkCamera,
     DepthFormatError,
     benchmark_camera,
     benchmark_disparity_to_depth,
-    depth_to_disparity,
-    disparity_to_depth,
     png_sidecar_path,
     read_depth,
     write_depth,
@@ -102,16 +101,16 @@ def test_benchmark_camera_matches_the_toolkit_formula(tmp_path):
     assert camera.focal_px == pytest.approx(100.0 * 512 / 35.0)
     assert camera.disparity_offset == pytest.approx(camera.focal_px * 30.0 / 8300.000190734863)
     disparity = np.linspace(-1.7, 0.7, 25)
-    ours = disparity_to_depth(disparity, **camera.depth_parameters())
+    ours = camera.camera().depth_mm(disparity)
     theirs = benchmark_disparity_to_depth(disparity, camera=camera)
     np.testing.assert_allclose(ours, theirs, rtol=1e-12)
     # zero disparity is the focus plane; backgammon spans roughly 7.3 m .. 12.3 m from the cameras
-    assert disparity_to_depth(np.array(0.0), **camera.depth_parameters()) == pytest.approx(8300.0, rel=1e-6)
+    assert camera.camera().depth_mm(np.array(0.0)) == pytest.approx(8300.0, rel=1e-6)
     assert 7000 < ours.min() < ours.max() < 13000
 
 
 def test_benchmark_camera_agrees_with_lightfield_reader(tmp_path):
-    from recon.params import camera_from_parameters, read_parameters
+    from recon.lf.params import camera_from_parameters, read_parameters
 
     cfg = tmp_path / "parameters.cfg"
     cfg.write_text(BACKGAMMON_CFG)

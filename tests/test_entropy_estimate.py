@@ -10,8 +10,8 @@ import pytest
 
 from recon.baseline import estimate_baseline
 from recon.entropy import DEFAULTS, EntropyOptions, estimate_disparity, make_options, write_outputs
-from recon.entropy.regions import OCCLUDED, OCCLUDING, REGION_COLOURS, SMOOTH
-from recon.lightfield import LightField
+from recon.entropy.labels import OCCLUDED, OCCLUDING, REGION_COLOURS, SMOOTH
+from recon.lf.lightfield import LightField
 from recon.synthetic import Layer, noise_texture, occluding_square_scene, render
 
 INNER = (slice(8, -8), slice(8, -8))
@@ -112,7 +112,7 @@ def test_textureless_patch_is_filled(flat_patch):
 
 
 def test_write_outputs(square, tmp_path):
-    from recon.pfm import read_pfm
+    from recon.lf.pfm import read_pfm
 
     _, _, result = square
     paths = write_outputs(result, tmp_path / "out")

@@ -9,8 +9,8 @@ from recon.entropy.entropy import (matching_entropy_reference, select_windows,
 from recon.entropy.matching import (WindowCost, block_abs_diff_fast, block_abs_diff_reference,
                                     set_view_counts, subpixel_argmin, window_cost_reference)
 from recon.entropy.refine import tv_energy, tv_refine
-from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, TEXTURE,
-                                   different_neighbours, occlusion_diffs_fast,
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
+from recon.entropy.regions import (different_neighbours, occlusion_diffs_fast,
                                    occlusion_diffs_reference)
 
 

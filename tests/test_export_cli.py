@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from recon.cli import main
-from recon.depth import depth_to_disparity, read_depth
-from recon.pfm import write_pfm
+from rig.main import main
+from recon.camera import depth_to_disparity
+from recon.depth import read_depth
+from recon.lf.pfm import write_pfm
 
 CAMERA = {"focal_px": 150.0, "pitch_mm": 2.0, "disparity_offset": 0.0}
 

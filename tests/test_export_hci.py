@@ -6,11 +6,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from recon.depth import benchmark_camera, benchmark_disparity_to_depth, disparity_to_depth
+from recon.depth import benchmark_camera, benchmark_disparity_to_depth
 from recon.export import export_ply
-from recon.imageio import read_image
-from recon.params import read_parameters
-from recon.pfm import read_pfm
+from recon.lf.imageio import read_image
+from recon.lf.params import read_parameters
+from recon.lf.pfm import read_pfm
 
 # backgammon's camera as the benchmark publishes it in parameters.cfg
 BACKGAMMON = {
@@ -27,14 +27,14 @@ def test_backgammon_truth_becomes_a_clean_metric_mesh(hci_scene_dir, tmp_path):
     camera = benchmark_camera(parameters)
     assert camera == benchmark_camera(BACKGAMMON)  # our copy of the scene is the published one
     truth = read_pfm(hci_scene_dir / "gt_disp_lowres.pfm")
-    depth = disparity_to_depth(truth, **camera.depth_parameters())
+    depth = camera.camera().depth_mm(truth)
     np.testing.assert_allclose(depth, benchmark_disparity_to_depth(truth, camera=camera), rtol=1e-5)
     # the scene spans disp_min..disp_max = -1.7..0.7 px, i.e. roughly 7.3 m .. 12.3 m from the cameras
     assert 7000 < np.nanmin(depth) < np.nanmax(depth) < 12500
 
     image = read_image(hci_scene_dir / "input_Cam040.png")
     summary = export_ply(tmp_path / "backgammon.ply", disparity_px=truth, image=image,
-                         **camera.depth_parameters())
+                         camera=camera.camera())
     mesh = o3d.io.read_triangle_mesh(str(summary.path))
     vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     assert summary.pixels_used == 512 * 512  # the truth is defined everywhere

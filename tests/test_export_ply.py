@@ -8,11 +8,13 @@ import numpy as np
 import open3d as o3d  # a declared dependency: if it is missing these tests must fail, not skip
 import pytest
 
-from recon.depth import depth_to_disparity
-from recon.export import ExportError, export_ply, export_result, read_result
-from recon.pfm import write_pfm
+from recon.camera import Camera, depth_to_disparity
+from recon.export import ExportError, export_ply, export_result
+from recon.result import read_result
+from recon.lf.pfm import write_pfm
 
 CAMERA = {"focal_px": 120.0, "pitch_mm": 2.0, "disparity_offset": 0.1}
+CAM = Camera(**CAMERA)
 HEIGHT, WIDTH, SPLIT = 14, 18, 8
 NEAR, FAR = 900.0, 1400.0
 
@@ -37,7 +39,7 @@ def header(path) -> str:
 @pytest.mark.parametrize("ascii", [False, True])
 def test_point_cloud_ply_loads_with_every_trusted_pixel(tmp_path, ascii):
     disparity, image = step_scene()
-    summary = export_ply(tmp_path / "cloud.ply", disparity_px=disparity, image=image, kind="points", ascii=ascii, **CAMERA)
+    summary = export_ply(tmp_path / "cloud.ply", disparity_px=disparity, image=image, kind="points", ascii=ascii, camera=CAM)
     text = header(summary.path)
     assert ("format ascii 1.0" in text) == ascii and ("binary_little_endian" in text) != ascii
     pcd = o3d.io.read_point_cloud(str(summary.path))
@@ -54,7 +56,7 @@ def test_point_cloud_ply_loads_with_every_trusted_pixel(tmp_path, ascii):
 @pytest.mark.parametrize("ascii", [False, True])
 def test_mesh_ply_loads_and_has_no_face_across_the_jump(tmp_path, ascii):
     disparity, image = step_scene()
-    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, kind="mesh", ascii=ascii, **CAMERA)
+    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, kind="mesh", ascii=ascii, camera=CAM)
     assert "element face" in header(summary.path)
     mesh = o3d.io.read_triangle_mesh(str(summary.path))
     vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
@@ -77,7 +79,7 @@ def test_mask_leaves_pixels_out(tmp_path):
     disparity, image = step_scene()
     mask = np.ones(disparity.shape, bool)
     mask[:, -3:] = False
-    summary = export_ply(tmp_path / "c.ply", disparity_px=disparity, image=image, kind="points", mask=mask, **CAMERA)
+    summary = export_ply(tmp_path / "c.ply", disparity_px=disparity, image=image, kind="points", mask=mask, camera=CAM)
     assert summary.points == HEIGHT * WIDTH - 1 - 3 * HEIGHT
     assert len(o3d.io.read_point_cloud(str(summary.path)).points) == summary.points
 
@@ -87,7 +89,7 @@ def test_poisson_mesh_covers_the_plane(tmp_path):
     depth = 1000.0 + 2.0 * xs
     disparity = depth_to_disparity(depth, **CAMERA)
     summary = export_ply(tmp_path / "p.ply", disparity_px=disparity, image=None, kind="mesh", poisson=True,
-                         poisson_depth=6, **CAMERA)
+                         poisson_depth=6, camera=CAM)
     mesh = o3d.io.read_triangle_mesh(str(summary.path))
     vertices = np.asarray(mesh.vertices)
     assert summary.kind == "poisson" and len(mesh.triangles) > 100
@@ -97,15 +99,15 @@ def test_poisson_mesh_covers_the_plane(tmp_path):
 def test_poisson_with_points_is_refused(tmp_path):
     disparity, image = step_scene()
     with pytest.raises(ExportError, match="--mesh"):
-        export_ply(tmp_path / "x.ply", disparity_px=disparity, image=image, kind="points", poisson=True, **CAMERA)
+        export_ply(tmp_path / "x.ply", disparity_px=disparity, image=image, kind="points", poisson=True, camera=CAM)
 
 
 def test_wrong_suffix_and_missing_folder_are_named(tmp_path):
     disparity, image = step_scene()
     with pytest.raises(ExportError, match=r"\.ply"):
-        export_ply(tmp_path / "x.obj", disparity_px=disparity, image=image, **CAMERA)
+        export_ply(tmp_path / "x.obj", disparity_px=disparity, image=image, camera=CAM)
     with pytest.raises(ExportError, match="does not exist"):
-        export_ply(tmp_path / "no" / "x.ply", disparity_px=disparity, image=image, **CAMERA)
+        export_ply(tmp_path / "no" / "x.ply", disparity_px=disparity, image=image, camera=CAM)
 
 
 def write_result(folder, *, record=None, with_centre=True):
@@ -153,7 +155,7 @@ def test_export_result_errors_name_the_file(tmp_path):
 def test_binary_mesh_is_plain_ply_that_any_reader_can_parse(tmp_path):
     """Read the file with nothing but its header, as MeshLab or CloudCompare would."""
     disparity, image = step_scene()
-    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, **CAMERA)
+    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, camera=CAM)
     data = summary.path.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
     lines = data[:end].decode("ascii").splitlines()

@@ -10,19 +10,17 @@ import numpy as np
 import pytest
 
 from rig.errors import RigError
-from rig.fakecam import (
-    FakeCamera,
-    FakeRig,
+from rig.fakecam import FakeCamera, FakeRig, rectified_geometry
+from rig.render import (
     NoiseTexture,
     Rect,
     Scene,
     board_corners_world,
     chessboard_scene,
     default_scene,
-    rectified_geometry,
+    pack_scene,
     render_rays_numba,
     render_rays_numpy,
-    _pack,
 )
 from rig.protocols import Camera
 
@@ -169,7 +167,7 @@ def test_occlusion_order(cam4):
     depth = cam4.depth_map((0, 0, 0))
     assert depth[y, x] == pytest.approx(900.0, abs=0.5)
     image = cam4.render((0, 0, 0))
-    rod_colour = _pack(scene).shade[scene.rects.index(rod)] * np.array(rod.texture.colour)
+    rod_colour = pack_scene(scene).shade[scene.rects.index(rod)] * np.array(rod.texture.colour)
     np.testing.assert_allclose(image[y, x], rod_colour, atol=1e-9)
     # one millimetre to the right, the rod moves 8 % further left than box A behind it
     shift_rod = cam4.project(on_rod, (1.0, 0, 0)) - cam4.project(on_rod, (0, 0, 0))
@@ -218,7 +216,7 @@ def test_trigger_follows_the_stage_and_refuses_while_moving():
 
 def test_numba_and_numpy_engines_agree(cam4):
     scene = Scene(default_scene().rects + chessboard_scene(centre_mm=(0, 0, 1200)).rects)
-    packed = _pack(scene)
+    packed = pack_scene(scene)
     rng = np.random.default_rng(0)
     dirs = cam4._centre_dirs_world().reshape(-1, 3)[rng.choice(320 * 245, 4000, replace=False)]
     origin = np.array([0.3, -0.2, 0.0])

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.cli import main
-from recon.io import read_lightfield
-from recon.pfm import read_pfm
+from rig.main import main
+from recon.lf import read_lightfield
+from recon.lf.pfm import read_pfm
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 

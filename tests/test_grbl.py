@@ -8,7 +8,9 @@ import pytest
 import serial
 
 from rig.errors import RigError
-from rig.fakegrbl import FakeGrbl, FakeGrblSerial, VirtualClock, register, unregister
+from rig.clock import VirtualClock
+from rig.fakegrbl import FakeGrbl
+from rig.urlhandler.protocol_fakegrbl import Serial as FakeGrblSerial, register, unregister
 from rig.grbl import (
     Alarm,
     Error,

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from recon.cli import main
-from recon.pfm import read_pfm
+from rig.main import main
+from recon.lf.pfm import read_pfm
 
 pytestmark = [pytest.mark.hci, pytest.mark.slow]
 

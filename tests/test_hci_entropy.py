@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from recon.cli import main
+from rig.main import main
 from recon.evaluate import score
-from recon.pfm import read_pfm
+from recon.lf.pfm import read_pfm
 
 pytestmark = [pytest.mark.hci, pytest.mark.slow]
 

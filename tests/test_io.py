@@ -6,12 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.cli import main
+from rig.main import main
 from recon.errors import LfrigError
-from recon.io import read_lightfield, write_lightfield
-from recon.lightfield import LightField
-from rig.errors import CaptureLayoutError
-from rig.layout import CaptureWriter, read_capture
+from recon.lf import read_lightfield, write_lightfield
+from recon.lf.lightfield import LightField
+from recon.errors import CaptureLayoutError
+from recon.lf.capture import CaptureWriter, read_capture
 
 CFG = """[intrinsics]
 focal_length_mm = 100

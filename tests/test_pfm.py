@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from recon.errors import LightFieldFormatError
-from recon.pfm import read_pfm, write_pfm
+from recon.lf.pfm import read_pfm, write_pfm
 
 
 def test_round_trip_keeps_values_and_orientation(tmp_path):

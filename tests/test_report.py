@@ -8,18 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.depth import depth_to_disparity
-from recon.report import (
-    REGION_COLOURS,
-    colour_map,
-    colourbar_figure,
-    line_plot,
-    nice_ticks,
-    region_picture,
-    write_report,
-)
+from recon.camera import Camera
+from recon.colour import colour_map
+from recon.report import write_report
+from recon.report.figures import REGION_COLOURS, colourbar_figure, line_plot, nice_ticks, region_picture
 
-CAMERA = {"focal_px": 300.0, "pitch_mm": 2.0, "disparity_offset": 0.0}
+CAMERA = Camera(focal_px=300.0, pitch_mm=2.0, disparity_offset=0.0)
 
 
 def scene(height=48, width=64):
@@ -27,7 +21,7 @@ def scene(height=48, width=64):
     ys, xs = np.indices((height, width))
     depth = np.full((height, width), 1000.0) + 2.0 * xs
     depth[10:30, 20:40] = 700.0
-    truth = depth_to_disparity(depth, **CAMERA)
+    truth = CAMERA.disparity_px(depth)
     estimate = truth + 0.01 * rng.standard_normal(truth.shape)
     estimate[12:28, 19] += 0.5  # a fat edge
     estimate[0, :5] = np.nan
@@ -129,7 +123,8 @@ def test_colourbar_and_plot_have_the_promised_sizes():
 
 
 def test_shaded_relief_lights_planes_evenly_and_marks_holes():
-    from recon.report import NO_VALUE, shaded_relief
+    from recon.colour import NO_VALUE
+    from recon.report.figures import shaded_relief
 
     depth = np.full((20, 30), 1000.0)
     x_over_f = (np.arange(15, 30) - 14.5) / 100.0
@@ -143,13 +138,12 @@ def test_shaded_relief_lights_planes_evenly_and_marks_holes():
 
 
 def test_truth_as_depth_gives_the_same_page_numbers(tmp_path):
-    from recon.depth import disparity_to_depth
 
     image, estimate, truth, *_ = scene()
     by_disparity = write_report(tmp_path / "a", centre_view=image, disparity_px=estimate,
                                 truth_disparity_px=truth, camera=CAMERA).read_text()
     by_depth = write_report(tmp_path / "b", centre_view=image, disparity_px=estimate,
-                            truth_depth_mm=disparity_to_depth(truth, **CAMERA), camera=CAMERA).read_text()
+                            truth_depth_mm=CAMERA.depth_mm(truth), camera=CAMERA).read_text()
     badges = lambda text: re.findall(r'<div class="value">([^<]+)</div>', text)  # noqa: E731
     assert badges(by_disparity) == badges(by_depth) and len(badges(by_depth)) >= 4
     with pytest.raises(ValueError, match="camera"):

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from rig.camera import CameraError, OpenCVCamera, parse_source
-from rig.fakegrbl import FakeGrbl, VirtualClock, register, unregister
+from rig.clock import VirtualClock
+from rig.fakegrbl import FakeGrbl
+from rig.urlhandler.protocol_fakegrbl import register, unregister
 from rig.grbl import GrblStage
 from rig.protocols import Camera
 

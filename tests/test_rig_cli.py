@@ -11,7 +11,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from recon.cli import main
+from rig.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--binning", "8", "--supersample", "1"]  # 160 x 122 px frames
@@ -92,7 +92,7 @@ def test_stage_commands(capsys):
 
 def test_sigint_part_way_then_resume_takes_each_view_once(tmp_path):
     out = tmp_path / "cap"
-    command = [sys.executable, "-m", "recon.cli", "capture", str(out), "--binning", "8", "--supersample", "2"]
+    command = [sys.executable, "-m", "rig.main", "capture", str(out), "--binning", "8", "--supersample", "2"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -125,8 +125,8 @@ def test_fake_capture_reconstructs_to_the_fake_scenes_disparity(tmp_path):
     matches the disparity the fake camera knows to be true."""
     import numpy as np
 
-    from recon.pfm import read_pfm
-    from rig.cli import FAKE_CENTRE_MM
+    from recon.lf.pfm import read_pfm
+    from rig.devices import FAKE_CENTRE_MM
     from rig.fakecam import FakeCamera, FakeRig
 
     out = tmp_path / "cap"

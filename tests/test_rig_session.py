@@ -17,8 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.errors import CaptureLayoutError
-from rig.fakegrbl import FakeGrbl, VirtualClock, register, unregister
+from recon.errors import CaptureLayoutError
+from rig.clock import VirtualClock
+from rig.fakegrbl import FakeGrbl
+from rig.urlhandler.protocol_fakegrbl import register, unregister
 from rig.grbl import (
     GrblAlarmError,
     GrblCommandError,
@@ -27,7 +29,7 @@ from rig.grbl import (
     GrblTimeoutError,
 )
 from rig.grid import GridError, GridSpec, view_position
-from rig.layout import read_capture
+from recon.lf.capture import read_capture
 from rig.session import CaptureAborted, CaptureInterrupted, run_capture
 
 CENTRE = (-50.0, -50.0, -10.0)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from recon.entropy.regions import OCCLUDED, OCCLUDING
+from recon.entropy.labels import OCCLUDED, OCCLUDING
 from recon.entropy.windows import N_SHAPES, window_rect
 
 

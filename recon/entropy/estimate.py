@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -27,10 +26,11 @@ from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_
 from recon.entropy.windows import N_SHAPES
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
 from recon.entropy.windows import window_rect
-from recon.entropy.regions import (OCCLUDED, OCCLUDING, SMOOTH, flat_pixels, jump_distance,
-                                   layer_jumps, layer_map, region_labels)
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
+from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.errors import ReconError
-from recon.lightfield import LightField
+from recon.progress import ProgressCallback
+from recon.lf.lightfield import LightField
 
 
 def _opt(default, help: str):
@@ -182,7 +182,7 @@ VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
 
 
 class _Reporter:
-    """Turns the estimator's steps into one overall fraction for ``progress_fraction``.
+    """Turns the estimator's steps into one overall fraction for ``progress`` (:mod:`recon.progress`).
 
     Each step has a weight in "initial-candidate units" (the time one candidate of the nine-view
     search takes): a candidate of the full line search costs :data:`MATCH_CANDIDATE_WEIGHT` of them
@@ -193,8 +193,7 @@ class _Reporter:
 
     FIXED = {"regions": 4.0, "windows": 30.0, "refine": 20.0}
 
-    def __init__(self, say, report, n_initial: int, n_matching: int) -> None:
-        self.say = say
+    def __init__(self, report, n_initial: int, n_matching: int) -> None:
         self.report = report
         self.weights = {"initial": float(n_initial), **self.FIXED,
                         "matching": MATCH_CANDIDATE_WEIGHT * n_matching}
@@ -218,7 +217,6 @@ class _Reporter:
     def step(self, name: str, message: str) -> None:
         self.current = name
         self.note = message
-        self.say(message)
         self._emit(0.0)
 
     def within(self, fraction: float) -> None:
@@ -248,6 +246,11 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
     U, V = lf.grid_shape
     if U < 3 or V < 3:
         raise ReconError(f"the entropy estimator needs at least a 3x3 grid of views, got {U}x{V}")
+    check_options(opts)
+
+
+def check_options(opts: EntropyOptions) -> None:
+    """Raise ``ValueError`` naming an option value the estimator cannot use."""
     sizes = opts.window_sizes
     if not sizes or any(s < 3 or s % 2 == 0 for s in sizes):
         raise ValueError(f"window_sizes must be odd sizes >= 3, got {sizes}")
@@ -263,8 +266,7 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
 
 
 def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
-                       progress: Callable[[str], None] | None = None,
-                       progress_fraction: Callable[[float, str], None] | None = None,
+                       progress: ProgressCallback | None = None,
                        noise_sigma: float | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
@@ -279,9 +281,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     options
         :class:`EntropyOptions`; default :data:`DEFAULTS` (the paper's values).
     progress
-        Called with a short message at the start of each step (five steps).
-    progress_fraction
-        Called as ``progress_fraction(fraction, message)`` with the estimated share of the whole
+        Called as ``progress(fraction, message)`` (:mod:`recon.progress`) with the estimated share of the whole
         run done so far (``0..1``, never decreasing, weighted by each step's expected time) at the
         start of each step and after every candidate disparity of the two line searches, which
         take almost all the time; ``message`` names the current step. Ends with ``(1.0, "done")``.
@@ -307,7 +307,6 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     _check(lf, opts)
     if stop_after not in (None, "initial", "matching"):
         raise ValueError(f"stop_after must be None, 'initial' or 'matching', got {stop_after!r}")
-    say = progress or (lambda message: None)
     timings: dict[str, float] = {}
     t = time.perf_counter()
 
@@ -332,7 +331,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
     n_initial = len(disparity_candidates(initial_rng[0], initial_rng[1], opts.initial_step))
     guess = known if known is not None else opts.initial_range
-    reporter = _Reporter(say, progress_fraction, n_initial,
+    reporter = _Reporter(progress, n_initial,
                          len(disparity_candidates(guess[0], guess[1], opts.step)))
     reporter.step("initial", "initial disparity (nine views)")
     holes0 = None

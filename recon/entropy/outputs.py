@@ -1,4 +1,5 @@
-"""Files that show why the estimator did what it did (written next to ``disparity.pfm``)."""
+"""Files that show why the estimator did what it did (written next to ``disparity.pfm``; their names
+are :mod:`recon.result`'s)."""
 
 from __future__ import annotations
 
@@ -7,11 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from recon.entropy.estimate import EntropyResult
-from recon.entropy.regions import REGION_COLOURS
+from recon.entropy.labels import REGION_COLOURS
 from recon.entropy.windows import N_SHAPES
 from recon.errors import ReconError
-from recon.imageio import write_png
-from recon.pfm import write_pfm
+from recon.lf.imageio import write_png
+from recon.lf.pfm import write_pfm
+from recon.result import (HOLES_PNG, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, REGIONS_NPY,
+                          REGIONS_PNG, VIEW_SET_NPY, WINDOW_SHAPE_NPY, WINDOW_SHAPE_PNG, WINDOW_SIZE_NPY, WINDOW_SIZE_PNG)
 
 #: One colour per window shape (RGB): grey square, then W1..W8 and the two strips.
 SHAPE_COLOURS = np.array([
@@ -37,7 +40,7 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     """Write the intermediate maps of ``result`` into ``out_dir`` (created if needed).
 
     Files: ``regions.png`` (paper colours) and ``regions.npy`` (labels 0..3); ``window_size.png``
-    (grey level = size / 15 * 255) and ``window_size.npy``; ``window_shape.png`` (one colour per shape,
+    (grey level = size / largest size * 255) and ``window_size.npy``; ``window_shape.png`` (one colour per shape,
     ``SHAPE_COLOURS``) and ``window_shape.npy`` (0 square, 1..8 = W1..W8, 9/10 strips);
     ``view_set.npy``; ``initial_disparity.pfm``, ``matched_disparity.pfm`` (before TV) and
     ``refined_disparity.pfm``; ``holes.png`` (white: black holes, filled from their surroundings
@@ -62,18 +65,18 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
         write_pfm(out / name, array.astype(np.float32))
         written.append(out / name)
 
-    png("regions.png", region_image(result.labels))
-    npy("regions.npy", result.labels.astype(np.uint8))
+    png(REGIONS_PNG, region_image(result.labels))
+    npy(REGIONS_NPY, result.labels.astype(np.uint8))
     biggest = max(int(result.window_size.max()), 1)
-    png("window_size.png", (result.window_size.astype(np.float32) / biggest * 255).astype(np.uint8))
-    npy("window_size.npy", result.window_size.astype(np.uint8))
-    png("window_shape.png", SHAPE_COLOURS[np.clip(result.window_shape, 0, N_SHAPES - 1)])
-    npy("window_shape.npy", result.window_shape.astype(np.uint8))
-    npy("view_set.npy", result.view_set.astype(np.uint8))
-    pfm("initial_disparity.pfm", result.initial_disparity)
-    pfm("matched_disparity.pfm", result.matched_disparity)
-    pfm("refined_disparity.pfm", result.disparity)
+    png(WINDOW_SIZE_PNG, (result.window_size.astype(np.float32) / biggest * 255).astype(np.uint8))
+    npy(WINDOW_SIZE_NPY, result.window_size.astype(np.uint8))
+    png(WINDOW_SHAPE_PNG, SHAPE_COLOURS[np.clip(result.window_shape, 0, N_SHAPES - 1)])
+    npy(WINDOW_SHAPE_NPY, result.window_shape.astype(np.uint8))
+    npy(VIEW_SET_NPY, result.view_set.astype(np.uint8))
+    pfm(INITIAL_DISPARITY_PFM, result.initial_disparity)
+    pfm(MATCHED_DISPARITY_PFM, result.matched_disparity)
+    pfm(REFINED_DISPARITY_PFM, result.disparity)
     holes = result.info.get("holes") if result.info else None
     if holes is not None:  # black holes: filled by the TV refinement without a data term
-        png("holes.png", (np.asarray(holes, bool) * 255).astype(np.uint8))
+        png(HOLES_PNG, (np.asarray(holes, bool) * 255).astype(np.uint8))
     return written

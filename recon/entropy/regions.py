@@ -31,11 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from recon.entropy.initial import initial_view_mask
-
-OCCLUDING, OCCLUDED, TEXTURE, SMOOTH = 0, 1, 2, 3
-REGION_NAMES = ("occluding", "occluded", "texture", "smooth")
-#: Paper colours (Fig. 5), RGB: occluding red, occluded blue, texture yellow, smooth green.
-REGION_COLOURS = np.array([(255, 0, 0), (0, 0, 255), (255, 255, 0), (0, 160, 0)], np.uint8)
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
 
 
 def layer_map(d0: np.ndarray, *, median_size: int, keep: np.ndarray | None = None) -> np.ndarray:

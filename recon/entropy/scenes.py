@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
 from recon.synthetic import noise_texture
 
 Field = Callable[[np.ndarray, np.ndarray], np.ndarray]

@@ -36,7 +36,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.pipeline import RESULT_JSON, reconstruct_to_folder, write_json_atomic
+from recon.pipeline import reconstruct_to_folder, write_json_atomic
+from recon.result import RESULT_JSON
 from recon.scale import ScaleError
 
 MARKER = "batch.json"
@@ -47,7 +48,7 @@ MARKER_VERSION = 1
 Transfer = Literal["shared", "ship"]
 Status = Literal["ok", "skipped", "failed"]
 
-#: The files a light-field reader uses (``recon.io``: benchmark layout; ``rig.layout``: capture
+#: The files a light-field reader uses (``recon.lf.benchmark``: benchmark layout; ``recon.lf.capture``: capture
 #: layout). Only these are fingerprinted and shipped, not e.g. a benchmark's high-resolution truth.
 _LIGHTFIELD_FILE = re.compile(
     r"^(input_Cam\d{3}\.png|parameters\.cfg|gt_disp_lowres\.pfm|manifest\.jsonl|views/u\d+_v\d+\.png)$"
@@ -278,7 +279,7 @@ def reconstruct_capture(
             ply_kind=request.export or "mesh", estimate=estimate, source=str(source), extra=extra,
         )
         names = list(folder.files) + ([request.ply_name] if ply is not None else [])
-        report.update(status="ok", scores=folder.result.get("scores"), names=names)
+        report.update(status="ok", scores=folder.record.scores, names=names)
         if payload is not None:
             report["files"] = {name: (target_dir / name).read_bytes() for name in names}
     except LfrigError as error:
@@ -317,7 +318,7 @@ def _finish(job: CaptureJob, request: BatchRequest, fingerprint: str, report: di
         return outcome
     names = report["names"]
     if transfer == "ship":
-        from recon.imageio import write_bytes_atomic
+        from recon.lf.imageio import write_bytes_atomic
 
         for name in sorted(names, key=lambda n: n == RESULT_JSON):  # result.json last, as on the worker
             (job.out_dir / name).parent.mkdir(parents=True, exist_ok=True)

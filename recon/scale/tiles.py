@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from recon.lightfield import LightField
+from recon.lf.lightfield import LightField
+from recon.progress import ProgressCallback, report
 from recon.scale import ScaleError
 
 
@@ -310,7 +311,7 @@ def tiled_disparity(
     halo: int | None = None,
     client: Any = None,
     threads: int | None = None,
-    progress: Any = None,
+    progress: ProgressCallback | None = None,
     runner: Callable[..., np.ndarray] = run_tile,
 ) -> TiledResult:
     """The centre view's disparity of ``lf``, computed tile by tile and stitched.
@@ -333,7 +334,7 @@ def tiled_disparity(
     threads
         numba/OpenCV threads per tile task (``None``: the worker's setting).
     progress
-        ``None`` or an object with ``update(done, total, note=...)``, told as tiles finish.
+        ``progress(fraction, message)`` (:mod:`recon.progress`) as tiles finish, or ``None``.
     runner
         ``runner(crop, method, options, threads) -> (crop H, crop W)``; default :func:`run_tile`.
         Not used for a method whose rule has its own ``run`` (entropy: two rounds of tiles).
@@ -359,8 +360,7 @@ def tiled_disparity(
         if client is None:
             for i, t in enumerate(tiles):
                 results[i] = task(crop_lightfield(lf, t), cut(t), dict(options), threads)
-                if progress:
-                    progress.update(done_before[0] + i + 1, total, note="tiles")
+                report(progress, (done_before[0] + i + 1) / total, "tiles")
         else:
             from distributed import as_completed
 
@@ -370,8 +370,7 @@ def tiled_disparity(
                 futures[client.submit(task, crop, cut(t), dict(options), threads, pure=False)] = t.index
             for done, future in enumerate(as_completed(futures), start=1):
                 results[futures[future]] = future.result()
-                if progress:
-                    progress.update(done_before[0] + done, total, note="tiles")
+                report(progress, (done_before[0] + done) / total, "tiles")
         done_before[0] += len(tiles)
         return stitch(lf.image_shape, tiles, results)
 

@@ -5,7 +5,8 @@ The file is INI-style with the sections ``[intrinsics]`` (``focal_length_mm``, `
 ``num_cams_y``, ``baseline_mm``, ``focus_distance_m``, ...) and ``[meta]`` (``disp_min``,
 ``disp_max``, ...). lfrig writes the same sections for its own captures, so that other tools can
 read them, plus an ``[lfrig]`` section with what the benchmark has no key for (``focal_px``,
-``disparity_offset_px``).
+``disparity_offset_px``, ``principal_x_px``, ``principal_y_px``). :func:`parameters_for` writes the
+sections for a light field and :func:`camera_from_parameters` reads them back: one inverse pair.
 """
 
 from __future__ import annotations
@@ -74,15 +75,26 @@ def _number(parameters: Parameters, section: str, key: str, path: Path) -> float
     return float(value)
 
 
+def benchmark_focal_px(*, focal_length_mm: float, sensor_size_mm: float, width_px: float, height_px: float) -> float:
+    """The benchmark's focal length in pixels: ``focal_length_mm / sensor_size_mm * max(W, H)``."""
+    return focal_length_mm / sensor_size_mm * max(width_px, height_px)
+
+
+def focus_disparity_px(*, focal_px: float, pitch_mm: float, focus_distance_m: float) -> float:
+    """``d0``: the disparity (pixels per view step) of the focus plane, which the benchmark's refocused
+    views map to 0: ``focal_px * pitch_mm / (1000 * focus_distance_m)``."""
+    return focal_px * pitch_mm / (1000.0 * focus_distance_m)
+
+
 def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple[int, int] | None, dict[str, Any]]:
     """What lfrig needs from a ``parameters.cfg``: grid, pitch, focal length, disparity range.
 
     Returns ``(num_cams, camera)``: the grid ``(rows, cols)`` or ``None``, and the keyword arguments
-    of :class:`recon.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
+    of :class:`recon.lf.lightfield.LightField` that the file fixes: ``pitch_mm``, ``focal_px``,
     ``disparity_offset`` (pixels per view step, 0 when unknown), ``disparity_range`` and
     ``principal_point_px`` (each may be ``None``).
-    The benchmark's focal length in pixels is ``focal_length_mm / sensor_size_mm * max(res_x, res_y)``
-    and its views are refocused at ``focus_distance_m``, so ``d0 = focal_px * baseline_mm / focus_mm``.
+    The benchmark's focal length in pixels is :func:`benchmark_focal_px` and its views are refocused
+    at ``focus_distance_m``, so ``d0`` is :func:`focus_disparity_px`.
     """
     pitch_mm = _number(parameters, "extrinsics", "baseline_mm", path)
     focal_px = _number(parameters, "lfrig", "focal_px", path)
@@ -92,13 +104,13 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         res_x = _number(parameters, "intrinsics", "image_resolution_x_px", path)
         res_y = _number(parameters, "intrinsics", "image_resolution_y_px", path)
         if None not in (focal_mm, sensor_mm, res_x, res_y) and sensor_mm > 0:
-            focal_px = focal_mm / sensor_mm * max(res_x, res_y)
+            focal_px = benchmark_focal_px(focal_length_mm=focal_mm, sensor_size_mm=sensor_mm, width_px=res_x, height_px=res_y)
     offset = _number(parameters, "lfrig", "disparity_offset_px", path)
     if offset is None:
         focus_m = _number(parameters, "extrinsics", "focus_distance_m", path)
         offset = 0.0
         if focus_m and focal_px and pitch_mm and "lfrig" not in parameters:
-            offset = focal_px * pitch_mm / (focus_m * 1000.0)
+            offset = focus_disparity_px(focal_px=focal_px, pitch_mm=pitch_mm, focus_distance_m=focus_m)
     cx = _number(parameters, "lfrig", "principal_x_px", path)
     cy = _number(parameters, "lfrig", "principal_y_px", path)
     d_min = _number(parameters, "meta", "disp_min", path)
@@ -121,3 +133,44 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         "disparity_range": (d_min, d_max) if d_min is not None and d_max is not None else None,
         "principal_point_px": (cx, cy) if cx is not None and cy is not None else None,
     }
+
+
+def parameters_for(
+    *,
+    grid: tuple[int, int],
+    image_shape: tuple[int, int],
+    pitch_mm: float,
+    focal_px: float | None = None,
+    focal_length_mm: float | None = None,
+    sensor_size_mm: float | None = None,
+    disparity_range: tuple[float, float] | None = None,
+    disparity_offset: float = 0.0,
+    principal_point_px: tuple[float, float] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """The ``parameters.cfg`` sections describing a light field: the inverse of :func:`camera_from_parameters`.
+
+    ``camera_from_parameters(parameters_for(grid=g, image_shape=s, **camera))`` gives back ``g`` and
+    ``camera`` (a test checks the round trip).
+    """
+    height, width = image_shape
+    intrinsics: dict[str, Any] = {"image_resolution_x_px": width, "image_resolution_y_px": height}
+    if focal_px is not None:
+        # The benchmark derives focal_px = focal_length_mm / sensor_size_mm * max(W, H); pick a
+        # consistent pair when only focal_px is known.
+        if focal_length_mm is None or sensor_size_mm is None:
+            focal_length_mm, sensor_size_mm = focal_px / max(width, height), 1.0
+    if focal_length_mm is not None and sensor_size_mm is not None:
+        intrinsics.update(focal_length_mm=focal_length_mm, sensor_size_mm=sensor_size_mm)
+    sections: dict[str, dict[str, Any]] = {
+        "intrinsics": intrinsics,
+        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0], "baseline_mm": pitch_mm},
+    }
+    if disparity_range is not None:
+        sections["meta"] = {"disp_min": disparity_range[0], "disp_max": disparity_range[1]}
+    lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}
+    if focal_px is not None:
+        lfrig["focal_px"] = focal_px
+    if principal_point_px is not None:
+        lfrig["principal_x_px"], lfrig["principal_y_px"] = (float(c) for c in principal_point_px)
+    sections["lfrig"] = lfrig
+    return sections

@@ -1,12 +1,8 @@
-"""Reading light fields from disk, in either layout lfrig knows.
+"""The 4D Light Field Benchmark's folder layout, read.
 
-- The **benchmark layout** of the 4D Light Field Benchmark: ``input_Cam000.png`` ...
-  ``input_CamNNN.png`` row-major (``NNN = u * V + v``), optional ``parameters.cfg`` and
-  ``gt_disp_lowres.pfm``.
-- lfrig's **capture layout** (``rig.layout``): ``manifest.jsonl``, ``views/uUU_vVV.png``,
-  ``parameters.cfg``.
-
-:func:`read_lightfield` tells them apart and returns a :class:`recon.lightfield.LightField`.
+``input_Cam000.png`` ... ``input_CamNNN.png`` row-major (``NNN = u * V + v``), optional
+``parameters.cfg`` (:mod:`recon.lf.params`) and ``gt_disp_lowres.pfm`` (the centre view's ground-truth
+disparity). :func:`recon.lf.read_lightfield` tells this layout from lfrig's capture layout.
 """
 
 from __future__ import annotations
@@ -19,39 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import LightFieldFormatError
-from recon.imageio import read_images
-from recon.lightfield import LightField
-from recon.params import camera_from_parameters, read_parameters
-from recon.pfm import read_pfm
+from recon.lf.imageio import read_images
+from recon.lf.lightfield import LightField
+from recon.lf.params import camera_from_parameters, read_parameters
+from recon.lf.pfm import read_pfm
 
-_BENCHMARK_VIEW = re.compile(r"^input_Cam(\d{3})\.png$")
+BENCHMARK_VIEW = re.compile(r"^input_Cam(\d{3})\.png$")
 GROUND_TRUTH = "gt_disp_lowres.pfm"
-
-
-def read_lightfield(path: str | os.PathLike) -> LightField:
-    """Read a light-field folder in the benchmark layout or lfrig's capture layout.
-
-    Raises
-    ------
-    LightFieldFormatError
-        Naming the folder or file and what is wrong: not a folder, no views, missing or extra views,
-        views of mixed sizes, an unreadable image, a broken ``parameters.cfg``.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise LightFieldFormatError(f"{path}: no such folder")
-    if not path.is_dir():
-        raise LightFieldFormatError(f"{path}: not a folder; pass the folder that holds the views")
-    from rig import layout  # the capture layout belongs to rig, which writes it
-
-    if layout.is_capture(path):
-        return layout.read_capture(path)
-    if any(_BENCHMARK_VIEW.match(p.name) for p in path.iterdir()):
-        return read_benchmark(path)
-    raise LightFieldFormatError(
-        f"{path}: no light field here (expected input_Cam000.png ... of the benchmark layout, "
-        "or manifest.jsonl of an lfrig capture)"
-    )
 
 
 def read_benchmark(path: str | os.PathLike) -> LightField:
@@ -64,7 +34,7 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
     path = Path(path)
     numbered: dict[int, Path] = {}
     for p in path.iterdir():
-        m = _BENCHMARK_VIEW.match(p.name)
+        m = BENCHMARK_VIEW.match(p.name)
         if m:
             numbered[int(m[1])] = p
     if not numbered:
@@ -110,10 +80,3 @@ def read_ground_truth(lf: LightField) -> np.ndarray | None:
     """The ground-truth disparity of the centre view, ``(H, W)`` float32, or ``None``."""
     p = ground_truth_path(lf)
     return read_pfm(p) if p is not None else None
-
-
-def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict | None = None) -> None:
-    """Write a light field in lfrig's capture layout (see :func:`rig.layout.write_lightfield`)."""
-    from rig import layout
-
-    layout.write_lightfield(path, lf, header_extra=header_extra)

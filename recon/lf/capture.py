@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from recon.imageio import read_images, write_png
-from recon.lightfield import LightField
-from recon.params import camera_from_parameters, read_parameters, write_parameters
-from rig.errors import CaptureLayoutError
+from recon.lf.imageio import read_images, write_png
+from recon.lf.lightfield import LightField
+from recon.errors import CaptureLayoutError
+from recon.lf.params import camera_from_parameters, parameters_for, read_parameters, write_parameters
 
 FORMAT = "lfrig-capture"
 VERSION = 1
@@ -206,43 +206,6 @@ class CaptureWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def parameters_for(
-    *,
-    grid: tuple[int, int],
-    image_shape: tuple[int, int],
-    pitch_mm: float,
-    focal_px: float | None = None,
-    focal_length_mm: float | None = None,
-    sensor_size_mm: float | None = None,
-    disparity_range: tuple[float, float] | None = None,
-    disparity_offset: float = 0.0,
-    principal_point_px: tuple[float, float] | None = None,
-) -> dict[str, dict[str, Any]]:
-    """The ``parameters.cfg`` sections describing a capture (see :mod:`recon.params`)."""
-    height, width = image_shape
-    intrinsics: dict[str, Any] = {"image_resolution_x_px": width, "image_resolution_y_px": height}
-    if focal_px is not None:
-        # The benchmark derives focal_px = focal_length_mm / sensor_size_mm * max(W, H); pick a
-        # consistent pair when only focal_px is known.
-        if focal_length_mm is None or sensor_size_mm is None:
-            focal_length_mm, sensor_size_mm = focal_px / max(width, height), 1.0
-    if focal_length_mm is not None and sensor_size_mm is not None:
-        intrinsics.update(focal_length_mm=focal_length_mm, sensor_size_mm=sensor_size_mm)
-    sections: dict[str, dict[str, Any]] = {
-        "intrinsics": intrinsics,
-        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0], "baseline_mm": pitch_mm},
-    }
-    if disparity_range is not None:
-        sections["meta"] = {"disp_min": disparity_range[0], "disp_max": disparity_range[1]}
-    lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}
-    if focal_px is not None:
-        lfrig["focal_px"] = focal_px
-    if principal_point_px is not None:
-        lfrig["principal_x_px"], lfrig["principal_y_px"] = (float(c) for c in principal_point_px)
-    sections["lfrig"] = lfrig
-    return sections
 
 
 def read_capture(path: str | os.PathLike) -> LightField:

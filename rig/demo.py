@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,20 +102,23 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
-    from recon.depth import depth_error_scores, disparity_to_depth, write_depth
+    from recon.camera import Camera
+    from recon.depth import depth_error_scores, write_depth
+    from recon.entropy.labels import TEXTURE
     from recon.evaluate import score
     from recon.export import export_result
-    from recon.imageio import read_image, write_png
-    from recon.pfm import read_pfm, write_pfm
+    from recon.lf.imageio import read_image, write_png
+    from recon.lf.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report
-    from rig.fakecam import FakeCamera, FakeRig, calibration_poses, chessboard_scene, default_scene
+    from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, REGIONS_NPY, WINDOW_SIZE_NPY
+    from rig.fakecam import FakeCamera, FakeRig, calibration_poses
+    from rig.render import chessboard_scene, default_scene
 
     folder = Path(folder)
     _prepare(folder)
     steps = Steps()
-    stream = None if quiet else sys.stderr
     centre_mm = _fake_centre_mm()
     rig = FakeRig.misaligned(ref_mm=centre_mm)
     summary: dict[str, Any] = {"folder": str(folder.resolve()), "rig": _rig_summary(rig, binning)}
@@ -130,14 +132,14 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     paths = []
     poses = calibration_poses(still, count=boards, inner=(board.cols, board.rows), square_mm=board.square_mm,
                               distance_mm=(650.0, 1050.0), tilt_deg=30.0, seed=1)
-    with Progress("rendering boards", len(poses), quiet=quiet) as bar:
+    with Progress("rendering boards", quiet=quiet) as bar:
         for i, (centre, rotation) in enumerate(poses):
             scene = chessboard_scene(inner=(board.cols, board.rows), square_mm=board.square_mm,
                                      centre_mm=centre, rotation_deg=rotation)
             path = folder / "boards" / f"board{i:02d}.png"
             write_png(path, still.frame(rig.ref_mm, scene=scene))
             paths.append(path)
-            bar.update(i + 1)
+            bar((i + 1) / len(poses), path.name)
     intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
     intrinsics.model.write(str(folder / "camera.cameramodel"), note="lfrig demo\n" + intrinsics.report())
     write_residual_picture(intrinsics, folder / "camera.residuals.png")
@@ -151,7 +153,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     board_scene = chessboard_scene(inner=(stage_board.cols, stage_board.rows), square_mm=stage_board.square_mm,
                                    centre_mm=(0.0, 0.0, 950.0))
     _capture(folder / "stage_capture", camera_options | {"scene": board_scene, "colour": False, "supersample": 1},
-             centre_mm, stream)
+             centre_mm, quiet)
     stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board)
     stage.save(folder / "stage.json")
     summary["stage"] = _stage_summary(stage, rig)
@@ -161,7 +163,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
     # 3. The scene.
     steps.begin("capture", "capturing the scene: 81 views on the simulated GRBL stage")
-    scene_camera = _capture(folder / "capture", camera_options | {"scene": default_scene()}, centre_mm, stream)
+    scene_camera = _capture(folder / "capture", camera_options | {"scene": default_scene()}, centre_mm, quiet)
     steps.end(f"{folder / 'capture'}")
 
     # 4. Rectification.
@@ -175,16 +177,17 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     # 5. Disparity, depth, PLY.
     steps.begin("reconstruct", f"estimating disparity ({method}), depth and 3D models")
     result_dir = folder / "result"
-    with Progress(method, 1, quiet=quiet) as bar:
+    with Progress(method, quiet=quiet) as bar:
         done = reconstruct_to_folder(folder / "rectified", result_dir, method=method, progress=bar)
-    disparity = read_pfm(result_dir / "disparity.pfm")
-    depth = disparity_to_depth(disparity, focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
+    disparity = read_pfm(result_dir / DISPARITY_PFM)
+    camera = Camera(focal_px=rect.focal_px, pitch_mm=rect.pitch_mm)
+    depth = camera.depth_mm(disparity)
     for suffix in ("pfm", "png", "npy"):
         write_depth(result_dir / f"depth.{suffix}", depth)
     ply = {kind: export_result(result_dir, folder / f"model_{kind}.ply", kind=kind).as_dict()
            for kind in ("mesh", "points")}
     summary["ply"] = ply
-    summary["method"] = {"name": method, "seconds": done.result.get("seconds")}
+    summary["method"] = {"name": method, "seconds": done.record.seconds}
     steps.end(f"{ply['mesh']['points']} vertices, {ply['mesh']['triangles']} triangles; "
               f"{ply['points']['points']} points")
 
@@ -192,20 +195,19 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     steps.begin("report", "scoring against the simulated scene's truth and writing the report")
     truth_depth = scene_camera.depth_in_rectified(rect.K_rect, rect.R_rect_cam, rect.image_size, centre_mm)
     write_pfm(folder / "result" / "truth_depth.pfm", truth_depth.astype(np.float32))
-    labels = _load_optional(result_dir / "regions.npy")
-    textured = labels == 2 if labels is not None else None
+    labels = _load_optional(result_dir / REGIONS_NPY)
+    textured = labels == TEXTURE if labels is not None else None
     summary["depth_error"] = {
         "all": depth_error_scores(depth, truth_depth, border_px=15),
         "textured": depth_error_scores(depth, truth_depth, mask=textured, border_px=15),
     }
-    truth_disparity = rect.focal_px * rect.pitch_mm / truth_depth
+    truth_disparity = camera.disparity_px(truth_depth)
     summary["disparity_scores"] = score(disparity, truth_disparity.astype(np.float32))
     report = write_report(
-        folder / "report", centre_view=read_image(result_dir / "centre_view.png"), disparity_px=disparity,
+        folder / "report", centre_view=read_image(result_dir / CENTRE_VIEW_PNG), disparity_px=disparity,
         title="lfrig demo: simulated lab session", subtitle=str(folder / "rectified"),
-        truth_depth_mm=truth_depth, camera={"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
-                                            "disparity_offset": 0.0},
-        region_map=labels, window_size_px=_load_optional(result_dir / "window_size.npy"),
+        truth_depth_mm=truth_depth, camera=camera,
+        region_map=labels, window_size_px=_load_optional(result_dir / WINDOW_SIZE_NPY),
         scores=summary["disparity_scores"], info={"steps (s)": steps.times},
     )
     summary["report"] = str(report)
@@ -217,14 +219,15 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
 
 
 def _fake_centre_mm() -> tuple[float, float, float]:
-    from rig.cli import FAKE_CENTRE_MM
+    from rig.devices import FAKE_CENTRE_MM
 
     return tuple(float(c) for c in FAKE_CENTRE_MM)
 
 
-def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], stream) -> Any:
+def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float, float, float], quiet: bool) -> Any:
     """A 9x9 capture at 0.5 mm with the simulated GRBL stage and camera, through the real session."""
-    from rig.cli import open_stage
+    from recon.progress import Progress
+    from rig.devices import open_stage
     from rig.fakecam import FakeCamera
     from rig.grid import GridSpec
     from rig.session import run_capture
@@ -234,9 +237,10 @@ def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float,
         camera = FakeCamera(devices.controller.physical_position, is_moving=devices.controller.is_moving,
                             **camera_options)
         grid = GridSpec(rows=9, cols=9, pitch_mm=0.5, centre_mm=centre_mm)
-        result = run_capture(path, stage=devices.stage, camera=camera, grid=grid, clock=devices.clock,
-                             progress=stream, handle_sigint=False,
-                             camera_request={"device": "fake", "binning": camera.binning})
+        with Progress("capture", quiet=quiet) as bar:
+            result = run_capture(path, stage=devices.stage, camera=camera, grid=grid, clock=devices.clock,
+                                 progress=bar, handle_sigint=False,
+                                 camera_request={"device": "fake", "binning": camera.binning})
         if not result.complete:
             from rig.errors import RigError
 

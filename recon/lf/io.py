@@ -1,0 +1,44 @@
+"""Reading a light field from disk, in either layout lfrig knows.
+
+- The **benchmark layout** of the 4D Light Field Benchmark (:mod:`recon.lf.benchmark`):
+  ``input_Cam000.png`` ... row-major, optional ``parameters.cfg`` and ``gt_disp_lowres.pfm``.
+- lfrig's **capture layout** (:mod:`recon.lf.capture`): ``manifest.jsonl``, ``views/uUU_vVV.png``,
+  ``parameters.cfg``.
+
+:func:`read_lightfield` tells them apart and returns a :class:`recon.lf.lightfield.LightField`;
+:func:`recon.lf.capture.write_lightfield` writes one as a complete capture.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from recon.errors import LightFieldFormatError
+from recon.lf import capture
+from recon.lf.benchmark import BENCHMARK_VIEW, read_benchmark
+from recon.lf.lightfield import LightField
+
+
+def read_lightfield(path: str | os.PathLike) -> LightField:
+    """Read a light-field folder in the benchmark layout or lfrig's capture layout.
+
+    Raises
+    ------
+    LightFieldFormatError
+        Naming the folder or file and what is wrong: not a folder, no views, missing or extra views,
+        views of mixed sizes, an unreadable image, a broken ``parameters.cfg``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise LightFieldFormatError(f"{path}: no such folder")
+    if not path.is_dir():
+        raise LightFieldFormatError(f"{path}: not a folder; pass the folder that holds the views")
+    if capture.is_capture(path):
+        return capture.read_capture(path)
+    if any(BENCHMARK_VIEW.match(p.name) for p in path.iterdir()):
+        return read_benchmark(path)
+    raise LightFieldFormatError(
+        f"{path}: no light field here (expected input_Cam000.png ... of the benchmark layout, "
+        "or manifest.jsonl of an lfrig capture)"
+    )

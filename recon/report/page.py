@@ -1,0 +1,538 @@
+"""One HTML page per reconstruction, with PNG figures, that shows at a glance how good it is.
+
+:func:`write_report` takes arrays (what the simulated session and ``lfrig reconstruct`` have in
+memory); :func:`report_for_result` reads them from a reconstruction folder (``lfrig export
+--report``). The page ``index.html`` and its figures are written into one folder that can be
+copied or zipped as a whole; the page refers to the figures by relative name and needs no network.
+
+Figures (all PNG, drawn with OpenCV; matplotlib is not a dependency):
+
+- ``centre_view.png``: the centre view, with the rows of the profiles marked;
+- ``disparity.png``: disparity with a colour bar (turbo, near = red);
+- ``depth.png``: depth in mm with a colour bar (when the camera is known);
+- ``shaded.png``: the depth map as a lit surface, so bumps and false steps are easy to see;
+- ``error.png``: signed disparity error against the truth (blue = estimate too small, i.e. too
+  far; red = too large, too near), clipped at ``error_range_px``;
+- ``badpix.png``: the centre view in grey with pixels off by more than 0.07 px in red;
+- ``regions.png``: the region map in the paper's colours (occluding red, occluded blue, texture
+  yellow, smooth green);
+- ``window_size.png``: the chosen window side per pixel with a colour bar;
+- ``profile_row<N>.png``: disparity and depth along row ``N`` against the truth (cf. the paper's
+  Figs. 13-14).
+
+Headline colours (green / amber / red) use fixed thresholds, documented in
+``docs/depth-and-export.md``: BadPix 0.07 below 10 % / 25 %; median depth error below 0.5 % / 2 %
+of the distance; coverage above 95 % / 80 %.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from recon.camera import Camera
+from recon.colour import colour_map, robust_range
+from recon.depth import depth_error_scores
+from recon.lf.imageio import write_png
+from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
+                                      colourbar_figure, display_scale, image_figure, line_plot, region_picture,
+                                      shaded_relief)
+from recon.result import (REGIONS_NPY, REGIONS_PNG, WINDOW_SIZE_NPY, ResultFolder, source_folder)
+
+BADPIX_THRESHOLD = 0.07
+
+
+def _default_rows(height: int, truth: np.ndarray | None, border: int) -> list[int]:
+    """Three rows: by default at 1/4, 1/2, 3/4 of the height, moved to the nearby row with the most
+    structure in the truth (largest spread) when there is a truth."""
+    rows = []
+    for fraction in (0.25, 0.5, 0.75):
+        row = int(round(fraction * (height - 1)))
+        if truth is not None:
+            lo, hi = max(border, row - height // 10), min(height - border, row + height // 10 + 1)
+            if hi > lo:
+                window = np.where(np.isfinite(truth[lo:hi]), truth[lo:hi], np.nan)
+                with warnings.catch_warnings():  # rows without any truth are all-NaN slices
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    spread = np.nanpercentile(window, 95, axis=1) - np.nanpercentile(window, 5, axis=1)
+                if np.isfinite(spread).any():
+                    row = lo + int(np.nanargmax(spread))
+        rows.append(row)
+    return sorted(set(rows))
+
+
+def _badge(label: str, value: str, level: str | None, note: str = "") -> str:
+    cls = f"badge {level}" if level else "badge"
+    tip = f' title="{html.escape(note)}"' if note else ""
+    return f'<div class="{cls}"{tip}><div class="value">{html.escape(value)}</div><div class="label">{html.escape(label)}</div></div>'
+
+
+def _level(value: float, good: float, fair: float, *, lower_is_better: bool = True) -> str | None:
+    if not math.isfinite(value):
+        return None
+    if lower_is_better:
+        return "good" if value <= good else "fair" if value <= fair else "poor"
+    return "good" if value >= good else "fair" if value >= fair else "poor"
+
+
+def _format(value: Any) -> str:
+    if isinstance(value, bool) or value is None:
+        return html.escape(str(value))
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "–"
+        return f"{value:.4g}" if abs(value) < 1e5 else f"{value:.6g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_format(v) for v in value)
+    return html.escape(str(value))
+
+
+def _table(rows: Sequence[Mapping[str, Any]], columns: Sequence[tuple[str, str]], *, first: str) -> str:
+    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in columns)
+    body = []
+    for row in rows:
+        cells = "".join(
+            f'<td class="{"text" if key == first else "num"}">{_format(row.get(key))}</td>' for key, _ in columns
+        )
+        body.append(f"<tr>{cells}</tr>")
+    return f'<table><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
+
+
+def _key_values(values: Mapping[str, Any]) -> str:
+    rows = []
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            value = ", ".join(f"{k} = {_format(v)}" for k, v in value.items())
+            rows.append(f'<tr><th>{html.escape(str(key))}</th><td class="text">{value}</td></tr>')
+        else:
+            rows.append(f'<tr><th>{html.escape(str(key))}</th><td class="text">{_format(value)}</td></tr>')
+    return f'<table class="kv"><tbody>{"".join(rows)}</tbody></table>'
+
+
+_CSS = """
+:root { --ink: #222; --muted: #667; --line: #e3e5ea; --card: #fff; --bg: #f4f5f7; }
+* { box-sizing: border-box; }
+body { margin: 0; background: var(--bg); color: var(--ink);
+       font: 15px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif; }
+main { max-width: 1180px; margin: 0 auto; padding: 24px 20px 40px; }
+header h1 { font-size: 24px; margin: 0 0 2px; font-weight: 650; }
+header .sub { color: var(--muted); margin: 0 0 16px; word-break: break-all; }
+.badges { display: flex; flex-wrap: wrap; gap: 10px; margin-bottom: 22px; }
+.badge { background: var(--card); border: 1px solid var(--line); border-left: 6px solid #9aa3b2;
+         border-radius: 8px; padding: 8px 14px; min-width: 150px; }
+.badge.good { border-left-color: #2e9d4f; } .badge.fair { border-left-color: #e0a100; }
+.badge.poor { border-left-color: #d1342f; }
+.badge .value { font-size: 22px; font-weight: 650; font-variant-numeric: tabular-nums; }
+.badge .label { color: var(--muted); font-size: 13px; }
+h2 { font-size: 17px; margin: 26px 0 10px; font-weight: 650; }
+.grid { display: grid; grid-template-columns: repeat(auto-fit, minmax(420px, 1fr)); gap: 16px; }
+figure { margin: 0; background: var(--card); border: 1px solid var(--line); border-radius: 8px;
+         padding: 12px; display: flex; flex-direction: column; }
+figure img { max-width: 100%; height: auto; align-self: center; image-rendering: auto; }
+figure.wide { grid-column: 1 / -1; }
+figcaption { color: var(--muted); font-size: 13px; margin-top: 8px; }
+figcaption b { color: var(--ink); font-weight: 600; }
+.legend { display: flex; flex-wrap: wrap; gap: 4px 14px; margin-top: 8px; font-size: 13px; }
+.legend span.swatch { display: inline-block; width: 12px; height: 12px; border-radius: 2px;
+                      margin-right: 5px; vertical-align: -1px; border: 1px solid rgba(0,0,0,.25); }
+.profiles { display: grid; grid-template-columns: 1fr; gap: 6px; justify-items: center; }
+.profiles img { max-width: 100%; height: auto; }
+table { border-collapse: collapse; background: var(--card); border: 1px solid var(--line);
+        border-radius: 8px; overflow: hidden; font-variant-numeric: tabular-nums; }
+th, td { padding: 6px 12px; border-bottom: 1px solid var(--line); text-align: right; font-size: 14px; }
+thead th { background: #eef0f4; font-weight: 600; }
+td.text, table.kv th { text-align: left; }
+table.kv th { color: var(--muted); font-weight: 500; }
+footer { color: var(--muted); font-size: 12.5px; margin-top: 30px; }
+"""
+
+
+
+def write_report(
+    out_dir,
+    *,
+    centre_view: np.ndarray,
+    disparity_px: np.ndarray,
+    title: str = "lfrig reconstruction",
+    subtitle: str = "",
+    truth_disparity_px: np.ndarray | None = None,
+    truth_depth_mm: np.ndarray | None = None,
+    camera: Camera | None = None,
+    region_map: np.ndarray | None = None,
+    region_names: Sequence[str] = REGION_NAMES,
+    window_size_px: np.ndarray | None = None,
+    rows: Sequence[int] | None = None,
+    disparity_range: tuple[float, float] | None = None,
+    error_range_px: float = 0.2,
+    border_px: int = 15,
+    scores: Mapping[str, Any] | None = None,
+    info: Mapping[str, Any] | None = None,
+) -> Path:
+    """Write ``out_dir/index.html`` and its PNG figures; returns the path of the page.
+
+    Parameters
+    ----------
+    out_dir
+        Folder for the page and figures (created if missing; files of the same names are replaced).
+    centre_view
+        ``(H, W, 3)`` RGB or ``(H, W)`` grey, ``uint8``/``uint16``/float in ``[0, 1]``.
+    disparity_px
+        ``(H, W)`` estimated disparity, pixels per view step; ``NaN`` where there is none.
+    title, subtitle
+        Page heading and the line under it (e.g. the light-field path).
+    truth_disparity_px
+        ``(H, W)`` true disparity, or ``None``: enables the error map, BadPix map, scores and the
+        truth curves of the profiles.
+    truth_depth_mm
+        ``(H, W)`` true depth in mm instead (e.g. a simulated scene's); needs ``camera``.
+    camera
+        The rectified camera (:class:`recon.camera.Camera`) for metric depth (depth figure, depth
+        profiles and depth-error scores), or ``None``.
+    region_map
+        ``(H, W)`` integer labels (``region_names[k]`` names label ``k``), or an ``(H, W, 3)`` RGB
+        picture already in the paper's colours, or ``None``.
+    window_size_px
+        ``(H, W)`` chosen window side in pixels, or ``None``.
+    rows
+        Image rows for the profiles; default three rows near 1/4, 1/2, 3/4 of the height, moved to
+        where the truth has most structure.
+    disparity_range
+        ``(low, high)`` of the disparity colour bar; default the 1st..99th percentile.
+    error_range_px
+        The error map is clipped at ``±error_range_px``.
+    border_px
+        Pixels left out on every side when scoring (the benchmark's 15; 0 for images too small).
+    scores, info
+        Extra numbers ("Reported by the run") and facts about the run (method, options, times) to
+        list on the page; values may be numbers, strings or one level of nested mappings.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    maps = _Maps.of(centre_view=centre_view, disparity_px=disparity_px, truth_disparity_px=truth_disparity_px,
+                    truth_depth_mm=truth_depth_mm, camera=camera, border_px=border_px)
+    labels = None if region_map is None or np.asarray(region_map).ndim != 2 else np.asarray(region_map)
+    general, region_rows = _score_rows(maps, labels, region_names)
+    if rows is None:
+        rows = _default_rows(maps.height, maps.truth, maps.border_px)
+    rows = [int(r) for r in rows if 0 <= int(r) < maps.height]
+    figures = _map_figures(out, maps, rows=rows, disparity_range=disparity_range, error_range_px=error_range_px)
+    figures += _method_figures(out, maps, region_map=region_map, region_names=region_names,
+                               window_size_px=window_size_px)
+    profiles = _profiles(out, maps, rows)
+
+    parts = [f"<header><h1>{html.escape(title)}</h1>"]
+    parts.append(f'<p class="sub">{html.escape(subtitle)}</p>' if subtitle else '<p class="sub"></p>')
+    parts.append(f'<div class="badges">{"".join(_badges(maps, general, region_rows))}</div></header>')
+    parts.append(f'<div class="grid">{"".join(figures)}</div>')
+    if profiles:
+        what = "Depth and disparity" if maps.depth is not None else "Disparity"
+        against = " against the truth (black)" if maps.truth is not None else ""
+        parts.append(f"<h2>{what} along rows{against}</h2>")
+        parts.append(f'<figure class="wide"><div class="profiles">{"".join(profiles)}</div>'
+                     "<figcaption>blue: estimate; gaps: no value. Compare the paper's Figs. 13–14."
+                     "</figcaption></figure>")
+    if general is not None:
+        columns_spec = [("region", "pixels scored"), ("pixels", "count"), ("mse_x100", "MSE ×100"),
+                        ("badpix_0.07", "BadPix 0.07 %"), ("badpix_0.03", "BadPix 0.03 %"),
+                        ("badpix_0.01", "BadPix 0.01 %")]
+        if "depth_median_pct" in general:
+            columns_spec.append(("depth_median_pct", "median |ΔZ|/Z %"))
+        parts.append("<h2>Scores against the truth</h2>")
+        parts.append(_table([general, *region_rows], columns_spec, first="region"))
+        parts.append(f'<p class="sub">The 4D Light Field Benchmark\'s scores: a border of {maps.border_px} px is left '
+                     "out; BadPix t is the share of pixels with |estimate − truth| &gt; t px.</p>")
+    if scores:
+        parts.append("<h2>Reported by the run</h2>" + _key_values(scores))
+    if info:
+        parts.append("<h2>Run</h2>" + _key_values(info))
+    stamp = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    parts.append(
+        f"<footer>Written by lfrig on {html.escape(stamp)}. Disparity in pixels per view step, positive for points "
+        "in front of the plane of zero disparity; depth in mm along the centre camera's optical axis "
+        "(docs/conventions.md).</footer>"
+    )
+    page = (
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+        "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head>\n<body><main>\n"
+        + "\n".join(parts)
+        + "\n</main></body></html>\n"
+    )
+    path = out / "index.html"
+    path.write_text(page, encoding="utf-8")
+    return path
+
+
+@dataclass
+class _Maps:
+    """The arrays the page shows, checked and converted once: disparity, truth, depth, the view."""
+
+    view: np.ndarray
+    disparity: np.ndarray
+    truth: np.ndarray | None
+    depth: np.ndarray | None
+    truth_depth: np.ndarray | None
+    camera: Camera | None
+    border_px: int
+    factor: float
+    finite: np.ndarray = field(init=False)
+    coverage: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.finite = np.isfinite(self.disparity)
+        self.coverage = 100.0 * float(self.finite.mean())
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.disparity.shape
+
+    @property
+    def height(self) -> int:
+        return self.disparity.shape[0]
+
+    @classmethod
+    def of(cls, *, centre_view, disparity_px, truth_disparity_px, truth_depth_mm, camera, border_px) -> "_Maps":
+        disparity = np.asarray(disparity_px, dtype=np.float64)
+        if disparity.ndim != 2:
+            raise ValueError(f"disparity_px must be an (H, W) map; got shape {disparity.shape}")
+        shape = disparity.shape
+        view = as_rgb8(centre_view)
+        if view.shape[:2] != shape:
+            raise ValueError(f"centre_view is {view.shape[:2]} but disparity_px is {shape}; they must match")
+        if truth_depth_mm is not None:
+            if truth_disparity_px is not None or camera is None:
+                raise ValueError("truth_depth_mm needs camera= and replaces truth_disparity_px; give one truth")
+            truth_disparity_px = camera.disparity_px(np.asarray(truth_depth_mm, dtype=np.float64))
+        truth = None if truth_disparity_px is None else np.asarray(truth_disparity_px, dtype=np.float64)
+        if truth is not None and truth.shape != shape:
+            raise ValueError(f"truth_disparity_px is {truth.shape} but disparity_px is {shape}")
+        depth = truth_depth = None
+        if camera is not None:
+            depth = camera.depth_mm(disparity)
+            if truth is not None:
+                truth_depth = camera.depth_mm(truth)
+        return cls(view=view, disparity=disparity, truth=truth, depth=depth, truth_depth=truth_depth, camera=camera,
+                   border_px=0 if 2 * border_px >= min(shape) else border_px, factor=display_scale(shape[1]))
+
+
+def _score_rows(maps: _Maps, labels: np.ndarray | None,
+                region_names: Sequence[str]) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
+    """The scores against the truth: all pixels, then one row per region type (when labelled)."""
+    from recon.evaluate import score
+
+    if maps.truth is None:
+        return None, []
+    estimate, truth = maps.disparity.astype(np.float32), maps.truth.astype(np.float32)
+
+    def row(name: str, mask: np.ndarray | None) -> dict[str, Any]:
+        scores = {"region": name, **score(estimate, truth, border=maps.border_px, mask=mask)}
+        if maps.truth_depth is not None:
+            scores["depth_median_pct"] = depth_error_scores(maps.depth, maps.truth_depth, mask=mask,
+                                                            border_px=maps.border_px)["median_abs_rel_pct"]
+        return scores
+
+    general = row("all pixels", None)
+    regions = [] if labels is None else [row(name, labels == label) for label, name in enumerate(region_names)]
+    return general, regions
+
+
+def _badges(maps: _Maps, general: dict[str, Any] | None, region_rows: list[dict[str, Any]]) -> list[str]:
+    """The headline numbers, coloured by the thresholds of ``docs/depth-and-export.md``."""
+    badges = [_badge("pixels with a disparity", f"{maps.coverage:.1f} %",
+                     _level(maps.coverage, 95, 80, lower_is_better=False))]
+    if general is not None:
+        badges.append(_badge("BadPix 0.07 (|error| > 0.07 px)", f"{general['badpix_0.07']:.2f} %",
+                             _level(general["badpix_0.07"], 10, 25)))
+        badges.append(_badge("MSE × 100", f"{general['mse_x100']:.3f}", None))
+        if "depth_median_pct" in general:
+            badges.append(_badge("median depth error (of distance)", f"{general['depth_median_pct']:.3f} %",
+                                 _level(general["depth_median_pct"], 0.5, 2.0)))
+        texture = next((r for r in region_rows if r["region"] == "texture"), None)
+        if texture is not None and "depth_median_pct" in texture:
+            badges.append(_badge("… on textured surfaces", f"{texture['depth_median_pct']:.3f} %",
+                                 _level(texture["depth_median_pct"], 0.5, 2.0)))
+    if maps.depth is not None and np.isfinite(maps.depth).any():
+        near, far = np.nanpercentile(maps.depth, [1, 99])
+        badges.append(_badge("depth (1st–99th percentile)", f"{near:.0f}–{far:.0f} mm", None))
+    return badges
+
+
+def _map_figures(out: Path, maps: _Maps, *, rows: list[int], disparity_range, error_range_px: float) -> list[str]:
+    """Centre view, disparity, depth, shaded surface, error and BadPix maps; returns their HTML."""
+    figures = []
+    factor, disparity, truth, depth = maps.factor, maps.disparity, maps.truth, maps.depth
+    write_png(out / "centre_view.png", image_figure(maps.view, rows=rows, scale=factor))
+    figures.append(_figure("centre_view.png", "Centre view",
+                           "the rows of the depth profiles below are marked" if rows else ""))
+
+    low, high = robust_range(disparity if truth is None else np.concatenate([disparity.ravel(), truth.ravel()]),
+                              disparity_range)
+    picture = colour_map(disparity, low=low, high=high, lut="turbo")
+    write_png(out / "disparity.png", colourbar_figure(picture, low=low, high=high, lut="turbo",
+                                                       label="disparity (px per view step)", scale=factor))
+    figures.append(_figure("disparity.png", "Disparity",
+                           f"near is red, far is blue; dark grey: no value ({100 - maps.coverage:.1f} % of pixels)"))
+
+    if depth is not None:
+        camera = maps.camera
+        d_low, d_high = robust_range(depth)
+        picture = colour_map(depth, low=d_low, high=d_high, lut="turbo_r")
+        write_png(out / "depth.png", colourbar_figure(picture, low=d_low, high=d_high, lut="turbo_r",
+                                                       label="depth (mm)", scale=factor))
+        figures.append(_figure("depth.png", "Depth",
+                               f"Z = focal_px · pitch_mm / (d + d0), focal {camera.focal_px:.6g} px, "
+                               f"pitch {camera.pitch_mm:.4g} mm, d0 {camera.disparity_offset:.4g}"))
+        write_png(out / "shaded.png", image_figure(shaded_relief(depth, focal_px=camera.focal_px), scale=factor))
+        figures.append(_figure("shaded.png", "Shaded surface",
+                               "the depth map (smoothed over 1.5 px) lit from the upper left: bumps and false steps show as "
+                               "light and shade"))
+
+    if truth is not None:
+        error = disparity - truth
+        picture = colour_map(error, low=-error_range_px, high=error_range_px, lut="diverging")
+        write_png(out / "error.png", colourbar_figure(picture, low=-error_range_px, high=error_range_px,
+                                                       lut="diverging", label="estimate - truth (px)", scale=factor))
+        figures.append(_figure("error.png", "Disparity error",
+                               f"red: estimate too near, blue: too far; clipped at ±{error_range_px:g} px"))
+        grey = cv2.cvtColor(maps.view, cv2.COLOR_RGB2GRAY)
+        bad = (np.abs(error) > BADPIX_THRESHOLD) | (np.isfinite(truth) & ~maps.finite)
+        pale = (155 + 0.35 * grey).astype(np.uint8)
+        badpix = np.repeat(pale[..., None], 3, axis=-1)
+        badpix[bad] = (215, 25, 28)
+        border_px = maps.border_px
+        if border_px:
+            outside = np.ones(maps.shape, bool)
+            outside[border_px:-border_px, border_px:-border_px] = False
+            badpix[outside] = (badpix[outside] * 0.6).astype(np.uint8)
+        write_png(out / "badpix.png", image_figure(badpix, scale=factor))
+        caption = f"red: |error| > {BADPIX_THRESHOLD} px or no value"
+        if border_px:
+            caption += f"; the darker {border_px}-pixel border is not scored"
+        figures.append(_figure("badpix.png", f"BadPix {BADPIX_THRESHOLD}", caption))
+    return figures
+
+
+def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequence[str], window_size_px) -> list[str]:
+    """What the method explains itself with: region types and window sizes; returns their HTML."""
+    figures = []
+    if region_map is not None:
+        region = np.asarray(region_map)
+        picture = region_picture(region, names=region_names) if region.ndim == 2 else as_rgb8(region)
+        write_png(out / "regions.png", image_figure(picture, scale=maps.factor))
+        legend = []
+        for label, name in enumerate(region_names):
+            share = f" {100.0 * np.mean(region == label):.1f} %" if region.ndim == 2 else ""
+            colour = "#%02x%02x%02x" % REGION_COLOURS.get(name, UNLABELLED)
+            legend.append(f'<span><span class="swatch" style="background:{colour}"></span>{html.escape(name)}{share}</span>')
+        figures.append(_figure("regions.png", "Region types", "", extra=f'<div class="legend">{"".join(legend)}</div>'))
+
+    if window_size_px is not None:
+        sizes = np.asarray(window_size_px, dtype=np.float64)
+        if sizes.shape != maps.shape:
+            raise ValueError(f"window_size_px is {sizes.shape} but disparity_px is {maps.shape}")
+        present = np.unique(sizes[np.isfinite(sizes)])
+        w_low, w_high = (float(present.min()), float(present.max())) if present.size else (0.0, 1.0)
+        if w_high <= w_low:
+            w_low, w_high = w_low - 1, w_high + 1
+        ticks = present if 0 < present.size <= 8 else None
+        picture = colour_map(sizes, low=w_low, high=w_high, lut="viridis")
+        write_png(out / "window_size.png", colourbar_figure(picture, low=w_low, high=w_high, lut="viridis",
+                                                             label="window side (px)", ticks=ticks, scale=maps.factor))
+        figures.append(_figure("window_size.png", "Window size", "side of the square window chosen per pixel"))
+    return figures
+
+
+def _profiles(out: Path, maps: _Maps, rows: list[int]) -> list[str]:
+    """Disparity (and depth) along each row against the truth; returns the ``<img>`` tags."""
+    profiles = []
+    columns = np.arange(maps.shape[1])
+    for row in rows:
+        plots = []
+        series = [("estimate", maps.disparity[row], ESTIMATE, 2.0)]
+        if maps.truth is not None:
+            series.append(("truth", maps.truth[row], TRUTH, 1.0))
+        plots.append(line_plot(columns, series, xlabel=f"column x (px), row {row}", ylabel="disparity (px)"))
+        if maps.depth is not None:
+            series = [("estimate", maps.depth[row], ESTIMATE, 2.0)]
+            if maps.truth_depth is not None:
+                series.append(("truth", maps.truth_depth[row], TRUTH, 1.0))
+            plots.append(line_plot(columns, series, xlabel=f"column x (px), row {row}", ylabel="depth (mm)"))
+        name = f"profile_row{row}.png"
+        write_png(out / name, np.concatenate(plots, axis=1) if len(plots) > 1 else plots[0])
+        profiles.append(f'<img src="{name}" alt="profile along row {row}">')
+    return profiles
+
+
+def _figure(name: str, title: str, caption: str, *, extra: str = "") -> str:
+    text = f"<b>{html.escape(title)}</b>" + (f" — {html.escape(caption)}" if caption else "")
+    return f'<figure><img src="{name}" alt="{html.escape(title)}"><figcaption>{text}</figcaption>{extra}</figure>'
+
+
+# --------------------------------------------------------------------------------------------------
+# from a reconstruction folder
+# --------------------------------------------------------------------------------------------------
+
+
+def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = None) -> Path:
+    """:func:`write_report` for a reconstruction folder (:func:`recon.result.read_result`; ``lfrig
+    export --report``).
+
+    Reads, when present: the truth ``gt_disp_lowres.pfm`` in the ``source`` light-field folder;
+    ``regions.npy`` (``(H, W)`` labels 0..3) or ``regions.png`` (labels, or the coloured picture) and
+    ``window_size.npy`` in the result folder; ``scores``, ``method``, ``options`` and ``seconds``
+    from ``result.json``. ``camera`` defaults to the folder's own (none: no metric depth).
+    """
+    from recon.lf.benchmark import GROUND_TRUTH
+    from recon.lf.pfm import read_pfm
+
+    folder = Path(result.path)
+    record = result.record
+    if camera is None:
+        camera = record.camera
+    shape = result.disparity_px.shape
+    truth = None
+    source = source_folder(folder, record)
+    if source is not None and (source / GROUND_TRUTH).is_file():
+        truth = read_pfm(source / GROUND_TRUTH)
+        if truth.shape != shape:
+            truth = None
+    regions = None
+    if (folder / REGIONS_NPY).is_file():
+        regions = np.load(folder / REGIONS_NPY)
+    elif (folder / REGIONS_PNG).is_file():
+        from recon.lf.imageio import read_image
+
+        regions = read_image(folder / REGIONS_PNG)
+    window = np.load(folder / WINDOW_SIZE_NPY) if (folder / WINDOW_SIZE_NPY).is_file() else None
+    view = result.image
+    if view is None:
+        view = np.zeros(shape, np.uint8)
+    info = {key: value for key, value in (("method", record.method), ("options", record.options),
+                                          ("seconds", record.seconds), ("source", record.source)) if value}
+    # the run's own scores only when the page cannot score against the truth itself
+    extra = None if truth is not None else ({k: v for k, v in (record.scores or {}).items()
+                                             if not isinstance(v, Mapping)} or None)
+    return write_report(
+        out_dir,
+        centre_view=view,
+        disparity_px=result.disparity_px,
+        title=f"lfrig reconstruction: {source.name if source is not None else folder.name}",
+        subtitle=str(folder.resolve()),
+        truth_disparity_px=truth,
+        camera=camera,
+        region_map=regions if regions is not None and regions.shape[:2] == shape else None,
+        window_size_px=window if window is not None and window.shape == shape else None,
+        scores=extra,
+        info=info or None,
+    )
