@@ -3,9 +3,9 @@
     .venv/bin/python bench/calibration.py [--cases issue near ...] [--realizations 5] [--ablate]
                                           [--cache DIR] [--json FILE]
 
-Each case renders board images through a known lens with the simulated camera's renderer
-(``rig/fakecam.py``: the truth *is* an mrcal camera model; blur, noise, 2x2 supersampling at the
-board's outline, 8-bit quantisation), then calibrates them twice:
+Each case renders board images through a known lens with the simulated camera
+(``rig/fakecam.py``, ``rig/render.py``: the truth *is* an mrcal camera model; blur, noise, 2x2
+supersampling at the board's outline, 8-bit quantisation), then calibrates them twice:
 
 - **lfrig**: ``calib.intrinsics.calibrate_intrinsics_from_images`` (what ``lfrig calibrate
   intrinsics`` runs), lens model ``LENSMODEL_OPENCV8``;
@@ -102,7 +102,7 @@ CASES = {
 
 
 # ----------------------------------------------------------------------------------------------
-# Rendering (rig/fakecam.py) and the truth
+# Rendering (rig/fakecam.py, rig/render.py) and the truth
 # ----------------------------------------------------------------------------------------------
 
 def make_camera(case: Case):
@@ -123,7 +123,8 @@ def render_case(case: Case, cache: Path, *, realizations: int) -> tuple[list[lis
     """
     import cv2
 
-    from rig.fakecam import board_corners_world, calibration_poses, chessboard_scene
+    from rig.fakecam import calibration_poses
+    from rig.render import board_corners_world, chessboard_scene
 
     camera = make_camera(case)
     folder = cache / f"{case.name}-{case.key()}"

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from calib.intrinsics import Board, calibrate_intrinsics, detect_corners, projection_difference, refine_radii
-from rig.fakecam import FakeCamera, FakeRig, board_corners_world, calibration_poses, chessboard_scene
+from rig.fakecam import FakeCamera, FakeRig, calibration_poses
+from rig.render import board_corners_world, chessboard_scene
 
 BOARD = Board(10, 7, 10.0)  # 11x8 squares of 10 mm
 
