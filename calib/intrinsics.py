@@ -144,8 +144,9 @@ def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int | np
 
     Returns
     -------
-    ``(N, 2)`` refined positions; a corner whose window leaves the image, whose system is singular or
-    that would move by more than ``radius / 2`` keeps its starting position.
+    ``(N, 2)`` refined positions. Near the image's edge the window shrinks to fit (2 px at least); a
+    corner whose window still leaves the image, whose system is singular or that would move by more
+    than ``radius / 2`` keeps its starting position.
     """
     import cv2
 
@@ -156,6 +157,11 @@ def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int | np
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
     start = np.asarray(corners_xy, dtype=float).reshape(-1, 2)
     radii = np.broadcast_to(np.asarray(radius, dtype=int), (len(start),))
+    # near the image's edge a smaller window still fits (the gradients need one pixel of margin)
+    h, w = f.shape
+    with np.errstate(invalid="ignore"):
+        room = np.floor(np.min([start[:, 0], start[:, 1], w - 1 - start[:, 0], h - 1 - start[:, 1]], axis=0)) - 2
+    radii = np.where(np.isfinite(room), np.clip(np.minimum(radii, np.nan_to_num(room)), 2, None), radii).astype(int)
     out = start.copy()
     for r in np.unique(radii):
         sel = radii == r

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.intrinsics import Board, calibrate_intrinsics, detect_corners, projection_difference, refine_radii
+from calib.intrinsics import (Board, calibrate_intrinsics, detect_corners, projection_difference, refine_corners,
+                              refine_radii)
 from rig.fakecam import FakeCamera, FakeRig, calibration_poses
 from rig.render import board_corners_world, chessboard_scene
 
@@ -102,3 +103,14 @@ def test_noisy_corners_are_weighted_and_residuals_stay_in_pixels(camera, exact_v
     assert 0.012 < result.uncertainty_px["median"] < 0.025
     diff = projection_difference(result.model, camera.model, distance_mm=950.0)
     assert np.median(diff) < 0.05 and diff.max() < 0.15
+
+
+def test_windows_shrink_near_the_image_edge():
+    # an ideal X-junction at (4.3, 40.6), 4 px from the left edge: a 16 px window does not fit
+    from scipy.special import erf
+
+    y, x = np.mgrid[0:80, 0:80].astype(float)
+    image = np.rint(120 + 80 * erf((x - 4.3) / 1.2) * erf((y - 40.6) / 1.2)).astype(np.uint8)
+    refined = refine_corners(image, np.array([[5.0, 41.0]]), radius=16)
+    # a 3 px window fits: 0.05 px (a 16 px window would not, and the start, 0.76 px off, was kept)
+    assert np.linalg.norm(refined[0] - (4.3, 40.6)) < 0.08
