@@ -11,9 +11,10 @@ Pipeline (``calibrate_intrinsics_from_images``):
 2. **Solve** (:func:`calibrate_intrinsics`), in stages as mrcal's own tool does: a focal-length
    estimate from the boards' homographies (``cv2.initCameraMatrix2D``), mrcal's stereographic seed,
    a geometry-only solve, then the stereographic core, then the requested lens model (OPENCV8 by
-   default) with all intrinsics, mrcal's outlier rejection and regularisation; then again with every
-   corner weighted by ``1 / sigma``, ``sigma`` the corners' noise measured by that solve (mrcal sizes
-   its regularisation for residuals of about one weighted unit, see ``docs/calibration.md``).
+   default) with all intrinsics, mrcal's outlier rejection and regularisation; then (not for splined
+   models) again with every corner weighted by ``1 / sigma``, ``sigma`` the corners' noise measured
+   by that solve (mrcal sizes its regularisation for residuals of about one weighted unit, see
+   ``docs/calibration.md``).
 3. **Report** (:class:`IntrinsicsResult`): RMS and worst reprojection error, the outliers, the
    projection uncertainty (``mrcal.projection_uncertainty``) at the working distance across the
    imager, and a residual picture (:func:`write_residual_picture`).
@@ -489,9 +490,11 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
     # one unit; corners good to 0.01-0.03 px with weight 1 let it dominate and bias the model
     # (docs/calibration.md, "Why lfrig was behind OpenCV"). Weights 1/sigma make the weighted
     # residuals about 1, as mrcal expects; every seen corner gets a new chance as an inlier.
+    # Not for splined models: there the regularisation is what keeps the spline smooth where no
+    # board was seen (weighting made a 16x12 spline on 25 boards far worse in the imager's corners).
     seen = np.array(observations, dtype=float)[..., 2] > 0
     weight = 1.0
-    for _ in range(MAX_REWEIGHTINGS):
+    for _ in range(0 if lensmodel.startswith("LENSMODEL_SPLINED") else MAX_REWEIGHTINGS):
         sigma_px = _inlier_rms(stats["x"], obs, n, board) / weight
         new_weight = 1.0 / max(sigma_px, MIN_CORNER_SIGMA_PX)
         if new_weight <= 1.0 or abs(new_weight / weight - 1.0) < 0.25:
