@@ -244,7 +244,11 @@ def detect_corners(image: np.ndarray, board: Board, *, refine: bool = True) -> n
         xy = found_xy[..., :2].reshape(-1, 2)
     seen = np.all(np.isfinite(xy), axis=1)
     if refine:
-        radii = refine_radii(xy.reshape(board.rows, board.cols, 2))
+        fraction = 1.0 / 3.0
+        if board.charuco_dictionary is not None:  # the white gap between a square's edge and its marker
+            marker = board.marker_mm if board.marker_mm is not None else 0.7 * board.square_mm
+            fraction = min(fraction, 0.5 * (1.0 - marker / board.square_mm))
+        radii = refine_radii(xy.reshape(board.rows, board.cols, 2), fraction=fraction)
         xy[seen] = refine_corners(gray, xy[seen], radius=radii[seen])
     weight = np.where(seen, 1.0, -1.0).reshape(board.rows, board.cols, 1)
     out = np.concatenate([np.nan_to_num(xy).reshape(board.rows, board.cols, 2), weight], axis=-1)
@@ -257,10 +261,12 @@ def detect_corners(image: np.ndarray, board: Board, *, refine: bool = True) -> n
 MAX_REFINE_RADIUS_PX = 16
 
 
-def refine_radii(grid_xy: np.ndarray) -> np.ndarray:
+def refine_radii(grid_xy: np.ndarray, *, fraction: float = 1.0 / 3.0) -> np.ndarray:
     """Förstner window radius per corner of a ``(rows, cols, 2)`` grid (NaN for corners not seen):
-    a third of the smallest height of the squares around the corner (a square seen as a thin rhombus
-    has edges closer to the corner than its sides are long), 2 to :data:`MAX_REFINE_RADIUS_PX`.
+    ``fraction`` (a third) of the smallest height of the squares around the corner (a square seen
+    as a thin rhombus has edges closer to the corner than its sides are long), 2 to
+    :data:`MAX_REFINE_RADIUS_PX`. A ChArUco board needs a smaller fraction: its markers' edges must
+    stay outside the window.
 
     Returns ``(rows * cols,)`` ints.
     """
@@ -280,7 +286,7 @@ def refine_radii(grid_xy: np.ndarray) -> np.ndarray:
     per_corner = np.minimum.reduce([near[:-1, :-1], near[:-1, 1:], near[1:, :-1], near[1:, 1:]])
     fallback = float(np.min(height)) if np.isfinite(height).any() else 45.0
     per_corner = np.where(np.isfinite(per_corner), per_corner, fallback)
-    return np.clip(per_corner / 3.0, 2, MAX_REFINE_RADIUS_PX).astype(int).ravel()
+    return np.clip(per_corner * fraction, 2, MAX_REFINE_RADIUS_PX).astype(int).ravel()
 
 
 def charuco_board(board: Board):
