@@ -23,6 +23,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _register_import(subparsers)
 
 
+def _add_verify_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-verify", dest="verify", action="store_false",
+                        help="do not check a capture's views against the checksums in its journal")
+
+
 def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     info = subparsers.add_parser(
         "info",
@@ -31,6 +36,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     )
     info.add_argument("path", type=Path, help="light-field folder or .pfm file")
     info.add_argument("--json", action="store_true", help="print the description as JSON")
+    _add_verify_argument(info)
     info.set_defaults(handler=_info)
 
     rec = subparsers.add_parser(
@@ -50,6 +56,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_verify_argument(rec)
     rec.set_defaults(handler=_reconstruct)
 
     ev = subparsers.add_parser(
@@ -144,7 +151,7 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     return chosen
 
 
-def describe(path: Path) -> dict[str, Any]:
+def describe(path: Path, *, verify: bool = True) -> dict[str, Any]:
     """What ``lfrig info`` prints, as a dict."""
     import numpy as np
 
@@ -164,7 +171,7 @@ def describe(path: Path) -> dict[str, Any]:
             "min": float(finite.min()) if finite.size else None,
             "max": float(finite.max()) if finite.size else None,
         }
-    lf = read_lightfield(path)
+    lf = read_lightfield(path, verify=verify)
     rows, cols = lf.grid_shape
     height, width = lf.image_shape
     out: dict[str, Any] = {
@@ -184,7 +191,7 @@ def describe(path: Path) -> dict[str, Any]:
 
 
 def _info(args: argparse.Namespace) -> None:
-    info = describe(args.path)
+    info = describe(args.path, verify=args.verify)
     if args.json:
         print(json.dumps(info, indent=2))
         return
@@ -217,7 +224,8 @@ def _reconstruct(args: argparse.Namespace) -> None:
     options = method_options(args)
     with Progress(args.method, quiet=args.quiet) as bar:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
-                                       ply_kind="points" if args.points else "mesh", progress=bar)
+                                       ply_kind="points" if args.points else "mesh", progress=bar,
+                                       verify=args.verify)
     print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
     if folder.record.scores is not None:
         print(_format_scores(folder.record.scores))

@@ -30,3 +30,11 @@ class CaptureLayoutError(LightFieldFormatError):
 
 class ExportError(ReconError):
     """A reconstruction folder cannot be read or exported, or a PLY or depth file cannot be written."""
+
+
+class FileWriteError(ReconError):
+    """A file could not be written (full disk, no permission, a folder that went away...).
+
+    The message names the file and the system's reason; the file's previous content (if any) is
+    left as it was, because every file is written to a temporary name first and renamed into place.
+    """

@@ -153,12 +153,20 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
+    from recon.lf.lock import FolderLock
+
+    # Lock the folder before opening anything: a second capture must not touch the stage or camera
+    # (opening a GRBL's serial port resets it) while the first one drives them.
+    lock = FolderLock(args.out_dir, what="capture")
     devices = Devices()
     try:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
         doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
-        if args.no_home and doubt and not args.out_dir.exists():  # a resume is checked by the session
+        from recon.lf.capture import is_capture
+
+        # (not "the folder exists": the lock above has just created it)
+        if args.no_home and doubt and not is_capture(args.out_dir):  # a resume is checked by the session
             print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
                   "resume without homing will be refused after any reset", file=sys.stderr)
         try:
@@ -168,12 +176,14 @@ def _capture(args: argparse.Namespace) -> int:
                     feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
                     tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
                     progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+                    lock=lock,
                 )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130
     finally:
         devices.close()
+        lock.release()
     if result.interrupted:
         print(
             f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "

@@ -35,6 +35,7 @@ from rig.errors import RigError
 from rig.clock import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
 from recon.lf.capture import CaptureWriter
+from recon.lf.lock import FolderLock
 from rig.protocols import Camera, Stage
 
 LOG_NAME = "session.log"
@@ -216,6 +217,7 @@ def run_capture(
     progress: ProgressCallback | None = None,
     handle_sigint: bool = True,
     should_stop: Callable[[], bool] | None = None,
+    lock: FolderLock | None = None,
 ) -> SessionResult:
     """Capture (or resume) the grid into the folder ``path``.
 
@@ -242,6 +244,9 @@ def run_capture(
         ``progress(fraction, message)`` after each view (:mod:`recon.progress`), or ``None``.
     should_stop
         Called after each view; returning True stops like a first Ctrl-C (for embedding and tests).
+    lock
+        The folder's lock (:class:`recon.lf.lock.FolderLock`) when the caller took it already (the
+        command line takes it before it opens the devices); else it is taken here.
 
     Returns
     -------
@@ -252,6 +257,8 @@ def run_capture(
     ------
     recon.errors.CaptureLayoutError
         The folder holds a capture with other settings (nothing moved).
+    recon.lf.lock.FolderLockedError
+        Another capture is running in the folder (nothing moved).
     rig.grid.GridError
         A move lies outside the stage's travel (nothing moved).
     CaptureAborted
@@ -273,7 +280,7 @@ def run_capture(
         stage_settings=stage_settings,
         extra=header_extra,
     )
-    writer = CaptureWriter(path, header=header)
+    writer = CaptureWriter(path, header=header, lock=lock)
     log = SessionLog(path / LOG_NAME)
     interrupts = _Interrupts(log, sys.stderr)
     total = grid.rows * grid.cols
