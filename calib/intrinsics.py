@@ -2,15 +2,19 @@
 
 Pipeline (``calibrate_intrinsics_from_images``):
 
-1. **Corners** (:func:`detect_corners`): ``cv2.findChessboardCornersSB`` for a chessboard, or the
-   ChArUco detector of opencv-contrib (partial views allowed). Corners come back in mrcal's board
+1. **Corners** (:func:`detect_corners`): ``cv2.findChessboardCornersSB`` for a chessboard (and
+   ``cv2.findChessboardCorners`` where it fails), or the ChArUco detector of opencv-contrib (partial
+   views allowed), then Förstner refinement (:func:`refine_corners`). Corners come back in mrcal's board
    layout, ``(rows, cols, 3)`` = ``(x, y, weight)`` with ``weight = -1`` for a corner not seen, the
    first corner the one nearer the image's top-left (the 180 deg ambiguity of a chessboard is
    resolved the same way in every image). Images without a board are listed and skipped.
 2. **Solve** (:func:`calibrate_intrinsics`), in stages as mrcal's own tool does: a focal-length
    estimate from the boards' homographies (``cv2.initCameraMatrix2D``), mrcal's stereographic seed,
    a geometry-only solve, then the stereographic core, then the requested lens model (OPENCV8 by
-   default) with all intrinsics, mrcal's outlier rejection and regularisation.
+   default) with all intrinsics, mrcal's outlier rejection and regularisation; then (not for splined
+   models) again with every corner weighted by ``1 / sigma``, ``sigma`` the corners' noise measured
+   by that solve (mrcal sizes its regularisation for residuals of about one weighted unit, see
+   ``docs/calibration.md``).
 3. **Report** (:class:`IntrinsicsResult`): RMS and worst reprojection error, the outliers, the
    projection uncertainty (``mrcal.projection_uncertainty``) at the working distance across the
    imager, and a residual picture (:func:`write_residual_picture`).
@@ -35,6 +39,11 @@ from calib.errors import CalibError
 DEFAULT_LENSMODEL = "LENSMODEL_OPENCV8"
 #: Fewest images with a detected board that :func:`calibrate_intrinsics` accepts.
 MIN_IMAGES = 4
+#: Floor of the corner noise (px) from which :func:`calibrate_intrinsics` weights the corners:
+#: weights stay below 1 / this even for corners that fit exactly (rendered, noise-free boards).
+MIN_CORNER_SIGMA_PX = 1e-3
+#: Re-solves with corner weights 1 / (measured noise) after the first full solve.
+MAX_REWEIGHTINGS = 3
 
 
 @dataclass(frozen=True)
@@ -112,7 +121,7 @@ def _orient(corners: np.ndarray) -> np.ndarray:
     return corners
 
 
-def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int = 5, blur_px: float = 1.0,
+def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int | np.ndarray = 5, blur_px: float = 1.0,
                    iterations: int = 5) -> np.ndarray:
     """Refine chessboard corners to the point where the image's edges meet (Förstner's operator).
 
@@ -122,7 +131,8 @@ def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int = 5,
     by ``blur_px``). Unlike OpenCV's ``cornerSubPix`` this uses the gradients at whole pixels (no
     resampling) and the result is unbiased for any X-junction of straight edges, tilted boards
     included: on rendered boards with a realistic lens blur it is within ~0.005 px of the truth
-    where ``findChessboardCornersSB`` alone is off by 0.02-0.04 px.
+    where ``findChessboardCornersSB`` alone is off by 0.02-0.04 px. Its noise falls as the window
+    grows, so the window should be as large as the board allows (see :func:`refine_radii`).
 
     Parameters
     ----------
@@ -130,11 +140,14 @@ def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int = 5,
         ``(H, W)`` image.
     corners_xy
         ``(N, 2)`` starting positions ``(x, y)`` in pixels (within about a pixel of the corners).
+    radius
+        Window half-size in pixels: one for all corners, or ``(N,)`` one per corner.
 
     Returns
     -------
-    ``(N, 2)`` refined positions; a corner whose window leaves the image, whose system is singular or
-    that would move by more than ``radius / 2`` keeps its starting position.
+    ``(N, 2)`` refined positions. Near the image's edge the window shrinks to fit (2 px at least); a
+    corner whose window still leaves the image, whose system is singular or that would move by more
+    than ``radius / 2`` keeps its starting position.
     """
     import cv2
 
@@ -143,8 +156,23 @@ def refine_corners(gray: np.ndarray, corners_xy: np.ndarray, *, radius: int = 5,
         f = cv2.GaussianBlur(f, (0, 0), blur_px)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    h, w = f.shape
     start = np.asarray(corners_xy, dtype=float).reshape(-1, 2)
+    radii = np.broadcast_to(np.asarray(radius, dtype=int), (len(start),))
+    # near the image's edge a smaller window still fits (the gradients need one pixel of margin)
+    h, w = f.shape
+    with np.errstate(invalid="ignore"):
+        room = np.floor(np.min([start[:, 0], start[:, 1], w - 1 - start[:, 0], h - 1 - start[:, 1]], axis=0)) - 2
+    radii = np.where(np.isfinite(room), np.clip(np.minimum(radii, np.nan_to_num(room)), 2, None), radii).astype(int)
+    out = start.copy()
+    for r in np.unique(radii):
+        sel = radii == r
+        out[sel] = _refine_forstner(gx, gy, start[sel], int(r), iterations)
+    return out
+
+
+def _refine_forstner(gx: np.ndarray, gy: np.ndarray, start: np.ndarray, radius: int, iterations: int) -> np.ndarray:
+    """:func:`refine_corners` for one window radius, on precomputed gradients ``gx``, ``gy``."""
+    h, w = gx.shape
     p = start.copy()
     dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
     dx, dy = dx.ravel(), dy.ravel()
@@ -200,6 +228,13 @@ def detect_corners(image: np.ndarray, board: Board, *, refine: bool = True) -> n
             if found and corners is not None:
                 break
         if not found or corners is None:
+            # The sector-based detector gives up on strongly foreshortened boards (squares seen as
+            # thin rhombi) that OpenCV's quad-based detector still finds; its corners are only
+            # pixel-accurate, which the refinement below takes care of.
+            found, corners = cv2.findChessboardCorners(
+                gray, (board.cols, board.rows),
+                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found or corners is None:
             return None
         xy = corners.reshape(-1, 2).astype(float)
     else:
@@ -209,7 +244,12 @@ def detect_corners(image: np.ndarray, board: Board, *, refine: bool = True) -> n
         xy = found_xy[..., :2].reshape(-1, 2)
     seen = np.all(np.isfinite(xy), axis=1)
     if refine:
-        xy[seen] = refine_corners(gray, xy[seen], radius=_refine_radius(xy, board))
+        fraction = 1.0 / 3.0
+        if board.charuco_dictionary is not None:  # the white gap between a square's edge and its marker
+            marker = board.marker_mm if board.marker_mm is not None else 0.7 * board.square_mm
+            fraction = min(fraction, 0.5 * (1.0 - marker / board.square_mm))
+        radii = refine_radii(xy.reshape(board.rows, board.cols, 2), fraction=fraction)
+        xy[seen] = refine_corners(gray, xy[seen], radius=radii[seen])
     weight = np.where(seen, 1.0, -1.0).reshape(board.rows, board.cols, 1)
     out = np.concatenate([np.nan_to_num(xy).reshape(board.rows, board.cols, 2), weight], axis=-1)
     if board.charuco_dictionary is None:
@@ -217,14 +257,36 @@ def detect_corners(image: np.ndarray, board: Board, *, refine: bool = True) -> n
     return out  # ChArUco ids fix the orientation: no half-turn ambiguity
 
 
-def _refine_radius(xy: np.ndarray, board: Board) -> int:
-    """Förstner window radius: a third of the smallest square side seen, 2 to 6 px."""
-    grid = xy.reshape(board.rows, board.cols, 2)
-    steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
-                            np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()])
-    steps = steps[np.isfinite(steps) & (steps > 0)]
-    side = float(np.min(steps)) if steps.size else 15.0
-    return int(np.clip(side / 3.0, 2, 6))
+#: Largest Förstner window radius (px): 16 px windows average 4x less noise than 6 px ones.
+MAX_REFINE_RADIUS_PX = 16
+
+
+def refine_radii(grid_xy: np.ndarray, *, fraction: float = 1.0 / 3.0) -> np.ndarray:
+    """Förstner window radius per corner of a ``(rows, cols, 2)`` grid (NaN for corners not seen):
+    ``fraction`` (a third) of the smallest height of the squares around the corner (a square seen
+    as a thin rhombus has edges closer to the corner than its sides are long), 2 to
+    :data:`MAX_REFINE_RADIUS_PX`. A ChArUco board needs a smaller fraction: its markers' edges must
+    stay outside the window.
+
+    Returns ``(rows * cols,)`` ints.
+    """
+    g = np.asarray(grid_xy, dtype=float)
+    rows, cols = g.shape[:2]
+    a = g[:-1, 1:] - g[:-1, :-1]    # cell edge along the row
+    b = g[1:, :-1] - g[:-1, :-1]    # cell edge along the column
+    c = g[1:, 1:] - g[1:, :-1]      # the opposite edges (a cell is not quite a parallelogram)
+    d = g[1:, 1:] - g[:-1, 1:]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cross = np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+        longest = np.max(np.stack([np.linalg.norm(v, axis=-1) for v in (a, b, c, d)]), axis=0)
+        height = cross / longest
+    height = np.where(np.isfinite(height) & (height > 0), height, np.inf)
+    near = np.full((rows + 1, cols + 1), np.inf)
+    near[1:-1, 1:-1] = height
+    per_corner = np.minimum.reduce([near[:-1, :-1], near[:-1, 1:], near[1:, :-1], near[1:, 1:]])
+    fallback = float(np.min(height)) if np.isfinite(height).any() else 45.0
+    per_corner = np.where(np.isfinite(per_corner), per_corner, fallback)
+    return np.clip(per_corner * fraction, 2, MAX_REFINE_RADIUS_PX).astype(int).ravel()
 
 
 def charuco_board(board: Board):
@@ -278,7 +340,9 @@ class IntrinsicsResult:
     residuals_px
         ``(N, rows, cols, 2)`` reprojection residuals (observed minus predicted is mrcal's sign).
     observations
-        ``(N, rows, cols, 3)`` the corners as solved (weight < 0: outlier or not seen).
+        ``(N, rows, cols, 3)`` the corners as solved: weight ``1 / sigma`` with ``sigma`` the corners'
+        measured noise in pixels (at most 1 / :data:`MIN_CORNER_SIGMA_PX`, at least 1), or < 0 for an
+        outlier or a corner not seen.
     uncertainty_px
         Worst-direction projection standard deviation at ``working_distance_mm``:
         ``{"centre": ..., "median": ..., "max": ...}`` over a grid on the imager.
@@ -427,9 +491,26 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
                                do_optimize_extrinsics=False, do_optimize_frames=True,
                                do_apply_outlier_rejection=True, do_apply_regularization=True, **common)
     stats = mrcal.optimize(**optimization_inputs)
+    # Stage 4: weight the corners by their measured noise and solve again. mrcal's regularisation
+    # (distortions towards 0, principal point towards the centre) is sized for residuals of about
+    # one unit; corners good to 0.01-0.03 px with weight 1 let it dominate and bias the model
+    # (docs/calibration.md, "Why lfrig was behind OpenCV"). Weights 1/sigma make the weighted
+    # residuals about 1, as mrcal expects; every seen corner gets a new chance as an inlier.
+    # Not for splined models: there the regularisation is what keeps the spline smooth where no
+    # board was seen (weighting made a 16x12 spline on 25 boards far worse in the imager's corners).
+    seen = np.array(observations, dtype=float)[..., 2] > 0
+    weight = 1.0
+    for _ in range(0 if lensmodel.startswith("LENSMODEL_SPLINED") else MAX_REWEIGHTINGS):
+        sigma_px = _inlier_rms(stats["x"], obs, n, board) / weight
+        new_weight = 1.0 / max(sigma_px, MIN_CORNER_SIGMA_PX)
+        if new_weight <= 1.0 or abs(new_weight / weight - 1.0) < 0.25:
+            break
+        weight = new_weight
+        obs[..., 2] = np.where(seen, weight, -1.0)
+        stats = mrcal.optimize(**optimization_inputs)
     model = mrcal.cameramodel(optimization_inputs=optimization_inputs, icam_intrinsics=0)
 
-    residuals = stats["x"][: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2)
+    residuals = stats["x"][: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2) / weight
     inlier = obs[..., 2] > 0
     err = np.linalg.norm(residuals, axis=-1)
     if not inlier.any():
@@ -437,7 +518,6 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
     rms = float(np.sqrt(np.mean(err[inlier] ** 2) / 2))
     per_image = np.array([float(np.sqrt(np.mean(e[m] ** 2) / 2)) if m.any() else math.nan
                           for e, m in zip(err, inlier)])
-    seen = np.array(observations, dtype=float)[..., 2] > 0
     outliers = np.argwhere(seen & ~inlier)
     if not np.isfinite(rms) or rms > 10.0:
         raise CalibError(f"the calibration did not converge (RMS {rms:.1f} px); check --board COLSxROWS "
@@ -447,6 +527,15 @@ def calibrate_intrinsics(observations: np.ndarray, *, board: Board, image_size: 
                             n_corners=int(seen.sum()), per_image_rms_px=per_image, residuals_px=residuals,
                             observations=obs, uncertainty_px=uncertainty,
                             working_distance_mm=float(working_distance_mm), used=names)
+
+
+def _inlier_rms(x: np.ndarray, obs: np.ndarray, n: int, board: Board) -> float:
+    """RMS per coordinate of the (weighted) residuals ``x`` of the inlier corners of ``obs``."""
+    residuals = np.asarray(x)[: obs.size // 3 * 2].reshape(n, board.rows, board.cols, 2)
+    inlier = obs[..., 2] > 0
+    if not inlier.any():
+        return math.inf
+    return float(np.sqrt(np.mean(residuals[inlier] ** 2)))
 
 
 def projection_uncertainty_summary(model: Any, *, distance_mm: float, grid: tuple[int, int] = (12, 9)) -> dict[str, float]:

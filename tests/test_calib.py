@@ -198,7 +198,10 @@ def test_rectify_command_makes_a_pure_translation_light_field(camera, stage_file
     raw = read_lightfield(tmp_path / "check").views
     before, _, _ = pure_translation_fit(tracks(rectify_views(raw, undistortion(load_model(model_path)))))
     assert after <= 0.15
-    assert after < 0.02 and before > 5 * after
+    # The floor here is cv2.remap's, not the rectification's: it rounds source coordinates to 1/32 px
+    # (INTER_TAB_SIZE, opencv/opencv#25937), and the corner refinement's windows (up to 16 px since
+    # issue 12, for noisy raw images) integrate that rounding's pattern: 0.02-0.025 px here.
+    assert after < 0.03 and before > 5 * after
     # the board is at about 900-930 mm: d = focal * pitch / Z
     assert np.median(d) == pytest.approx(lf.focal_px * lf.pitch_mm / 915.0, rel=0.03)
 
