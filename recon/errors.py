@@ -30,3 +30,8 @@ class CaptureLayoutError(LightFieldFormatError):
 
 class ExportError(ReconError):
     """A reconstruction folder cannot be read or exported, or a PLY or depth file cannot be written."""
+
+
+class OutputPathError(ReconError):
+    """An output path cannot be written: a file where a folder is wanted (or the reverse), a
+    read-only or full filesystem, no permission. Checked before the work starts."""

@@ -13,6 +13,7 @@ readable ``result.json`` holds the disparity maps it describes.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from recon.errors import ReconError
+from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
 from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
 from recon.progress import ProgressCallback
@@ -31,6 +33,12 @@ from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_J
 #: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or
 #: ``progress(fraction, message)`` (:mod:`recon.progress`).
 Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
+
+#: The finest candidate spacing accepted (pixels per view step): finer steps resolve nothing more
+#: (the sub-step parabola does that) and make the cost volume enormous.
+MIN_STEP_PX = 1e-3
+#: The largest matching window accepted (pixels).
+MAX_WINDOW_PX = 255
 
 
 @dataclass
@@ -62,11 +70,28 @@ def check_options(method: str, options: Mapping[str, Any]) -> None:
     a bug and keeps its traceback.
     """
     rng = options.get("disparity_range")
-    if rng is not None and not (len(rng) == 2 and float(rng[0]) < float(rng[1])):
-        raise ReconError(f"disparity range {tuple(rng)}: MIN must be less than MAX")
+    if rng is not None:
+        try:
+            low, high = (float(v) for v in rng)
+        except (TypeError, ValueError):
+            raise ReconError(f"disparity range {rng!r}: give two numbers, MIN and MAX") from None
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ReconError(f"disparity range ({low}, {high}): give finite MIN < MAX, pixels per view step")
+    for name, value in options.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ReconError(f"{method}: {name} = {value}: give a finite number")
+    for name in ("step", "initial_step"):
+        value = options.get(name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < MIN_STEP_PX:
+            raise ReconError(f"{method}: {name} = {value:g} px is finer than any estimate resolves and would make "
+                             f"millions of candidate disparities; give at least {MIN_STEP_PX:g}, e.g. 0.02")
+    sizes = [options.get("window")] + list(options.get("window_sizes") or [])
+    for size in sizes:
+        if isinstance(size, int) and not isinstance(size, bool) and size > MAX_WINDOW_PX:
+            raise ReconError(f"{method}: window of {size} px is larger than {MAX_WINDOW_PX} px; give a smaller one")
     try:
         check_method_options(method, options)
-    except ValueError as error:
+    except (ValueError, TypeError) as error:
         raise ReconError(f"{method}: {error}") from None
 
 
@@ -129,11 +154,18 @@ def reconstruct_to_folder(
     check_options(method, opts)
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = writable_folder(out_dir, what="result folder")
+    if ply is not None:
+        writable_file(ply, what="PLY")
     # A stale result.json must not describe the new maps while they are being written: it goes first,
     # and the new one is renamed in last.
     (out / RESULT_JSON).unlink(missing_ok=True)
+    gt = read_ground_truth(lf)  # before the work: a broken truth file fails now, not after the estimate
+    if gt is not None and gt.shape != lf.image_shape:
+        from recon.evaluate import describe_map
+
+        raise ReconError(f"{lf.metadata.get('ground_truth')}: ground truth is {describe_map(gt)} but the views are "
+                         f"{lf.image_shape[1]}x{lf.image_shape[0]}; remove or replace it")
     started = time.perf_counter()
     method_result = (estimate or run_in_process)(lf, method, opts, progress)
     disparity = method_result.disparity
@@ -147,7 +179,6 @@ def reconstruct_to_folder(
         files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
-    gt = read_ground_truth(lf)
     record = ResultRecord(
         method=method, options=jsonable(method_result.options), source=source,
         image=[lf.image_shape[1], lf.image_shape[0]], grid=list(lf.grid_shape),

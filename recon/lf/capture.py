@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 from datetime import datetime, timezone
@@ -28,7 +29,7 @@ import numpy as np
 from recon.lf.imageio import read_images, write_png
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
-from recon.lf.params import camera_from_parameters, parameters_for, read_parameters, write_parameters
+from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, parameters_for, read_parameters, write_parameters
 
 FORMAT = "lfrig-capture"
 VERSION = 1
@@ -60,6 +61,11 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         lines = manifest.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:
         raise CaptureLayoutError(f"{manifest}: no such file; {path} is not an lfrig capture") from None
+    except UnicodeDecodeError as error:
+        line = manifest.read_bytes()[: error.start].count(b"\n") + 1
+        raise CaptureLayoutError(f"{manifest}: line {line} is not UTF-8 text; the journal is damaged") from None
+    except OSError as error:
+        raise CaptureLayoutError(f"{manifest}: cannot read ({error.strerror})") from None
     records: list[dict[str, Any]] = []
     for number, line in enumerate(lines, start=1):
         if not line.strip():
@@ -72,6 +78,8 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
             raise CaptureLayoutError(f"{manifest}: line {number} is not valid JSON; the journal is damaged") from None
         if not isinstance(record, dict):
             raise CaptureLayoutError(f"{manifest}: line {number} is not a JSON object")
+        if record.get("kind") == "view":
+            _check_view_record(record, where=f"{manifest}: line {number}")
         records.append(record)
     if not records or records[0].get("kind") != "header" or records[0].get("format") != FORMAT:
         raise CaptureLayoutError(f"{manifest}: the first line is not an {FORMAT} header")
@@ -80,10 +88,33 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         raise CaptureLayoutError(
             f"{manifest}: capture format version {header.get('version')!r}; this lfrig reads version {VERSION}"
         )
-    grid = header.get("grid", {})
-    if not (isinstance(grid.get("rows"), int) and isinstance(grid.get("cols"), int) and grid["rows"] > 0 and grid["cols"] > 0):
-        raise CaptureLayoutError(f"{manifest}: header has no valid grid rows/cols")
+    grid = header.get("grid")
+    if not (isinstance(grid, dict) and _is_int(grid.get("rows")) and _is_int(grid.get("cols"))
+            and 0 < grid["rows"] <= MAX_GRID_SIDE and 0 < grid["cols"] <= MAX_GRID_SIDE):
+        raise CaptureLayoutError(
+            f"{manifest}: header has no valid grid (rows and cols must be integers from 1 to {MAX_GRID_SIDE})")
+    pitch = grid.get("pitch_mm")
+    if pitch is not None and not (isinstance(pitch, (int, float)) and not isinstance(pitch, bool)
+                                  and math.isfinite(pitch) and pitch > 0):
+        raise CaptureLayoutError(f"{manifest}: header grid pitch_mm = {pitch!r} must be a positive number of mm")
+    if not isinstance(header.get("settings", {}), dict):
+        raise CaptureLayoutError(f"{manifest}: header settings must be a JSON object")
     return header, records[1:]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_view_record(record: dict[str, Any], *, where: str) -> None:
+    """A view record's fields have their types: ``u``, ``v`` integers >= 0, ``file`` and ``sha256``
+    strings. (Whether ``u``, ``v`` lie in the grid and the file matches is checked by the callers.)"""
+    for key in ("u", "v"):
+        if not (_is_int(record.get(key)) and record[key] >= 0):
+            raise CaptureLayoutError(f"{where}: view record has {key} = {record.get(key)!r}; expected an integer >= 0")
+    for key in ("file", "sha256"):
+        if not isinstance(record.get(key), str):
+            raise CaptureLayoutError(f"{where}: view record has {key} = {record.get(key)!r}; expected a string")
 
 
 class CaptureWriter:
@@ -275,7 +306,7 @@ def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: d
                 writer.write_view(u, v, lf.views[u, v])
         writer.write_parameters(
             image_shape=lf.image_shape,
-            pitch_mm=lf.pitch_mm if lf.pitch_mm is not None else 0.0,
+            pitch_mm=lf.pitch_mm,
             focal_px=lf.focal_px,
             disparity_range=lf.disparity_range,
             disparity_offset=lf.disparity_offset,

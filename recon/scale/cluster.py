@@ -137,7 +137,7 @@ def connect(
             raise ScaleError("--workers sizes a local cluster; with --scheduler, start that many `dask worker`s instead")
         try:
             client = Client(scheduler, timeout=timeout_s)
-        except (OSError, TimeoutError) as error:
+        except (OSError, TimeoutError, ValueError, TypeError) as error:  # ValueError: not an address
             raise ScaleError(
                 f"cannot reach the Dask scheduler at {scheduler} ({error}); start one with "
                 "`dask scheduler` and pass the address it prints (tcp://HOST:PORT)"
