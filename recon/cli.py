@@ -375,6 +375,9 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
                      help="split each centre view into SIZE x SIZE tiles run as separate tasks, then stitch")
     rec.add_argument("--halo", type=nonnegative_int, metavar="PX", help="with --tile: halo in pixels (default: the method's)")
     rec.add_argument("--force", action="store_true", help="redo captures whose results are complete")
+    rec.add_argument("--worker-timeout-s", type=positive_float, default=60.0, metavar="S",
+                     help="with no worker connected for this long (at the start or after all were lost), say so "
+                          "and stop; the captures not run are reported as failed (default 60)")
     rec.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
                      help="local cluster: where the dashboard listens, a free port if this one is taken "
                           "(default 127.0.0.1:8787)")
@@ -410,11 +413,12 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
         outcomes = run_batch(None, plan, transfer=transfer, on_outcome=show)
     else:
         with connect(scheduler=args.scheduler, workers=args.workers, tasks=None if args.tile else len(plan.todo),
-                     dashboard_address=args.dashboard_address) as connection:
+                     dashboard_address=args.dashboard_address, timeout_s=args.worker_timeout_s) as connection:
             print(connection.describe() + f"; data: {transfer}", flush=True)
             print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
-                                 on_outcome=show)
+                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", flush=True),
+                                 no_worker_timeout_s=args.worker_timeout_s)
     print()
     print(format_summary(outcomes))
     failed = [o for o in outcomes if o.status == "failed"]
