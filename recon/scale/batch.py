@@ -472,6 +472,7 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
     from collections import deque
 
     from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
 
     say = note or (lambda text: None)
     request = plan.request
@@ -497,20 +498,30 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
         except Exception:  # noqa: BLE001 - asked while the connection is down: treat as none
             return 0
 
-    def submit(task: _Task) -> None:
+    def submit(task: _Task) -> bool:
+        """Submit one capture; False when sending failed (the task is back in ``pending``)."""
         job = task.job
         try:
             payload = read_payload(job.source) if transfer == "ship" else None
         except (OSError, ScaleError) as error:
             failed(task, str(error))
-            return
-        if payload is not None:
-            # straight to a worker, not through the scheduler's graph (a list, so the dict is one piece)
-            task.payload = client.scatter([payload], hash=False)[0]
-        future = client.submit(reconstruct_capture, str(job.source),
-                               None if transfer == "ship" else str(job.out_dir), request, task.payload, threads,
-                               pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
+            return True
+        try:
+            if payload is not None:
+                # straight to a worker, not through the scheduler's graph (a list, so the dict is one piece)
+                task.payload = client.scatter([payload], hash=False)[0]
+            future = client.submit(reconstruct_capture, str(job.source),
+                                   None if transfer == "ship" else str(job.out_dir), request, task.payload, threads,
+                                   pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
+        except (CommClosedError, ConnectionError, TimeoutError) as error:
+            # the worker chosen for the views (or the scheduler) went away during the call: try again;
+            # if it was the scheduler, the loop's status check stops the batch
+            task.payload = None
+            pending.appendleft(task)
+            say(f"{job.name}: sending it failed ({type(error).__name__}); trying again")
+            return False
         running[future] = task
+        return True
 
     def release(future: Any, task: _Task) -> None:
         future.release()
@@ -560,7 +571,9 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
                 no_worker_since = None
                 say(f"{count} Dask worker(s) connected again; going on")
             while count and pending and len(running) < window:
-                submit(pending.popleft())
+                if not submit(pending.popleft()):
+                    time.sleep(poll_s)
+                    break
             if not running:
                 time.sleep(poll_s)
                 continue
@@ -593,13 +606,14 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
                 release(future, task)
                 report_one(_finish(task.job, request, task.fingerprint, result, transfer))
 
-    from distributed.comm.core import CommClosedError
-
     try:
         loop()
-    except (CommClosedError, ConnectionError) as error:  # the scheduler went away mid-call (scatter, submit...)
-        if getattr(client, "status", "running") == "running" and not isinstance(error, CommClosedError):
-            raise
+    except (CommClosedError, ConnectionError):  # the scheduler went away mid-call (a status query, a release)
+        deadline = time.monotonic() + SCHEDULER_GRACE_S
+        while getattr(client, "status", "running") == "running" and time.monotonic() < deadline:
+            time.sleep(poll_s)
+        if getattr(client, "status", "running") == "running":
+            raise  # not the scheduler: a bug, keep the traceback
         raise scheduler_lost() from None
 
 
