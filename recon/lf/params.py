@@ -113,8 +113,8 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         if None not in (focal_mm, sensor_mm, res_x, res_y) and sensor_mm > 0:
             focal_px = benchmark_focal_px(focal_length_mm=focal_mm, sensor_size_mm=sensor_mm, width_px=res_x, height_px=res_y)
     offset = _number(parameters, "lfrig", "disparity_offset_px", path)
+    focus_m = _number(parameters, "extrinsics", "focus_distance_m", path, positive=True)
     if offset is None:
-        focus_m = _number(parameters, "extrinsics", "focus_distance_m", path, positive=True)
         offset = 0.0
         if focus_m and focal_px and pitch_mm and "lfrig" not in parameters:
             offset = focus_disparity_px(focal_px=focal_px, pitch_mm=pitch_mm, focus_distance_m=focus_m)
