@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from calib.errors import CalibError
+from recon.lf.params import is_finite
 from calib.intrinsics import Board, detect_corners
 
 FORMAT = "lfrig-stage"
@@ -184,7 +185,7 @@ class StageCalibration:
                 t_cam_board_mm=np.asarray(d.pop("t_cam_board_mm"), dtype=float),
                 **d,
             )
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise CalibError(f"{path}: incomplete or malformed stage calibration ({e}); make it again "
                              "with `lfrig calibrate stage`") from None
         problem = stage._problem()
@@ -195,7 +196,7 @@ class StageCalibration:
     def _problem(self) -> str | None:
         """What makes a loaded calibration unusable, or ``None``."""
         def number(value: Any) -> bool:
-            return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and is_finite(value)
 
         if not (len(self.grid) == 2 and all(isinstance(n, int) and not isinstance(n, bool) and n > 0
                                              for n in self.grid)):

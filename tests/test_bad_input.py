@@ -152,9 +152,9 @@ def test_read_only_or_full_output_is_one_line_before_the_work(capture, tmp_path,
     out = tmp_path / "out"
     out.mkdir()
     _fail_writes_under(monkeypatch, out, code)
-    import recon.methods
+    import recon.pipeline
 
-    monkeypatch.setattr(recon.methods, "run_method", lambda *a, **k: pytest.fail("the estimate started"))
+    monkeypatch.setattr(recon.pipeline, "run_in_process", lambda *a, **k: pytest.fail("the estimate started"))
     one_line_error(capsys, main(["reconstruct", str(capture), "-o", str(out / "r"), *BASELINE]), str(out), needle)
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import re
 from datetime import datetime, timezone
@@ -29,7 +28,7 @@ import numpy as np
 from recon.lf.imageio import read_images, write_png
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
-from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, parameters_for, read_parameters, write_parameters
+from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, is_finite, parameters_for, read_parameters, write_parameters
 
 FORMAT = "lfrig-capture"
 VERSION = 1
@@ -95,7 +94,7 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
             f"{manifest}: header has no valid grid (rows and cols must be integers from 1 to {MAX_GRID_SIDE})")
     pitch = grid.get("pitch_mm")
     if pitch is not None and not (isinstance(pitch, (int, float)) and not isinstance(pitch, bool)
-                                  and math.isfinite(pitch) and pitch > 0):
+                                  and is_finite(pitch) and pitch > 0):
         raise CaptureLayoutError(f"{manifest}: header grid pitch_mm = {pitch!r} must be a positive number of mm")
     if not isinstance(header.get("settings", {}), dict):
         raise CaptureLayoutError(f"{manifest}: header settings must be a JSON object")

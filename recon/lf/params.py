@@ -71,11 +71,19 @@ def write_parameters(path: str | os.PathLike, parameters: Parameters) -> None:
 MAX_GRID_SIDE = 1024
 
 
+def is_finite(value: int | float) -> bool:
+    """``math.isfinite`` that says False for an integer too large for a float (instead of raising)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _number(parameters: Parameters, section: str, key: str, path: Path, *, positive: bool = False) -> float | None:
     value = parameters.get(section, {}).get(key)
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not is_finite(value):
         raise LightFieldFormatError(f"{path}: [{section}] {key} = {value!r} is not a finite number")
     if positive and not value > 0:
         raise LightFieldFormatError(f"{path}: [{section}] {key} = {value!r} must be positive; fix or remove the line")
