@@ -138,7 +138,13 @@ def _stage(args: argparse.Namespace) -> int:
 
 
 def _rectify(args: argparse.Namespace) -> int:
+    from calib.errors import CalibError
     from calib.rectify import rectify_capture
+    from recon.paths import writable_folder
+
+    if args.output.is_dir() and any(args.output.iterdir()):  # before the work, not after it
+        raise CalibError(f"{args.output}: folder exists and is not empty; choose a new output folder")
+    writable_folder(args.output, what="rectified capture")
 
     rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
                            focal_px=args.focal_px, crop=args.crop)
