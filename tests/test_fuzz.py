@@ -5,7 +5,7 @@ example database) damages valid files the way disks, editors and half-finished w
 inserted, deleted and truncated bytes; JSON values replaced by NaN, huge, negative, wrongly typed or
 missing ones; INI values replaced by junk) and feeds them to each loader: ``manifest.jsonl`` and the
 views of a capture, ``parameters.cfg``, PFM, ``result.json``, ``stage.json``, mrcal camera models,
-PNG images. Argument vectors are drawn from each command's flags with good and bad values.
+PNG images, depth maps (PNG with its scale, PFM, NPY). Argument vectors are drawn from each command's flags with good and bad values.
 
 The properties:
 
@@ -390,6 +390,32 @@ def test_png_view_mutations(base, data, capfd):
     capfd.readouterr()
     call_loader(folder, lambda: read_lightfield(cap))
     # lfrig's errors only: nothing printed by libpng or OpenCV on the way
+    assert capfd.readouterr().err == ""
+
+
+@settings(FUZZ, max_examples=90)
+@given(data=st.data())
+def test_depth_map_mutations(base, data, capfd):
+    from recon.depth import read_depth, write_depth
+
+    folder = fresh_folder(base)
+    rng = rng_of(data)
+    suffix = rng.choice([".png", ".pfm", ".npy"])
+    path = folder / f"depth{suffix}"
+    depth = np.full((8, 8), 1000.0)
+    depth[2:5, 3:6] = np.nan
+    write_depth(path, depth)
+    target = path
+    if suffix == ".png" and rng.random() < 0.4:  # the sidecar holds the scale too
+        target = path.with_name(path.name + ".json")
+        if rng.random() < 0.5:
+            path.write_bytes(path.read_bytes().replace(b"tEXt", b"teXt"))  # only the sidecar is left
+    if target.suffix == ".json" and rng.random() < 0.7:
+        target.write_bytes(dump_json(json_mutation(rng, json.loads(target.read_text()))))
+    else:
+        target.write_bytes(byte_mutation(rng, target.read_bytes()))
+    capfd.readouterr()
+    call_loader(folder, lambda: read_depth(path))
     assert capfd.readouterr().err == ""
 
 
