@@ -56,6 +56,30 @@ if [ "$(uname -s)" = Linux ] && ! ldconfig -p 2>/dev/null | grep -q 'libusb-1\.0
   fi
 fi
 
+# --- Aravis (GenICam cameras, `--camera aravis:`) and what PyGObject builds against -------------
+# PyGObject has no wheels: uv builds it from source against the system's GObject introspection
+# (girepository 1.x here, hence pygobject<3.50) and cairo. The `aravis` extra holds it.
+ARAVIS_PACKAGES="gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config"
+SYNC_EXTRAS="--extra aravis"
+if [ "$(uname -s)" = Linux ] && command -v dpkg-query >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+  missing=""
+  for package in $ARAVIS_PACKAGES; do
+    dpkg-query -W -f='${db:Status-Abbrev}' "$package" 2>/dev/null | grep -q '^ii' || missing="$missing $package"
+  done
+  if [ -n "$missing" ]; then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    say "installing$missing (the Aravis camera driver and PyGObject's build needs) with apt-get"
+    $SUDO apt-get update -qq >/dev/null && \
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $missing >/dev/null \
+      || die "could not install$missing; install them by hand: sudo apt-get install$missing"
+  fi
+elif ! { command -v pkg-config >/dev/null 2>&1 && pkg-config --exists gobject-introspection-1.0 cairo aravis-0.8; }; then
+  say "no apt-get, and Aravis/gobject-introspection/cairo not found by pkg-config: setting up without"
+  say "the Aravis camera (--camera aravis:); install aravis, gobject-introspection and cairo to have it"
+  SYNC_EXTRAS=""
+fi
+
 # --- uv ------------------------------------------------------------------------------------------
 if command -v uv >/dev/null 2>&1; then
   UV=$(command -v uv)
@@ -72,5 +96,5 @@ fi
 
 # --- the locked environment ----------------------------------------------------------------------
 export UV_PYTHON_DOWNLOADS=never
-"$UV" sync --frozen --python "$PYTHON" --quiet || die "uv sync failed (see above)"
+"$UV" sync --frozen $SYNC_EXTRAS --python "$PYTHON" --quiet || die "uv sync failed (see above)"
 say "environment ready: .venv/bin/lfrig"

@@ -66,6 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _board_args(st)
     st.add_argument("-o", "--output", type=output_file, required=True, metavar="STAGE.json")
     st.add_argument("--quiet", action="store_true", help="no progress output")
+    st.add_argument("--no-verify", dest="verify", action="store_false",
+                    help="do not check the capture's views against the checksums in its journal")
     st.set_defaults(handler=_stage)
 
     rect = subparsers.add_parser(
@@ -86,6 +88,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rect.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views (default: the camera's)")
     rect.add_argument("--no-crop", dest="crop", action="store_false",
                       help="keep the camera's image size, with black where no camera pixel maps")
+    rect.add_argument("--no-verify", dest="verify", action="store_false",
+                      help="do not check the capture's views against the checksums in its journal")
     rect.set_defaults(handler=_rectify)
 
 
@@ -113,8 +117,14 @@ def _intrinsics(args: argparse.Namespace) -> int:
                                                   focal_estimate_px=args.focal_px,
                                                   working_distance_mm=args.working_distance_mm, progress=bar)
     note = "lfrig calibrate intrinsics\n" + result.report()
-    result.model.write(str(args.output), note=note)
-    write_residual_picture(result, picture)
+    from recon.lf.imageio import atomic_output
+
+    # Through a temporary name and a rename, as every file lfrig writes: a crash or a full disk
+    # leaves the previous model (or none), never half of one.
+    with atomic_output(args.output, what="camera model") as tmp:
+        result.model.write(str(tmp), note=note)
+    with atomic_output(picture, what="residual picture") as tmp:
+        write_residual_picture(result, tmp)
     print(result.report())
     print(f"wrote {args.output} and {picture}")
     return 0
@@ -130,7 +140,8 @@ def _stage(args: argparse.Namespace) -> int:
     board = _board(args)
     writable_file(args.output, what="stage calibration")
     with Progress("finding corners", quiet=args.quiet) as bar:
-        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar)
+        stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar,
+                                                verify=args.verify)
     stage.save(args.output)
     print(stage.report())
     print(f"wrote {args.output}")
@@ -138,16 +149,13 @@ def _stage(args: argparse.Namespace) -> int:
 
 
 def _rectify(args: argparse.Namespace) -> int:
-    from calib.errors import CalibError
     from calib.rectify import rectify_capture
     from recon.paths import writable_folder
 
-    if args.output.is_dir() and any(args.output.iterdir()):  # before the work, not after it
-        raise CalibError(f"{args.output}: folder exists and is not empty; choose a new output folder")
-    writable_folder(args.output, what="rectified capture")
+    writable_folder(args.output, what="rectified capture")  # read-only, full, a file: before the work
 
     rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
-                           focal_px=args.focal_px, crop=args.crop)
+                           focal_px=args.focal_px, crop=args.crop, verify=args.verify)
     print(json.dumps({"output": str(args.output), "focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                       "image_size": list(rect.image_size)}))
     return 0

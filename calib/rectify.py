@@ -281,8 +281,11 @@ def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
 
 
 def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model_path: str | os.PathLike,
-                    stage_path: str | os.PathLike, focal_px: float | None = None, crop: bool = True) -> Rectification:
+                    stage_path: str | os.PathLike, focal_px: float | None = None, crop: bool = True,
+                    verify: bool = True) -> Rectification:
     """Read a capture, rectify every view and write the result as a capture folder at ``out``.
+
+    ``verify``: check the views against the capture's journalled checksums (``read_capture``).
 
     Raises
     ------
@@ -294,7 +297,7 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
 
     model = load_model(model_path)
     stage = StageCalibration.load(stage_path)
-    lf = read_lightfield(capture)
+    lf = read_lightfield(capture, verify=verify)
     h, w = lf.image_shape
     mw, mh = (int(v) for v in model.imagersize())
     if (w, h) != (mw, mh):

@@ -156,7 +156,9 @@ class StageCalibration:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write as JSON (``derived`` holds the derived numbers, for people; it is not read back)."""
-        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n", encoding="utf-8")
+        from recon.lf.imageio import write_bytes_atomic
+
+        write_bytes_atomic(Path(path), (json.dumps(self.to_json(), indent=2) + "\n").encode("utf-8"))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "StageCalibration":
@@ -369,9 +371,10 @@ def detect_grid_corners(views: np.ndarray, board: Board, *, progress: Any = None
 
 
 def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: Board,
-                                 progress: Any = None) -> tuple[StageCalibration, np.ndarray]:
+                                 progress: Any = None, verify: bool = True) -> tuple[StageCalibration, np.ndarray]:
     """Read a capture of a board (``recon.lf.capture`` / benchmark layout), find the corners in every view
-    and fit. Returns the calibration and the corners ``(U, V, rows, cols, 3)``.
+    and fit. Returns the calibration and the corners ``(U, V, rows, cols, 3)``. ``verify``: check the
+    views against the capture's journalled checksums.
 
     Raises
     ------
@@ -380,7 +383,7 @@ def calibrate_stage_from_capture(path: str | os.PathLike, *, model: Any, board: 
     """
     from recon.lf import read_lightfield
 
-    lf = read_lightfield(path)
+    lf = read_lightfield(path, verify=verify)
     h, w = lf.image_shape
     mw, mh = (int(v) for v in model.imagersize())
     if (w, h) != (mw, mh):

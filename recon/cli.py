@@ -1,4 +1,4 @@
-"""recon's commands: ``lfrig info``, ``reconstruct``, ``evaluate``, ``export`` and ``batch reconstruct``.
+"""recon's commands: ``lfrig info``, ``reconstruct``, ``evaluate``, ``export``, ``batch reconstruct`` and ``import``.
 
 Parse, call the library, write files. Heavy modules (numba kernels, open3d, Dask) are imported inside
 the handlers so that ``lfrig --help`` stays fast. :func:`register` adds the subcommands.
@@ -21,6 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _register_reconstruct(subparsers)
     _register_export(subparsers)
     _register_batch(subparsers)
+    _register_import(subparsers)
+
+
+def _add_verify_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-verify", dest="verify", action="store_false",
+                        help="do not check a capture's views against the checksums in its journal")
 
 
 def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
@@ -31,6 +37,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     )
     info.add_argument("path", type=Path, help="light-field folder or .pfm file")
     info.add_argument("--json", action="store_true", help="print the description as JSON")
+    _add_verify_argument(info)
     info.set_defaults(handler=_info)
 
     rec = subparsers.add_parser(
@@ -50,6 +57,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_verify_argument(rec)
     rec.set_defaults(handler=_reconstruct)
 
     ev = subparsers.add_parser(
@@ -149,7 +157,7 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     return chosen
 
 
-def describe(path: Path) -> dict[str, Any]:
+def describe(path: Path, *, verify: bool = True) -> dict[str, Any]:
     """What ``lfrig info`` prints, as a dict."""
     import numpy as np
 
@@ -169,7 +177,7 @@ def describe(path: Path) -> dict[str, Any]:
             "min": float(finite.min()) if finite.size else None,
             "max": float(finite.max()) if finite.size else None,
         }
-    lf = read_lightfield(path)
+    lf = read_lightfield(path, verify=verify)
     rows, cols = lf.grid_shape
     height, width = lf.image_shape
     out: dict[str, Any] = {
@@ -189,7 +197,7 @@ def describe(path: Path) -> dict[str, Any]:
 
 
 def _info(args: argparse.Namespace) -> None:
-    info = describe(args.path)
+    info = describe(args.path, verify=args.verify)
     if args.json:
         print(json.dumps(info, indent=2))
         return
@@ -222,7 +230,8 @@ def _reconstruct(args: argparse.Namespace) -> None:
     options = method_options(args)
     with Progress(args.method, quiet=args.quiet) as bar:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
-                                       ply_kind="points" if args.points else "mesh", progress=bar)
+                                       ply_kind="points" if args.points else "mesh", progress=bar,
+                                       verify=args.verify)
     print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
     if folder.record.scores is not None:
         print(_format_scores(folder.record.scores))
@@ -426,3 +435,46 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
         if o.detail:
             print(f"\n{o.name}: {o.detail}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _register_import(subparsers: argparse._SubParsersAction) -> None:
+    imp = subparsers.add_parser(
+        "import",
+        help="turn a folder of views from another tool into an lfrig capture",
+        description=(
+            "Import the views in SRC as a complete lfrig capture folder: by a file-name pattern with the row and "
+            "column (--pattern 'view_{u}_{v}.png', 'img_{v:02d}-{u:02d}.tif'), by capture order (--order with "
+            "--rows/--cols; files sorted naturally, or numbered by a pattern's {i}), or from a folder in the 4D "
+            "Light Field Benchmark's layout. Every file is read and checked before anything is written; the "
+            "capture appears at CAPTURE only when complete."
+        ),
+    )
+    imp.add_argument("src", type=Path, metavar="SRC", help="folder holding the views")
+    imp.add_argument("-o", "--output", type=Path, required=True, metavar="CAPTURE", help="new capture folder")
+    imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order")
+    imp.add_argument("--order", choices=("serpentine", "raster"),
+                     help="files are in capture order (serpentine: every other row right to left, as lfrig captures)")
+    imp.add_argument("--rows", type=int, help="grid rows (u) (not needed for a benchmark folder)")
+    imp.add_argument("--cols", type=int, help="grid columns (v)")
+    imp.add_argument("--index-base", type=int, default=0, help="the number the indices in the names start at")
+    imp.add_argument("--pitch-mm", type=float, help="distance between neighbouring views (required unless a benchmark folder gives it)")
+    imp.add_argument("--focal-px", type=float, help="focal length of the views in pixels")
+    imp.add_argument("--principal-point-px", type=float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
+    imp.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
+                     help="disparity the scene spans, pixels per view step")
+    imp.add_argument("--quiet", action="store_true", help="no progress output")
+    imp.set_defaults(handler=_import)
+
+
+def _import(args: argparse.Namespace) -> None:
+    from recon.lf.importer import import_views
+    from recon.progress import Progress
+
+    with Progress("import", quiet=args.quiet) as bar:
+        path = import_views(
+            args.src, args.output, pattern=args.pattern, order=args.order, rows=args.rows, cols=args.cols,
+            index_base=args.index_base, pitch_mm=args.pitch_mm, focal_px=args.focal_px,
+            principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
+            disparity_range=tuple(args.disparity_range) if args.disparity_range else None, progress=bar,
+        )
+    print(f"{path}: imported from {args.src}, complete")

@@ -17,6 +17,7 @@ which is the formula above with ``focal_px = focal_length_mm * max(W, H) / senso
 
 from __future__ import annotations
 
+import io
 import json
 import struct
 import zlib
@@ -310,24 +311,35 @@ def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, of
     if not path.parent.is_dir():
         raise DepthFormatError(f"{path}: folder {path.parent} does not exist; create it first")
     suffix = path.suffix.lower()
-    if suffix == ".pfm":
-        from recon.lf.pfm import write_pfm
+    from recon.errors import FileWriteError
+    from recon.lf.imageio import write_bytes_atomic
 
-        write_pfm(path, depth.astype(np.float32))
-    elif suffix == ".npy":
-        np.save(path, depth.astype(np.float32))
-    elif suffix == ".png":
-        import cv2
+    try:
+        if suffix == ".pfm":
+            from recon.lf.pfm import write_pfm
 
-        stored, metadata = encode_depth_png(depth, scale_mm=scale_mm, offset_mm=offset_mm)
-        ok, encoded = cv2.imencode(".png", stored)
-        if not ok:
-            raise DepthFormatError(f"{path}: OpenCV could not encode the depth PNG")
-        text = json.dumps(metadata, sort_keys=True)
-        path.write_bytes(_insert_text_chunk(encoded.tobytes(), PNG_SCALE_KEY, text))
-        png_sidecar_path(path).write_text(json.dumps(metadata, indent=2, sort_keys=True) + "\n")
-    else:
-        raise DepthFormatError(f"{path}: unknown depth-map suffix {path.suffix!r}; use .pfm, .png or .npy")
+            write_pfm(path, depth.astype(np.float32))
+        elif suffix == ".npy":
+            buffer = io.BytesIO()
+            np.save(buffer, depth.astype(np.float32))
+            write_bytes_atomic(path, buffer.getvalue())
+        elif suffix == ".png":
+            import cv2
+
+            stored, metadata = encode_depth_png(depth, scale_mm=scale_mm, offset_mm=offset_mm)
+            ok, encoded = cv2.imencode(".png", stored)
+            if not ok:
+                raise DepthFormatError(f"{path}: OpenCV could not encode the depth PNG")
+            text = json.dumps(metadata, sort_keys=True)
+            # The PNG carries its own scale; the sidecar is a copy for tools that cannot read tEXt.
+            # Sidecar first: a crash between the two leaves the old PNG with a new sidecar, which the
+            # reader ignores when the PNG has its chunk (lfrig's always has).
+            write_bytes_atomic(png_sidecar_path(path), (json.dumps(metadata, indent=2, sort_keys=True) + "\n").encode())
+            write_bytes_atomic(path, _insert_text_chunk(encoded.tobytes(), PNG_SCALE_KEY, text))
+        else:
+            raise DepthFormatError(f"{path}: unknown depth-map suffix {path.suffix!r}; use .pfm, .png or .npy")
+    except FileWriteError as error:
+        raise DepthFormatError(str(error)) from None
     return path
 
 

@@ -35,3 +35,11 @@ class ExportError(ReconError):
 class OutputPathError(ReconError):
     """An output path cannot be written: a file where a folder is wanted (or the reverse), a
     read-only or full filesystem, no permission. Checked before the work starts."""
+
+
+class FileWriteError(ReconError):
+    """A file could not be written (full disk, no permission, a folder that went away...).
+
+    The message names the file and the system's reason; the file's previous content (if any) is
+    left as it was, because every file is written to a temporary name first and renamed into place.
+    """

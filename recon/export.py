@@ -79,8 +79,9 @@ def write_cloud_ply(path, cloud: PointCloud, *, ascii: bool = False) -> Path:
     path = _check_target(path)
     if len(cloud) == 0:
         raise ExportError(f"{path}: nothing to write, the point cloud is empty (no pixel had a trustworthy depth)")
-    if not _open3d().io.write_point_cloud(str(path), to_open3d_cloud(cloud), write_ascii=ascii):
-        raise ExportError(f"{path}: open3d could not write the point cloud (is the folder writable?)")
+    pcd = to_open3d_cloud(cloud)
+    _write_atomic(path, lambda tmp: _open3d().io.write_point_cloud(str(tmp), pcd, write_ascii=ascii),
+                  what="point cloud", vertices=len(cloud), faces=0, ascii=ascii)
     return path
 
 
@@ -92,13 +93,75 @@ def write_mesh_ply(path, mesh: Mesh, *, ascii: bool = False) -> Path:
             f"{path}: nothing to write, the mesh has no triangles (too few connected pixels); "
             "export --points instead, or raise the jump threshold"
         )
-    ok = _open3d().io.write_triangle_mesh(
-        str(path), to_open3d_mesh(mesh), write_ascii=ascii, write_vertex_normals=True,
-        write_vertex_colors=mesh.colours is not None, write_triangle_uvs=False,
+    o3d_mesh = to_open3d_mesh(mesh)
+    _write_atomic(
+        path,
+        lambda tmp: _open3d().io.write_triangle_mesh(
+            str(tmp), o3d_mesh, write_ascii=ascii, write_vertex_normals=True,
+            write_vertex_colors=mesh.colours is not None, write_triangle_uvs=False,
+        ),
+        what="mesh", vertices=len(mesh.vertices_mm), faces=len(mesh.triangles), ascii=ascii,
     )
-    if not ok:
-        raise ExportError(f"{path}: open3d could not write the mesh (is the folder writable?)")
     return path
+
+
+def _write_atomic(path: Path, write, *, what: str, vertices: int, faces: int, ascii: bool) -> None:
+    """Let open3d write a temporary file beside ``path``, check it, sync it and rename it into place.
+
+    open3d reports success even when the disk filled up under it, so the file is checked too: its
+    header must announce ``vertices`` and ``faces`` elements and, for binary PLY, the body must be at
+    least as long as those elements need. A failed or short write is an :class:`ExportError` naming
+    ``path``, and ``path`` keeps what it held before.
+    """
+    from recon.errors import FileWriteError
+    from recon.lf.imageio import atomic_output
+
+    try:
+        with atomic_output(path, what=what) as tmp:
+            if not write(tmp):
+                raise ExportError(f"{path}: open3d could not write the {what} (is the folder writable and not full?)")
+            _check_ply(tmp, path, vertices=vertices, faces=faces, ascii=ascii)
+    except FileWriteError as error:
+        raise ExportError(str(error)) from None
+
+
+def _check_ply(tmp: Path, path: Path, *, vertices: int, faces: int, ascii: bool) -> None:
+    """Check the PLY open3d wrote at ``tmp`` holds what it should (see :func:`_write_atomic`)."""
+    data_size = tmp.stat().st_size
+    with open(tmp, "rb") as f:
+        head = f.read(4096)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply") or end < 0:
+        raise ExportError(f"{path}: the PLY written has no complete header (a full disk?); nothing was replaced")
+    header = head[:end].decode("ascii", "replace").splitlines()
+    counts: dict[str, int] = {}
+    props: dict[str, list[str]] = {}
+    current = ""
+    for line in header:
+        parts = line.split()
+        if parts[:1] == ["element"] and len(parts) == 3:
+            current = parts[1]
+            counts[current] = int(parts[2])
+            props[current] = []
+        elif parts[:1] == ["property"] and current:
+            props[current].append(line)
+    if counts.get("vertex", 0) != vertices or counts.get("face", 0) != faces:
+        raise ExportError(f"{path}: the PLY written holds {counts} elements, expected {vertices} vertices and "
+                          f"{faces} faces; nothing was replaced")
+    if ascii:
+        with open(tmp, "rb") as f:
+            f.seek(end + len(b"end_header\n"))
+            lines = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+        short = lines < vertices + faces
+    else:
+        sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+                 "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+        vertex_bytes = sum(sizes.get(line.split()[1], 0) for line in props.get("vertex", []))
+        # a face is at least a count byte and three indices (open3d writes uchar + 3 int)
+        need = vertices * vertex_bytes + faces * 13
+        short = data_size - (end + len(b"end_header\n")) < need
+    if short:
+        raise ExportError(f"{path}: the PLY written is shorter than its header says (a full disk?); nothing was replaced")
 
 
 def poisson_mesh(cloud: PointCloud, *, depth: int = 9, density_quantile: float = 0.02) -> Mesh:

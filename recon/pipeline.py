@@ -26,7 +26,9 @@ from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
 from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
 from recon.progress import ProgressCallback
-from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_JSON, ResultRecord, write_record
+from recon.lf.lock import FolderLock
+from recon.result import (CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_JSON, ResultRecord, clear_result,
+                          write_record)
 
 #: ``estimate(lf, method, options, progress) -> MethodResult``: how the disparity is computed. The
 #: default runs :func:`recon.methods.run_method` in this process; tiled runs on a cluster plug in
@@ -114,6 +116,7 @@ def reconstruct_to_folder(
     estimate: Estimator | None = None,
     source: str | None = None,
     extra: Mapping[str, Any] | None = None,
+    verify: bool = True,
 ) -> FolderResult:
     """Reconstruct one light field into ``out_dir`` (created if needed); see the module docstring.
 
@@ -137,35 +140,48 @@ def reconstruct_to_folder(
         batch that ships the views to a worker passes the folder the views came from.
     extra
         More keys for ``result.json`` (e.g. how the work was tiled); they must not clash.
+    verify
+        Check a capture's views against their journalled checksums (:func:`recon.lf.capture.read_capture`).
 
     Raises
     ------
     recon.errors.LfrigError
         For an unreadable light field, a bad disparity range, or a failed export.
     """
-    from recon.colour import colourise
-    from recon.evaluate import score
-    from recon.lf.imageio import write_png
-    from recon.lf import read_ground_truth, read_lightfield
-    from recon.lf.pfm import write_pfm
+    from recon.lf import read_lightfield
 
-    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir)
+    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
     opts: dict[str, Any] = dict(options or {})
     check_options(method, opts)
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
-    out = writable_folder(out_dir, what="result folder")
+    out = writable_folder(out_dir, what="result folder")  # a file, read-only, full: now, not after the work
     if ply is not None:
         writable_file(ply, what="PLY")
-    # A stale result.json must not describe the new maps while they are being written: it goes first,
-    # and the new one is renamed in last.
-    (out / RESULT_JSON).unlink(missing_ok=True)
+    # One writer per result folder; the lock ends with the process, whatever way it ends.
+    with FolderLock(out, what="reconstruction"):
+        return _reconstruct_locked(lf, out, method=method, opts=opts, ply=ply, ply_kind=ply_kind,
+                                   progress=progress, estimate=estimate, source=source, extra=extra)
+
+
+def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[str, Any], ply, ply_kind,
+                        progress, estimate, source, extra) -> FolderResult:
+    from recon.colour import colourise
+    from recon.evaluate import score
+    from recon.lf.imageio import write_png
+    from recon.lf import read_ground_truth
+    from recon.lf.pfm import write_pfm
+
     gt = read_ground_truth(lf)  # before the work: a broken truth file fails now, not after the estimate
     if gt is not None and gt.shape != lf.image_shape:
         from recon.evaluate import describe_map
 
         raise ReconError(f"{lf.metadata.get('ground_truth')}: ground truth is {describe_map(gt)} but the views are "
                          f"{lf.image_shape[1]}x{lf.image_shape[0]}; remove or replace it")
+    # The folder holds one run: the previous run's files go first, result.json before the rest, so
+    # an interrupted run leaves a folder without result.json (clearly unfinished) and never old maps
+    # beside new ones. The new result.json is renamed in last.
+    clear_result(out)
     started = time.perf_counter()
     method_result = (estimate or run_in_process)(lf, method, opts, progress)
     disparity = method_result.disparity
@@ -179,16 +195,22 @@ def reconstruct_to_folder(
         files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
+    files.append(RESULT_JSON)
+    listed = list(files)
+    if ply is not None:
+        try:  # a PLY inside the folder is this run's too (written after result.json)
+            listed.append(Path(ply).resolve().relative_to(out.resolve()).as_posix())
+        except ValueError:
+            pass
     record = ResultRecord(
         method=method, options=jsonable(method_result.options), source=source,
         image=[lf.image_shape[1], lf.image_shape[0]], grid=list(lf.grid_shape),
         focal_px=lf.focal_px, pitch_mm=lf.pitch_mm, disparity_offset=lf.disparity_offset,
         principal_point_px=list(lf.principal_point_px) if lf.principal_point_px else None,
         disparity_png_range=list(shown), seconds=round(seconds, 3),
-        scores=score(disparity, gt) if gt is not None else None, extra=dict(extra or {}),
+        scores=score(disparity, gt) if gt is not None else None, files=listed, extra=dict(extra or {}),
     )
     write_record(out, record)
-    files.append(RESULT_JSON)
     folder = FolderResult(out_dir=out, record=record, files=files)
     if ply is not None:
         from recon.export import export_result

@@ -44,6 +44,8 @@ REFINED_DISPARITY_PFM = "refined_disparity.pfm"
 HOLES_PNG = "holes.png"
 ENTROPY_MAPS = (REGIONS_PNG, REGIONS_NPY, WINDOW_SIZE_PNG, WINDOW_SIZE_NPY, WINDOW_SHAPE_PNG, WINDOW_SHAPE_NPY,
                 VIEW_SET_NPY, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, HOLES_PNG)
+#: Every name lfrig itself writes into a reconstruction folder; a rerun removes them (:func:`clear_result`).
+RESULT_FILES = (RESULT_JSON, DISPARITY_PFM, DISPARITY_PNG, CENTRE_VIEW_PNG) + ENTROPY_MAPS
 
 
 @dataclass
@@ -67,6 +69,9 @@ class ResultRecord:
         Time of the estimate alone.
     scores
         :func:`recon.evaluate.score` against the light field's ground truth, when it has one.
+    files
+        The files this run wrote into the folder (relative names), ``result.json`` and a PLY inside the
+        folder included; the next run into the folder removes them first (:func:`clear_result`).
     extra
         Any further keys (how the work was tiled, a ``mask`` file name, ...), kept as they are.
     """
@@ -83,6 +88,7 @@ class ResultRecord:
     disparity_png_range: list[float] | None = None
     seconds: float | None = None
     scores: dict[str, Any] | None = None
+    files: list[str] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -95,9 +101,11 @@ class ResultRecord:
 
     def to_json(self) -> dict[str, Any]:
         """The JSON object of ``result.json`` (``scores`` only when there are any; ``extra`` inline)."""
-        record = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("scores", "extra")}
+        record = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("scores", "files", "extra")}
         if self.scores is not None:
             record["scores"] = self.scores
+        if self.files is not None:
+            record["files"] = list(self.files)
         for key, value in self.extra.items():
             if key in record:
                 raise ValueError(f"extra key {key!r} would overwrite result.json's own {key!r}")
@@ -122,6 +130,9 @@ class ResultRecord:
             values["principal_point_px"] = [float(c) for c in principal]
         if values.get("options") is None:
             values["options"] = {}
+        files = record.get("files")
+        if files is not None and not (isinstance(files, list) and all(isinstance(f, str) for f in files)):
+            raise ExportError(f"{where}: files = {files!r} must be a list of file names")
         return cls(**values, extra={key: value for key, value in record.items() if key not in own})
 
 
@@ -142,6 +153,67 @@ def write_record(folder: Path, record: ResultRecord) -> Path:
     path = Path(folder) / RESULT_JSON
     write_bytes_atomic(path, (json.dumps(record.to_json(), indent=2) + "\n").encode("utf-8"))
     return path
+
+
+def folder_file(folder: Path, name: Any, *, what: str, where: Path) -> Path:
+    """``folder / name`` for a file name that ``result.json`` records, checked to stay in the folder.
+
+    ``name`` must be a relative path without ``..`` whose target (symlinks followed) is a regular
+    file inside ``folder``; anything else (``../other/x.png``, ``/dev/zero``, a link out) is an
+    :class:`ExportError` naming ``where``.
+    """
+    folder = Path(folder)
+    bad = ExportError(f"{where}: {what} = {name!r} must name a file inside {folder} (a relative name without "
+                      "'..'); fix result.json or run lfrig reconstruct again")
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise bad
+    relative = Path(name)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise bad
+    path = folder / relative
+    try:
+        path.resolve().relative_to(folder.resolve())
+    except ValueError:
+        raise bad from None
+    if path.exists() and not path.is_file():
+        raise ExportError(f"{path}: the {what} named by {where.name} is not a regular file")
+    return path
+
+
+def clear_result(folder: str | Path) -> list[str]:
+    """Remove the files of a previous run so that the folder will hold one run only.
+
+    ``result.json`` goes first (a folder without it is clearly unfinished), then every file the old
+    ``result.json`` listed under ``files`` (inside the folder) and every name in
+    :data:`RESULT_FILES`. Files lfrig does not know stay. Returns the names removed.
+    """
+    folder = Path(folder)
+    names = set(RESULT_FILES)
+    record_path = folder / RESULT_JSON
+    try:
+        old = json.loads(record_path.read_text(encoding="utf-8"))
+        listed = old.get("files") if isinstance(old, dict) else None
+        if isinstance(listed, list):
+            for name in listed:
+                try:
+                    names.add(folder_file(folder, name, what="files", where=record_path).relative_to(folder).as_posix())
+                except (ExportError, ValueError):
+                    continue  # a name outside the folder is never removed
+    except (OSError, ValueError):
+        pass  # no (readable) record: the known names are still removed
+    from recon.lf.imageio import remove_stale_temporaries
+
+    removed = []
+    remove_stale_temporaries(folder)  # called under the folder's lock: a dead run's temporaries
+    for name in [RESULT_JSON] + sorted(names - {RESULT_JSON}):
+        path = folder / name
+        if path.is_file() or path.is_symlink():
+            try:
+                path.unlink()
+            except OSError as error:
+                raise ExportError(f"{path}: cannot remove the previous run's file ({error.strerror}); check the folder") from None
+            removed.append(name)
+    return removed
 
 
 @dataclass
@@ -235,10 +307,10 @@ def read_result(result_dir) -> ResultFolder:
 
     mask = None
     if record.extra.get("mask"):
-        mask = _read_image(folder / str(record.extra["mask"]), what="mask")
+        mask = _read_image(folder_file(folder, record.extra["mask"], what="mask", where=record_path), what="mask")
         mask = (mask if mask.ndim == 2 else mask.max(axis=-1)) > 0
         if mask.shape != disparity.shape:
-            raise ExportError(f"{folder / record.extra['mask']}: mask is {mask.shape}, disparity is {disparity.shape}")
+            raise ExportError(f"{folder / str(record.extra['mask'])}: mask is {mask.shape}, disparity is {disparity.shape}")
 
     image = None
     if (folder / CENTRE_VIEW_PNG).is_file():

@@ -28,7 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     cap.add_argument("out_dir", type=output_folder, metavar="OUT_DIR", help="capture folder (created, or resumed)")
     _stage_argument(cap)
-    cap.add_argument("--camera", default="fake", metavar="SPEC", help="fake, or opencv:INDEX|PATH")
+    cap.add_argument("--camera", default="fake", metavar="SPEC",
+                     help="fake, opencv:INDEX|PATH, or aravis:[DEVICE_ID] (a GenICam camera; lfrig camera list)")
     cap.add_argument("--dry-run", action="store_true", help="print the moves and check them against the travel; move nothing")
     grid = cap.add_argument_group("grid")
     grid.add_argument("--rows", type=int_range(1, MAX_GRID_SIDE), default=9, help="views per column (u)")
@@ -55,8 +56,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
     camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
     camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
-    fake = cap.add_argument_group("camera (fake)")
-    fake.add_argument("--binning", type=positive_int, default=2, help="detector binning (1: 1280x980, 2: 640x490, ...)")
+    gen = cap.add_argument_group("camera (aravis)")
+    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
+    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
+    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
+    gen.add_argument("--trigger", default="software", metavar="MODE",
+                     help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
+    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
+    fake = cap.add_argument_group("camera (fake; --binning and --roi also for aravis)")
+    fake.add_argument("--binning", type=positive_int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
     fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
     fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
     fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
@@ -75,7 +83,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     home = actions.add_parser("home", help="run the homing cycle ($H)")
     _stage_argument(home)
     move = actions.add_parser("move", help="move to an absolute machine position (mm) and wait")
-    move.add_argument("position", type=finite_float, nargs=3, metavar=("X", "Y", "Z"))
+    for axis in "xyz":  # three positionals: argparse cannot print a tuple metavar of a positional
+        move.add_argument(axis, type=finite_float, metavar=axis.upper(), help=f"machine {axis.upper()} in mm")
     move.add_argument("--feed-mm-min", type=positive_float, help="feed (default: rapid)")
     move.add_argument("--home", action="store_true", help="home first")
     _stage_argument(move)
@@ -85,6 +94,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _stage_argument(unlock)
     for parser in (home, move, status, unlock):
         parser.set_defaults(handler=_stage)
+    _register_camera(subparsers)
 
 
 def _stage_argument(parser: argparse.ArgumentParser) -> None:
@@ -146,10 +156,19 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
+    from recon.lf.lock import FolderLock
+
+    # Lock the folder before opening anything: a second capture must not touch the stage or camera
+    # (opening a GRBL's serial port resets it) while the first one drives them.
+    lock = FolderLock(args.out_dir, what="capture")
     devices = Devices()
     try:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
+        doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
+        if args.no_home and doubt and not args.out_dir.exists():  # a resume is checked by the session
+            print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
+                  "resume without homing will be refused after any reset", file=sys.stderr)
         try:
             with Progress("capture", quiet=args.quiet) as bar:
                 result = run_capture(
@@ -157,12 +176,14 @@ def _capture(args: argparse.Namespace) -> int:
                     feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
                     tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
                     progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
+                    lock=lock,
                 )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130
     finally:
         devices.close()
+        lock.release()
     if result.interrupted:
         print(
             f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "
@@ -186,8 +207,12 @@ def _stage(args: argparse.Namespace) -> int:
             if args.home:
                 stage.home()
             else:
+                doubt = stage.machine_frame_doubt()
+                if doubt:
+                    print(f"lfrig: warning: {doubt}; X Y Z are taken in GRBL's present frame, which need not be the "
+                          "machine frame of earlier sessions (use --home for positions from the switches)", file=sys.stderr)
                 stage.prepare()
-            stage.move_to(tuple(args.position), feed_mm_min=args.feed_mm_min)
+            stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
             stage.wait_until_idle()
         status = stage.status()
         position = status.get("mpos_mm")
@@ -196,4 +221,81 @@ def _stage(args: argparse.Namespace) -> int:
         print(f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version})")
     finally:
         devices.close()
+    return 0
+
+
+def _register_camera(subparsers: argparse._SubParsersAction) -> None:
+    camera = subparsers.add_parser(
+        "camera",
+        help="list GenICam cameras (Aravis) and show one's features",
+        description="GigE Vision / USB3 Vision cameras through Aravis: what is connected, and what a camera offers.",
+    )
+    actions = camera.add_subparsers(dest="action", metavar="ACTION", required=True)
+    listing = actions.add_parser("list", help="the cameras Aravis finds, with the ids --camera aravis:ID takes")
+    listing.add_argument("--fake", action="store_true", help="include Aravis's simulated camera Fake_1")
+    listing.add_argument("--json", action="store_true", help="print JSON")
+    listing.set_defaults(handler=_camera_list)
+    info = actions.add_parser("info", help="identity, sensor, pixel formats, ROI/binning/exposure/gain ranges, triggers")
+    info.add_argument("spec", metavar="SPEC", help="aravis: (first camera) or aravis:DEVICE_ID, e.g. aravis:Fake_1")
+    info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(handler=_camera_info)
+
+
+def _camera_list(args: argparse.Namespace) -> int:
+    import json
+
+    from rig.aravis import list_devices
+
+    devices = list_devices(include_fake=args.fake)
+    if args.json:
+        print(json.dumps(devices, indent=2))
+        return 0
+    if not devices:
+        print("no GenICam camera found (GigE: check the network and the camera's IP; USB3: check the cable and "
+              "udev permissions; --fake lists Aravis's simulated camera)")
+        return 0
+    for d in devices:
+        print(f"aravis:{d['id']}  {d['vendor']} {d['model']}  serial {d['serial']}  {d['protocol']}"
+              + (f"  {d['address']}" if d.get("address") else ""))
+    return 0
+
+
+def _camera_info(args: argparse.Namespace) -> int:
+    import json
+
+    from rig.aravis import AravisCamera, describe, parse_spec
+
+    with AravisCamera(parse_spec(args.spec), acquire=False) as camera:
+        info = describe(camera, all_features=args.all)
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+
+    def rng(value: list[float] | None, unit: str = "") -> str:
+        return "n/a" if value is None else f"{value[0]:g} .. {value[1]:g}{unit}"
+
+    current = info["current"]
+    lines = [
+        f"{args.spec}: {info['vendor']} {info['model']}, serial {info['serial']} ({info['protocol']})",
+        f"  sensor         {info['sensor_px'][0]} x {info['sensor_px'][1]} px" if info["sensor_px"] else "  sensor         unknown",
+        f"  pixel formats  {', '.join(info['pixel_formats'])} (lfrig decodes: {', '.join(info['pixel_formats_lfrig_decodes']) or 'none'})",
+        f"  ROI            width {rng(info['width_px'], ' px')}, height {rng(info['height_px'], ' px')}; now {current['roi']}",
+        f"  binning        {rng(info['binning_x'])} x {rng(info['binning_y'])}; now {current['binning']}",
+        f"  exposure       {rng(info['exposure_us'], ' us')}; now {current['exposure_us']} us",
+        f"  gain           {rng(info['gain'], ' ' + info['gain_unit'])}; now {current['gain']} {info['gain_unit']}",
+        f"  triggers       {', '.join(info['triggers']) or 'none'}; sources {', '.join(info['trigger_sources']) or 'none'}"
+        f"; software trigger {'yes' if info['software_trigger'] else 'no'}",
+        f"  format now     {current['pixel_format']}, frame rate {current['frame_rate_hz']} Hz",
+    ]
+    print("\n".join(lines))
+    if args.all:
+        def show(tree: dict, depth: int) -> None:
+            for key, value in tree.items():
+                if isinstance(value, dict):
+                    print("  " * depth + f"{key}/")
+                    show(value, depth + 1)
+                else:
+                    print("  " * depth + f"{key} = {value}")
+        show(info.get("features", {}), 1)
     return 0

@@ -113,7 +113,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.entropy.labels import TEXTURE
     from recon.evaluate import score
     from recon.export import export_result
-    from recon.lf.imageio import read_image, write_png
+    from recon.lf.imageio import atomic_output, read_image, write_bytes_atomic, write_png
     from recon.lf.pfm import read_pfm, write_pfm
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
@@ -158,8 +158,10 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
             paths.append(path)
             bar((i + 1) / len(poses), path.name)
     intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
-    intrinsics.model.write(str(folder / "camera.cameramodel"), note="lfrig demo\n" + intrinsics.report())
-    write_residual_picture(intrinsics, folder / "camera.residuals.png")
+    with atomic_output(folder / "camera.cameramodel", what="camera model") as tmp:
+        intrinsics.model.write(str(tmp), note="lfrig demo\n" + intrinsics.report())
+    with atomic_output(folder / "camera.residuals.png", what="residual picture") as tmp:
+        write_residual_picture(intrinsics, tmp)
     summary["intrinsics"] = _intrinsics_summary(intrinsics, still)
     steps.end(f"RMS reprojection error {summary['intrinsics']['rms_px']:.3f} px; against the truth: projection "
               f"{summary['intrinsics']['truth_error_px']:.3f} px RMS, focal {summary['intrinsics']['focal_error_pct']:+.3f} %")
@@ -231,7 +233,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     steps.end(f"median depth error {summary['depth_error']['all']['median_abs_rel_pct']:.3f} % (all pixels)")
 
     summary["seconds"] = steps.times
-    (folder / MARKER).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
+    write_bytes_atomic(folder / MARKER, (json.dumps(summary, indent=2, default=str) + "\n").encode("utf-8"))
     return summary
 
 

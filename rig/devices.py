@@ -13,7 +13,9 @@ Camera specs:
 
 - ``fake`` (default): the simulated camera (:mod:`rig.fakecam`) seeing its default scene from the
   stage's position;
-- ``opencv:0`` (device index or path): a camera through OpenCV (:mod:`rig.camera`).
+- ``opencv:0`` (device index or path): a camera through OpenCV (:mod:`rig.camera`);
+- ``aravis:`` (the first camera found) or ``aravis:DEVICE_ID``: a GenICam (GigE Vision / USB3 Vision)
+  camera through Aravis (:mod:`rig.aravis`); ``aravis:Fake_1`` is Aravis's simulated camera.
 
 A new stage driver or camera is opened here: add its spec to :func:`open_stage` or
 :func:`open_camera` (see ``docs/architecture.md``).
@@ -95,6 +97,8 @@ def open_camera(args: Any, devices: Devices, *, centre_mm: tuple[float, float, f
 
         base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[args.fake_rig]
         rig = base(ref_mm=tuple(centre_mm))  # the scene is centred on the grid's centre view
+        if args.binning is None:  # --binning is shared with aravis, where None keeps the camera's
+            args.binning = 2
         if devices.controller is not None:
             position, moving = devices.controller.physical_position, devices.controller.is_moving
         else:
@@ -119,4 +123,16 @@ def open_camera(args: Any, devices: Devices, *, centre_mm: tuple[float, float, f
         request = {"device": spec, "width": args.width, "height": args.height, "exposure": args.exposure,
                    "gain": args.gain, "hw_trigger": bool(args.hw_trigger)}
         return camera, request
-    raise RigError(f"--camera {spec!r}: expected 'fake' or 'opencv:INDEX' (e.g. opencv:0) or 'opencv:/dev/videoN'")
+    if spec.startswith("aravis:"):
+        from rig.aravis import open_aravis
+
+        if args.hw_trigger and args.trigger in ("software", "free"):
+            raise RigError("--hw-trigger needs --trigger LINE: the camera input wired to the stage's M8 (e.g. Line1)")
+        return open_aravis(
+            spec, pixel_format=args.pixel_format, roi=tuple(args.roi) if args.roi else None, binning=args.binning,
+            exposure_us=args.exposure_us, gain_db=args.gain_db, trigger=args.trigger,
+            hardware_trigger=devices.stage.set_output if args.hw_trigger else None,
+            timeout_s=args.frame_timeout_s, clock=devices.clock,
+        )
+    raise RigError(f"--camera {spec!r}: expected 'fake', 'opencv:INDEX' (e.g. opencv:0), 'opencv:/dev/videoN', "
+                   "'aravis:' (first GenICam camera) or 'aravis:DEVICE_ID'")

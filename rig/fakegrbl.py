@@ -5,17 +5,24 @@ bytes out (:meth:`FakeGrbl.take_output`), and a physical stage whose position fo
 trapezoidal speed profile from the feed rate (or the maximum rates ``$110..$112`` for ``G0``) and the
 accelerations ``$120..$122``. It behaves like the firmware where the driver can tell:
 
-- after power-up (every port open, like an Arduino that resets on DTR) it prints its welcome line and
-  is in ``Alarm`` until homed (``$H``) or unlocked (``$X``); G-code in alarm gets ``error:9``;
+- after power-up (every ``fakegrbl://`` port open, like an Arduino that resets on DTR) it prints its
+  welcome line and, with homing enabled (``$22=1``), is in ``Alarm`` until homed (``$H``) or unlocked
+  (``$X``); G-code in alarm gets ``error:9``;
 - the step counter starts at 0 on power-up wherever the stage physically is; homing finds the switches
-  at machine zero and leaves the stage at ``-pulloff`` (``$27``) on each axis;
-- soft limits (``$20=1``) reject targets outside ``[-max_travel, 0]`` with ``ALARM:2`` and
-  ``[MSG:Reset to continue]``; only a soft reset (``0x18``) is heard afterwards;
+  at machine zero (or at ``-max_travel`` for an axis set in ``$23``) and leaves the stage ``$27``
+  (pull-off) away from them; it gives up with ``ALARM:9`` beyond 1.5 x the travel;
+- machine space is ``[-max_travel, 0]`` whichever end an axis homes to (GRBL 1.1h); soft limits
+  (``$20=1``, refused without ``$22=1``) reject targets outside it with ``ALARM:2`` and
+  ``[MSG:Reset to continue]``; hard limits (``$21=1``) raise ``ALARM:1`` when a move closes a switch;
+  only a soft reset (``0x18``) is heard afterwards;
+- work coordinate systems ``G54``..``G59`` (set by ``G10 L2``/``L20``, kept across resets like
+  GRBL's EEPROM, ``G54`` again after a reset) offset every move but ``G53`` ones;
 - ``ok`` for a motion line comes when it is planned, not when it is done; ``G4 P..`` is answered only
   when the planner has emptied and the dwell has elapsed; ``M8``/``M9`` also wait for the planner;
 - real-time ``?`` (status report), ``!`` (feed hold: decelerate, ``Hold:1`` then ``Hold:0``), ``~``
-  (resume) and ``0x18`` (soft reset; during motion it raises ``ALARM:3``);
-- positions are whole motor steps (``$100..$102`` steps/mm).
+  (resume) and ``0x18`` (soft reset; during motion it raises ``ALARM:3``, after a completed hold not);
+- positions are whole motor steps (``$100..$102`` steps/mm);
+- one port at a time may open it (pyserial's ``exclusive=True``, as on a tty).
 
 Switchable faults (:meth:`FakeGrbl.arm_fault`), each triggered by the n-th motion line after arming:
 ``lost_ok`` (the line runs, its ``ok`` never comes), ``garbled`` (the line arrives corrupted and is
@@ -202,13 +209,41 @@ class FakeGrbl:
         self._line_fault: dict[int, tuple[str, float]] = {}  # line id -> (stall|alarm_mid_move, fraction)
         self._triggered: dict[int, str | None] = {}  # line id -> fault it triggered (decided once)
         self._reports = 0
-        self._wco = (0.0, 0.0, 0.0)
-        self._modal = {"motion": 0, "absolute": True, "mm": True, "feed": None}
+        # work coordinate systems G54..G59 (1..6), kept like GRBL keeps them in EEPROM
+        self.coordinate_systems: dict[int, tuple[float, float, float]] = {n: (0.0, 0.0, 0.0) for n in range(1, 7)}
+        self._modal = {"motion": 0, "absolute": True, "mm": True, "feed": None, "wcs": 1}
+        self._ports_open = 0
 
     # -- helpers ------------------------------------------------------------------------------
     @property
     def _homing_enabled(self) -> bool:
         return bool(int(self.settings.get(22, 0)))
+
+    @property
+    def _wco(self) -> tuple[float, float, float]:
+        """The active work coordinate offset (G54..G59; no G92 or tool offsets here)."""
+        return self.coordinate_systems[self._modal["wcs"]]
+
+    def _switch_mm(self, axis: int) -> float:
+        """Where the axis' limit switch is, in homed machine coordinates: 0, or ``-max_travel`` for an
+        axis homing to its minimum (``$23``)."""
+        return -abs(self.settings[130 + axis]) if int(self.settings.get(23, 0)) & (1 << axis) else 0.0
+
+    def _distance_to_switch(self, start_physical: Sequence[float], direction: Sequence[float]) -> float | None:
+        """Distance along a straight move from ``start_physical`` at which a limit switch closes
+        (``None`` if none does): a hard limit's trigger."""
+        mask = int(self.settings.get(23, 0))
+        best = None
+        for i, (p, d) in enumerate(zip(start_physical, direction)):
+            switch = self._switch_mm(i)
+            if mask & (1 << i):
+                if p > switch and d < -1e-12:
+                    s = (switch - p) / d
+                    best = s if best is None else min(best, s)
+            elif p < switch and d > 1e-12:
+                s = (switch - p) / d
+                best = s if best is None else min(best, s)
+        return best
 
     def _spm(self, axis: int) -> float:
         return float(self.settings[100 + axis])
@@ -269,11 +304,14 @@ class FakeGrbl:
         self._faults.clear()
 
     # -- power and bytes ----------------------------------------------------------------------
-    def power_on(self) -> None:
-        """What the firmware does when the port opens (Arduino boards reset on DTR): motion stops,
-        the step counter restarts at 0 wherever the stage is, and GRBL prints its welcome."""
+    def power_on(self, *, start_mm: Sequence[float] | None = None) -> None:
+        """What the firmware does at power-up, and when the port opens (Arduino boards reset on
+        DTR): motion stops, the step counter restarts at 0 wherever the stage is (or at ``start_mm``,
+        in homed machine coordinates, as if it had been moved by hand), and GRBL prints its welcome."""
         self._t = max(self._t, self.clock.monotonic())
         physical = tuple(c + o for c, o in zip(self._counter_at(self._t), self._offset))
+        if start_mm is not None:
+            physical = tuple(float(c) for c in start_mm)
         self._clear_motion()
         self._offset = physical  # type: ignore[assignment]
         self._counter = (0.0, 0.0, 0.0)
@@ -285,7 +323,7 @@ class FakeGrbl:
         self.homed = False
         self.coolant = False
         self.powered = True
-        self._modal = {"motion": 0, "absolute": True, "mm": True, "feed": None}
+        self._modal = {"motion": 0, "absolute": True, "mm": True, "feed": None, "wcs": 1}
         self.state = "Alarm" if self._homing_enabled else "Idle"
         self.substate = None
         self._welcome()
@@ -405,7 +443,7 @@ class FakeGrbl:
         self._rx_line.clear()
         self.critical = False
         self.coolant = False
-        self._modal["motion"] = 0
+        self._modal.update(motion=0, absolute=True, mm=True, feed=None, wcs=1)  # gc_init: GRBL's defaults, G54
         if homing:
             self._alarm(6, critical=False)
         elif moving:
@@ -527,6 +565,12 @@ class FakeGrbl:
             kind, fraction = fault
             motion.fault = kind
             motion.stop_at_s = fraction * length
+        if int(self.settings.get(21, 0)):  # hard limits: a switch closing on the way trips ALARM:1
+            physical = tuple(c + o for c, o in zip(start, self._offset))
+            hit = self._distance_to_switch(physical, direction)
+            if hit is not None and hit <= length + 1e-9 and (motion.stop_at_s is None or hit < motion.stop_at_s):
+                motion.fault = "alarm_mid_move"
+                motion.stop_at_s = hit
         self._motion = motion
         if self.state in ("Idle", "Run"):
             self.state, self.substate = "Run", None
@@ -559,6 +603,7 @@ class FakeGrbl:
         if not self._faults:
             return None
         stripped = text.upper().replace(" ", "")
+        stripped = stripped[3:] if stripped.startswith("G53") else stripped  # machine-coordinate moves
         if not (stripped.startswith("G0") or stripped.startswith("G1")) or not any(a in stripped for a in "XYZ"):
             return None
         fault = self._faults[0]
@@ -655,13 +700,19 @@ class FakeGrbl:
             m = self._modal
             feed = m["feed"] or 0
             self._emit(
-                f"[GC:G{m['motion']} G54 G17 {'G21' if m['mm'] else 'G20'} {'G90' if m['absolute'] else 'G91'} "
+                f"[GC:G{m['motion']} G{53 + m['wcs']} G17 {'G21' if m['mm'] else 'G20'} {'G90' if m['absolute'] else 'G91'} "
                 f"G94 M5 {'M8' if self.coolant else 'M9'} T0 F{feed:g} S0]"
             )
             self._ok(line_id)
             return "done"
         if text == "$#":
-            self._emit("[G54:0.000,0.000,0.000]")
+            for number, offset in sorted(self.coordinate_systems.items()):
+                self._emit(f"[G{53 + number}:" + ",".join(f"{c:.3f}" for c in offset) + "]")
+            self._emit("[G28:0.000,0.000,0.000]")
+            self._emit("[G30:0.000,0.000,0.000]")
+            self._emit("[G92:0.000,0.000,0.000]")
+            self._emit("[TLO:0.000]")
+            self._emit("[PRB:0.000,0.000,0.000:0]")
             self._ok(line_id)
             return "done"
         match = text[1:].partition("=")
@@ -677,7 +728,13 @@ class FakeGrbl:
             if value < 0:
                 self._error(4)
                 return "done"
-            self.settings[int(match[0])] = value
+            key = int(match[0])
+            if key == 20 and value and not self._homing_enabled:
+                self._error(10)  # soft limits need homing
+                return "done"
+            self.settings[key] = value
+            if key == 22 and not value:
+                self.settings[20] = 0  # GRBL turns soft limits off with homing
             self._ok(line_id)
             return "done"
         self._error(3)
@@ -691,8 +748,12 @@ class FakeGrbl:
         locate = self.settings[24] / 60.0
         pulloff = self.settings[27]
         mask = int(self.settings.get(23, 0))
-        switch = [self.settings[130 + i] if mask & (1 << i) else 0.0 for i in range(3)]
+        switch = [self._switch_mm(i) for i in range(3)]
         distance = [abs(s - p) for s, p in zip(switch, physical)]
+        if any(d > 1.5 * abs(self.settings[130 + i]) for i, d in enumerate(distance)):
+            self._alarm(9, critical=False)  # GRBL searches 1.5 x the travel, then gives up
+            self._emit("ALARM:9")
+            return
         duration = distance[2] / seek + max(distance[0], distance[1]) / seek
         duration += 3 * pulloff / locate + 2 * self.settings[26] / 1000.0  # locate, pull off, debounce
         goal = tuple(s + pulloff if mask & (1 << i) else s - pulloff for i, s in enumerate(switch))
@@ -726,14 +787,15 @@ class FakeGrbl:
             else:
                 if letter in words:
                     raise _ParseError(25)
-                if letter not in "XYZFPNST":
+                if letter not in "XYZFPNSTL":
                     raise _ParseError(20)
                 words[letter] = value
             i = j
         groups: dict[str, float] = {}
         for g in gcodes:
-            group = {0: "motion", 1: "motion", 80: "motion", 4: "nonmodal", 20: "units", 21: "units",
-                     90: "distance", 91: "distance", 17: "plane", 54: "wcs", 94: "feedmode"}.get(g)  # type: ignore[call-overload]
+            group = {0: "motion", 1: "motion", 80: "motion", 4: "nonmodal", 10: "nonmodal", 53: "nonmodal",
+                     20: "units", 21: "units", 90: "distance", 91: "distance", 17: "plane", 94: "feedmode",
+                     54: "wcs", 55: "wcs", 56: "wcs", 57: "wcs", 58: "wcs", 59: "wcs"}.get(g)  # type: ignore[call-overload]
             if group is None:
                 raise _ParseError(20)
             if group in groups:
@@ -749,8 +811,19 @@ class FakeGrbl:
                 raise _ParseError(20)
         if "F" in words and words["F"] < 0:
             raise _ParseError(4)
-        if "P" in words and groups.get("nonmodal") != 4:
+        if "P" in words and groups.get("nonmodal") not in (4, 10):
             raise _ParseError(36)
+        if "L" in words and groups.get("nonmodal") != 10:
+            raise _ParseError(36)
+        if groups.get("nonmodal") == 10:
+            if "L" not in words or "P" not in words:
+                raise _ParseError(28)
+            if words["L"] not in (2, 20):
+                raise _ParseError(20)
+            if not (0 <= words["P"] <= 6) or not float(words["P"]).is_integer():
+                raise _ParseError(29)
+            if not any(a in words for a in "XYZ"):
+                raise _ParseError(26)
         if groups.get("nonmodal") == 4:
             if "P" not in words:
                 raise _ParseError(28)
@@ -778,6 +851,9 @@ class FakeGrbl:
         if axes and motion_mode == 80:
             self._error(31)
             return "done"
+        if groups.get("nonmodal") == 53 and motion_mode not in (0, 1):
+            self._error(30)
+            return "done"
         # Apply modal state.
         if "F" in words:
             self._modal["feed"] = feed
@@ -787,6 +863,19 @@ class FakeGrbl:
             self._modal["absolute"] = groups["distance"] == 90
         if "motion" in groups:
             self._modal["motion"] = int(groups["motion"])
+        if "wcs" in groups:
+            self._modal["wcs"] = int(groups["wcs"]) - 53
+        if groups.get("nonmodal") == 10:
+            number = int(words["P"]) or self._modal["wcs"]
+            offset = list(self.coordinate_systems[number])
+            here = self._counter_at(self._t)
+            scale = 1.0 if self._modal["mm"] else 25.4
+            for i, a in enumerate("XYZ"):
+                if a in words:  # L2: the offset itself; L20: so that here reads as the given value
+                    offset[i] = words[a] * scale if words["L"] == 2 else here[i] - words[a] * scale
+            self.coordinate_systems[number] = tuple(offset)  # type: ignore[assignment]
+            self._ok(line_id)
+            return "done"
         if block["coolant"] is not None:
             self.coolant = block["coolant"]
             self.output_events.append((self._t, self.coolant, self._counter_at(self._t)))
@@ -797,10 +886,17 @@ class FakeGrbl:
             scale = 1.0 if self._modal["mm"] else 25.4
             base = self._planned_end()
             target = list(base)
+            machine = groups.get("nonmodal") == 53  # G53: machine coordinates, absolute
+            wco = self._wco
             for i, a in enumerate("XYZ"):
                 if a in words:
                     value = words[a] * scale
-                    target[i] = value if self._modal["absolute"] else base[i] + value
+                    if machine:
+                        target[i] = value
+                    elif self._modal["absolute"]:
+                        target[i] = value + wco[i]
+                    else:
+                        target[i] = base[i] + value
             target_q = self._quantise(target)
             if int(self.settings.get(20, 0)) and not self._within_travel(target_q):
                 self._clear_motion()
@@ -824,10 +920,9 @@ class FakeGrbl:
         return self._counter
 
     def _within_travel(self, target: Sequence[float]) -> bool:
-        mask = int(self.settings.get(23, 0))
+        # GRBL 1.1h: machine space is [-max_travel, 0] whichever end an axis homes to ($23)
         for i, value in enumerate(target):
-            travel = self.settings[130 + i]
-            lo, hi = (0.0, travel) if mask & (1 << i) else (-travel, 0.0)
+            lo, hi = -abs(self.settings[130 + i]), 0.0
             if not (lo - 1e-9 <= value <= hi + 1e-9):
                 return False
         return True

@@ -58,14 +58,13 @@ class GrblCommandError(GrblError):
 class GrblAlarmError(GrblError):
     """GRBL raised ``ALARM:N``: it stopped and locked out G-code until homed, unlocked or reset."""
 
-    def __init__(self, code: int, port: str = "", context: str = "") -> None:
+    def __init__(self, code: int, port: str = "", context: str = "", *, advice: str | None = None) -> None:
         self.code = code
         where = f" on {port}" if port else ""
         during = f" during {context}" if context else ""
-        super().__init__(
-            f"GRBL{where} raised ALARM:{code}{during} ({describe_alarm(code)}); "
-            f"{_ALARM_ADVICE.get(code, 'reset the controller and home it before moving again')}"
-        )
+        if advice is None:
+            advice = _ALARM_ADVICE.get(code, "reset the controller and home it before moving again")
+        super().__init__(f"GRBL{where} raised ALARM:{code}{during} ({describe_alarm(code)}); {advice}")
 
 
 class GrblTimeoutError(GrblError):
@@ -209,20 +208,21 @@ def format_mm(value: float) -> str:
 
 
 def encode_move(position_mm: Sequence[float], *, feed_mm_min: float | None = None) -> bytes:
-    """An absolute move to ``position_mm = (x, y, z)`` in mm.
+    """An absolute move to the machine position ``position_mm = (x, y, z)`` in mm.
 
-    ``G0`` (rapid, at the machine's maximum rates) when ``feed_mm_min`` is ``None``, else
-    ``G1 ... F<feed>`` at that feed in mm/min. Assumes ``G90 G21`` modes (set by
-    :func:`encode_modes`); the modes are not repeated on every line.
+    ``G53 G0`` (rapid, at the machine's maximum rates) when ``feed_mm_min`` is ``None``, else
+    ``G53 G1 ... F<feed>`` at that feed in mm/min. ``G53`` makes the target machine coordinates
+    whatever work offset (``G54``-``G59``, ``G92``) another program left active. Assumes ``G21``
+    (set by :func:`encode_modes`); ``G53`` is absolute by itself.
     """
     if len(position_mm) != 3:
         raise ValueError(f"position must be (x, y, z) in mm; got {position_mm!r}")
     x, y, z = (format_mm(float(c)) for c in position_mm)
     if feed_mm_min is None:
-        return encode_line(f"G0 X{x} Y{y} Z{z}")
+        return encode_line(f"G53 G0 X{x} Y{y} Z{z}")
     if not (feed_mm_min > 0 and math.isfinite(feed_mm_min)):
         raise ValueError(f"feed_mm_min must be a positive number; got {feed_mm_min!r}")
-    return encode_line(f"G1 X{x} Y{y} Z{z} F{feed_mm_min:.1f}")
+    return encode_line(f"G53 G1 X{x} Y{y} Z{z} F{feed_mm_min:.1f}")
 
 
 def encode_modes() -> bytes:
@@ -437,20 +437,64 @@ def parse_line(text: str, *, wco_mm: Sequence[float] | None = None) -> Reply:
 
 
 def travel_limits_mm(settings: dict[int, float]) -> tuple[tuple[float, float], ...] | None:
-    """Per-axis ``(min, max)`` machine coordinates the stage can reach, from ``$$`` settings.
+    """Per-axis ``(min, max)`` machine coordinates a move may target, from ``$$`` settings.
 
-    GRBL homes towards +max by default, sets that point to machine zero (minus the pull-off) and
-    travels into negative coordinates: ``[-max_travel, 0]``. An axis whose bit is set in the homing
-    direction mask ``$23`` homes to the other end: ``[0, max_travel]``. ``None`` without ``$130..$132``.
+    GRBL 1.1h's machine space is ``[-max_travel, 0]`` on every axis (``$130..$132``), whichever end
+    it homes to: an axis homing to its maximum (the default) has its switch at 0 and is left at
+    ``-pulloff``; one whose bit is set in ``$23`` homes to its minimum, has its switch at ``-max_travel``
+    and is left at ``-max_travel + pulloff``. Soft limits (``$20``) allow the switch position itself,
+    where a hard limit (``$21``) would trip ``ALARM:1``; these limits keep the homing pull-off (``$27``)
+    away from the switch. ``None`` without ``$130..$132``.
     """
     if not all(k in settings for k in (130, 131, 132)):
         return None
     mask = int(settings.get(23, 0))
+    pulloff = abs(float(settings.get(27, 0.0)))
     limits = []
     for axis in range(3):
         travel = abs(settings[130 + axis])
-        limits.append((0.0, travel) if mask & (1 << axis) else (-travel, 0.0))
+        margin = min(pulloff, travel)
+        limits.append((-travel + margin, 0.0) if mask & (1 << axis) else (-travel, -margin))
     return tuple(limits)
+
+
+#: GRBL 1.1h's homing search runs up to 1.5 x the travel (``HOMING_AXIS_SEARCH_SCALAR``), the locate
+#: phase up to 5 x the pull-off (``HOMING_AXIS_LOCATE_SCALAR``).
+HOMING_SEARCH_SCALAR = 1.5
+HOMING_LOCATE_SCALAR = 5.0
+
+
+def homing_time_bound_s(settings: dict[int, float]) -> float:
+    """The longest a ``$H`` cycle can take with these ``$$`` settings, in s.
+
+    Per axis (summed, whatever the cycle order): the search over ``1.5 x $13x`` at the seek rate
+    ``$25``, a pull-off at ``$25``, the locate over ``5 x $27`` at ``$24``, the final pull-off, each
+    move's acceleration and deceleration (``$12x``) and the debounce delays (``$26`` ms). Rates are
+    capped by the axis' maximum rate ``$11x``.
+    """
+    seek = float(settings.get(25, 500.0))
+    locate = float(settings.get(24, 25.0))
+    pulloff = abs(float(settings.get(27, 1.0)))
+    debounce_s = float(settings.get(26, 250.0)) / 1000.0
+    total = 0.0
+    for axis in range(3):
+        rate_cap = float(settings.get(110 + axis, seek)) or seek
+        accel = float(settings.get(120 + axis, 10.0)) or 10.0
+        travel = abs(float(settings.get(130 + axis, 200.0)))
+        v_seek = max(min(seek, rate_cap), 1e-3) / 60.0
+        v_locate = max(min(locate, rate_cap), 1e-3) / 60.0
+        total += HOMING_SEARCH_SCALAR * travel / v_seek + 2 * pulloff / v_seek
+        total += HOMING_LOCATE_SCALAR * pulloff / v_locate
+        total += 4 * 2 * v_seek / accel + 4 * debounce_s
+    return total
+
+
+def feed_hold_time_s(speed_mm_min: float, settings: dict[int, float]) -> float:
+    """How long a feed hold takes to stop a stage moving at ``speed_mm_min``: the speed over the
+    smallest acceleration of ``$120..$122`` (the planner never exceeds any axis' own)."""
+    accels = [float(settings.get(120 + axis, 10.0)) for axis in range(3)]
+    accel = max(min(accels), 1e-3)
+    return max(speed_mm_min, 0.0) / 60.0 / accel
 
 
 def motion_time_s(distance_mm: float, *, rate_mm_min: float, accel_mm_s2: float) -> float:
@@ -481,8 +525,14 @@ def open_port(url: str, *, baudrate: int = 115200, poll_s: float = 0.05):
     if URL_HANDLERS not in serial.protocol_handler_packages:  # fakegrbl:// (rig/urlhandler/)
         serial.protocol_handler_packages.append(URL_HANDLERS)
     try:
-        return serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0)
+        # exclusive: a second process (or a second lfrig) cannot drive the same controller
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0, exclusive=True)
     except (serial.SerialException, ValueError, OSError) as error:
+        if "exclusively lock" in str(error):
+            raise GrblConnectionError(
+                f"the GRBL port {url!r} is in use by another program (lfrig opens it exclusively); "
+                "close the other program or lfrig command, then run again"
+            ) from None
         raise GrblConnectionError(
             f"cannot open the GRBL port {url!r}: {error}; check the device path or URL "
             "(e.g. /dev/ttyUSB0, socket://host:port) and that no other program holds it"
@@ -502,16 +552,33 @@ class GrblStage:
     reply_timeout_s
         How long to wait for ``ok`` to a non-motion line, or for a status report.
     home_timeout_s
-        How long the homing cycle may take.
+        How long the homing cycle may take; default: derived from the controller's travel, rates and
+        pull-off (:func:`homing_time_bound_s`) plus a margin.
     tolerance_mm
         Largest per-axis distance between the commanded and the reported position accepted as
         "at the target".
     wake_s
-        Wait after waking GRBL (``\\r\\n\\r\\n``) before flushing its start-up output; boards that reset
-        when the port opens (Arduino) need about 2 s.
+        How long to wait after opening the port for GRBL to answer a status query (``?``): boards
+        that reset when the port opens (Arduino) need about 2 s to start; a controller that did not
+        reset answers at once and the wait ends there.
     reset_on_connect
-        Send a soft reset (``0x18``) after waking and wait for the welcome line, so the controller
-        starts from a known state (position is kept when it was not moving).
+        Send a soft reset (``0x18``) and wait for the welcome line, so the controller starts from a
+        known state. A motion still running (a previous process died mid-move) is waited for first:
+        a reset in motion would raise ``ALARM:3`` and lose the position.
+
+    Attributes
+    ----------
+    reset_seen
+        GRBL printed its welcome line on its own: it reset when the port opened (Arduino) or later
+        (power dip, reset button). After a power-up reset GRBL's machine position restarts at 0
+        wherever the carriage stands; only homing restores the machine frame.
+    homed
+        A homing cycle completed through this driver.
+    homing_required
+        Why the position can no longer be trusted (``ALARM:3``: reset while moving), or ``None``.
+        Moves and ``unlock`` are refused until :meth:`home`.
+    open_state
+        The controller's state when the port was opened (``Idle``, ``Alarm``, ...).
     """
 
     def __init__(
@@ -522,7 +589,7 @@ class GrblStage:
         baudrate: int = 115200,
         clock: Clock | None = None,
         reply_timeout_s: float = 2.0,
-        home_timeout_s: float = 120.0,
+        home_timeout_s: float | None = None,
         move_timeout_margin_s: float = 5.0,
         tolerance_mm: float = 0.005,
         wake_s: float = 2.0,
@@ -532,7 +599,7 @@ class GrblStage:
         self.url = url or getattr(port, "port", "") or "<port>"
         self.clock: Clock = clock if clock is not None else SystemClock()
         self.reply_timeout_s = reply_timeout_s
-        self.home_timeout_s = home_timeout_s
+        self._home_timeout_s = home_timeout_s
         self.move_timeout_margin_s = move_timeout_margin_s
         self.tolerance_mm = tolerance_mm
         self.poll_s = poll_s
@@ -543,6 +610,11 @@ class GrblStage:
         self._closed = False
         self.version: str | None = None
         self.settings_values: dict[int, float] = {}
+        self.reset_seen = False
+        self.homed = False
+        self.homing_required: str | None = None
+        self._homing_required_code = 0
+        self.open_state: str | None = None
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
         self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
         try:
@@ -630,6 +702,8 @@ class GrblStage:
                 raise GrblAlarmError(reply.code, self.url, context)
             if isinstance(reply, Welcome):
                 self._target = None
+                self.reset_seen = True
+                self.homed = False
                 raise GrblConnectionError(
                     f"GRBL on {self.url} reset itself during {context} (it printed its welcome line); "
                     "a power dip or a reset button? Home the stage and run again"
@@ -673,13 +747,81 @@ class GrblStage:
                 collected.append(reply)
 
     def _connect(self, *, wake_s: float, reset: bool) -> None:
-        # GRBL's interface: wake it up with blank lines, let it initialise, flush its start-up text.
+        # GRBL's interface: wake it up with blank lines and let it initialise. Then ask for a status
+        # report until one comes: a controller that resets when the port opens prints its welcome
+        # line first (kept as evidence of the reset), one that did not answers at once.
         self._write(WAKE)
-        self.clock.sleep(wake_s)
-        self._flush_input()
+        status = self._wake(wake_s)
+        if status is not None and _is_moving(status):
+            # A previous process left a motion running (killed mid-move): let it end, since a soft
+            # reset in motion aborts it with ALARM:3 and the position is lost.
+            log.info("%s: GRBL is still moving (%s); waiting for it to stop before the reset", self.url, status.state)
+            status = self._wait_until_still(deadline=self.clock.monotonic() + self._motion_bound_s())
         if reset:
             self.reset()
+        else:  # GRBL answers the wake's blank lines with "ok"s that may trail the status report
+            self.clock.sleep(0.1)
+            self._flush_input()
         self.settings_values = self.read_settings()
+        try:
+            self.open_state = self.status_report().state
+        except GrblTimeoutError:  # a critical alarm without the reset: GRBL answers nothing but 0x18
+            self.open_state = None
+
+    def _wake(self, wake_s: float) -> Status | None:
+        """Read what GRBL sends for up to ``wake_s``, querying its status every 0.25 s; returns the
+        first status report (``None`` if none came). Notes a welcome line (``reset_seen``)."""
+        deadline = self.clock.monotonic() + wake_s
+        next_query = self.clock.monotonic()
+        while True:
+            now = self.clock.monotonic()
+            if now >= deadline:
+                return None
+            if now >= next_query:
+                self._write(STATUS_QUERY)
+                next_query = now + 0.25
+            text = self._read_line(min(deadline, next_query))
+            if text is None:
+                continue
+            reply = parse_line(text, wco_mm=self._wco)
+            if isinstance(reply, Welcome):
+                self.reset_seen = True
+                self.version = reply.version
+                log.info("%s: GRBL reset when the port opened (welcome line %r)", self.url, text)
+            elif isinstance(reply, Alarm):
+                log.warning("%s: GRBL reported ALARM:%d (%s) before lfrig connected", self.url, reply.code,
+                            describe_alarm(reply.code))
+            elif isinstance(reply, Status) and reply.mpos_mm is not None:
+                self._remember(reply)
+                return reply
+
+    def _motion_bound_s(self) -> float:
+        """Long enough for any single move GRBL may still be running (the whole travel diagonal at
+        the slowest rate), or a homing cycle."""
+        s = self.settings_values
+        travel = travel_limits_mm(s) if s else None
+        diagonal = math.sqrt(sum((hi - lo) ** 2 for lo, hi in travel)) if travel else 500.0
+        rate = min((s.get(110 + i, 500.0) for i in range(3)), default=500.0) if s else 100.0
+        accel = min((s.get(120 + i, 10.0) for i in range(3)), default=10.0) if s else 10.0
+        return max(motion_time_s(diagonal, rate_mm_min=rate, accel_mm_s2=accel), 60.0 if not s else 0.0) + 10.0
+
+    def _wait_until_still(self, *, deadline: float) -> Status | None:
+        """Poll ``?`` until GRBL is not moving (reports do not come during homing). Raises
+        :class:`GrblTimeoutError` at ``deadline``."""
+        status: Status | None = None
+        while True:
+            try:
+                status = self.status_report()
+                if not _is_moving(status):
+                    return status
+            except GrblTimeoutError:
+                pass  # homing: no reports until it ends
+            if self.clock.monotonic() >= deadline:
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} was still moving when lfrig connected and did not stop "
+                    f"(last report: {_describe(status)}); check the stage, then run again"
+                )
+            self.clock.sleep(self.poll_s)
 
     def _flush_input(self) -> None:
         import serial
@@ -690,11 +832,13 @@ class GrblStage:
             raise self._io_error(error) from None
         self._rx.clear()
 
-    def reset(self) -> None:
-        """Soft reset (``0x18``) and wait for the welcome line. Clears queued motions; a reset during
-        motion makes GRBL raise ALARM:3 (re-home)."""
+    def reset(self) -> list[int]:
+        """Soft reset (``0x18``) and wait for the welcome line. Clears queued motions. Returns the
+        alarm codes GRBL raised on the way: a reset during motion raises ``ALARM:3`` (steps may have
+        been lost), which sets :attr:`homing_required`."""
         self._write(SOFT_RESET)
         deadline = self.clock.monotonic() + self.reply_timeout_s
+        alarms: list[int] = []
         while True:
             text = self._read_line(deadline)
             if text is None:
@@ -703,13 +847,41 @@ class GrblStage:
                     "is this a GRBL controller, at the right baud rate (115200)?"
                 )
             reply = parse_line(text)
+            if isinstance(reply, Alarm):
+                alarms.append(reply.code)
             if isinstance(reply, Welcome):
                 self.version = reply.version
                 self._target = None
                 self._wco = None
                 break
+        for code in alarms:
+            if code in (1, 3, 6):
+                self.homing_required = f"ALARM:{code} ({describe_alarm(code)})"
+                self._homing_required_code = code
+                self.homed = False
+                log.warning("%s: GRBL raised ALARM:%d at the soft reset: %s", self.url, code, describe_alarm(code))
         # Messages that follow the welcome ([MSG:'$H'|'$X' to unlock], startup lines) are read by
         # whatever command comes next.
+        return alarms
+
+    def machine_frame_doubt(self) -> str | None:
+        """Why GRBL's machine coordinates may not be the frame they were before this connection, or
+        ``None`` when nothing says so (homed through this driver, or no reset and no lock seen)."""
+        if self.homing_required:
+            return f"GRBL raised {self.homing_required}"
+        if self.homed:
+            return None
+        if self.reset_seen:
+            return (
+                "GRBL reset when the port opened (it printed its welcome line; Arduino boards reset on open), "
+                "so its machine position restarted at 0 wherever the carriage stood"
+            )
+        if self.open_state == "Alarm":
+            return (
+                "GRBL was in Alarm when the port opened (after a power-up with homing enabled, a reset during a "
+                "move or a limit), so its position is not known to be the one it had"
+            )
+        return None
 
     # -- settings -----------------------------------------------------------------------------
     def read_settings(self) -> dict[int, float]:
@@ -718,11 +890,13 @@ class GrblStage:
         return {r.number: r.value for r in replies if isinstance(r, Setting)}
 
     def limits_mm(self) -> tuple[tuple[float, float], ...] | None:
-        """Per-axis ``(min, max)`` reachable machine coordinates, or ``None`` when soft limits are off
-        or the travel is unknown."""
-        if not int(self.settings_values.get(20, 0)):
+        """Per-axis ``(min, max)`` machine coordinates a move may target (:func:`travel_limits_mm`), or
+        ``None`` when the machine frame does not come from homing (soft limits ``$20`` off and not
+        hard limits ``$21`` with homing ``$22``) or the travel is unknown."""
+        s = self.settings_values
+        if not (int(s.get(20, 0)) or (int(s.get(21, 0)) and int(s.get(22, 0)))):
             return None
-        return travel_limits_mm(self.settings_values)
+        return travel_limits_mm(s)
 
     def settings(self) -> dict[str, Any]:
         """What is worth recording about this stage."""
@@ -736,18 +910,51 @@ class GrblStage:
         }
 
     # -- Stage protocol -----------------------------------------------------------------------
+    @property
+    def home_timeout_s(self) -> float:
+        """How long ``$H`` may take: as given, else the homing time bound of the controller's
+        settings (:func:`homing_time_bound_s`) x 1.25 + 5 s."""
+        if self._home_timeout_s is not None:
+            return self._home_timeout_s
+        if not self.settings_values:
+            return 120.0
+        return 1.25 * homing_time_bound_s(self.settings_values) + 5.0
+
+    @home_timeout_s.setter
+    def home_timeout_s(self, value: float | None) -> None:
+        self._home_timeout_s = value
+
     def home(self) -> None:
         """``$H`` (wait for the cycle to finish), then ``G90 G21``."""
         self._target = None
+        self.homed = False
         self.command("$H", timeout_s=self.home_timeout_s)
+        self.homed = True
+        self.homing_required = None
+        self._homing_required_code = 0
         self.prepare()
+
+    def _refuse_if_homing_required(self, action: str) -> None:
+        if self.homing_required is None:
+            return
+        if int(self.settings_values.get(22, 1)) and action == "unlocking":
+            advice = "home the stage instead (`lfrig stage home`): unlocking would keep a position that may be wrong"
+        elif int(self.settings_values.get(22, 1)):
+            advice = f"home the stage (`lfrig stage home`, or capture without --no-home) before {action}"
+        else:
+            advice = (f"enable homing ($22=1) and home the stage before {action}; if you have checked the position "
+                      "by other means, `lfrig stage unlock` clears the lock")
+        raise GrblAlarmError(self._homing_required_code or 3, self.url, "an earlier soft reset", advice=advice)
 
     def prepare(self) -> None:
         """``G90 G21``: absolute coordinates in millimetres, assumed by every move."""
+        self._refuse_if_homing_required("moving")
         self.command("G90 G21")
 
     def unlock(self) -> None:
-        """``$X``: clear an alarm lock without homing (the position may be wrong), then ``G90 G21``."""
+        """``$X``: clear an alarm lock without homing (the position may be wrong), then ``G90 G21``.
+        Refused after this driver saw ``ALARM:3`` (steps may have been lost): home instead."""
+        self._refuse_if_homing_required("unlocking")
         self.command("$X")
         self.prepare()
 
@@ -768,6 +975,7 @@ class GrblStage:
         position = tuple(float(c) for c in position_mm)
         if len(position) != 3:
             raise ValueError(f"position must be (x, y, z) in mm; got {position_mm!r}")
+        self._refuse_if_homing_required("moving")
         self._check_limits(position)  # type: ignore[arg-type]
         data = encode_move(position, feed_mm_min=feed_mm_min)
         start = self._last_status.mpos_mm if self._last_status is not None else None
@@ -871,15 +1079,28 @@ class GrblStage:
         self.command("M8" if on else "M9")
 
     def stop(self) -> None:
-        """Stop at once: feed hold (``!``), wait briefly for the deceleration, then soft reset."""
+        """Stop at once: feed hold (``!``), wait until GRBL reports the hold complete (``Hold:0``;
+        the time a stop from the current speed takes at ``$120..$122``, with a margin), then soft
+        reset. A reset before the hold completed would abort the motion (``ALARM:3``)."""
         self._write(FEED_HOLD)
-        deadline = self.clock.monotonic() + 1.0
-        while self.clock.monotonic() < deadline:
+        start = self.clock.monotonic()
+        deadline: float | None = None
+        status: Status | None = None
+        while True:
             try:
                 status = self.status_report()
             except GrblError:
                 break
-            if status.state != "Run" and not (status.state == "Hold" and status.substate == 1):
+            if not _is_moving(status):
+                break
+            if deadline is None:  # from the first report after the hold: the speed it stops from
+                speed = status.feed_mm_min
+                if speed is None:
+                    speed = max((self.settings_values.get(110 + i, 500.0) for i in range(3)), default=500.0)
+                deadline = start + 1.5 * feed_hold_time_s(speed, self.settings_values) + max(self.reply_timeout_s, 0.5)
+            if self.clock.monotonic() >= deadline:
+                log.warning("%s: the feed hold did not complete within %.1f s (%s); resetting anyway",
+                            self.url, self.clock.monotonic() - start, _describe(status))
                 break
             self.clock.sleep(self.poll_s)
         try:
@@ -887,6 +1108,11 @@ class GrblStage:
         except GrblTimeoutError:
             log.warning("%s: no welcome line after the soft reset", self.url)
         self._target = None
+
+
+def _is_moving(status: Status) -> bool:
+    """Whether a report says the axes may be moving (a hold still decelerating counts)."""
+    return status.state in ("Run", "Jog", "Home") or (status.state == "Hold" and status.substate == 1)
 
 
 def _fmt(position: Sequence[float] | None) -> str:

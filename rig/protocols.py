@@ -1,8 +1,9 @@
 """The two devices of a capture rig, as small protocols.
 
 The capture loop (``rig.session``) is the one place that touches both. Real drivers
-(``rig.grbl.GrblStage``, ``rig.camera.OpenCVCamera``) and their simulated twins
-(``rig.fakegrbl`` behind a pyserial URL, ``rig.fakecam.FakeCamera``) implement them.
+(``rig.grbl.GrblStage``, ``rig.camera.OpenCVCamera``, ``rig.aravis.AravisCamera``) and their simulated
+twins (``rig.fakegrbl`` behind a pyserial URL, ``rig.fakecam.FakeCamera``; Aravis's own ``Fake_1``)
+implement them.
 
 Frames and units (see ``docs/conventions.md``): stage positions are machine coordinates in mm as
 GRBL reports them (``MPos``), ordered ``(x, y, z)``; images are ``(H, W)`` or ``(H, W, 3)`` arrays,

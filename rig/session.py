@@ -7,7 +7,10 @@ A frame is never taken while the stage moves.
 
 Resuming: the same command on the same folder takes only the views the journal does not have (whose
 files are on disk with the journalled checksum); with other settings the writer refuses and says
-which differ.
+which differ. A resume must continue in the machine frame the capture started in: it homes first
+(the default), or, without homing, proves the frame is unchanged (the controller did not reset or
+lock since, and the stage stands where the journal's last view was read back) and otherwise refuses
+(:class:`FrameNotProvenError`) before anything moves.
 
 Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly; a second
 one stops the stage at once (feed hold, then soft reset) and raises :class:`CaptureInterrupted`.
@@ -33,6 +36,7 @@ from rig.errors import RigError
 from rig.clock import Clock, SystemClock
 from rig.grid import GridSpec, Move, check_limits, plan_moves
 from recon.lf.capture import CaptureWriter
+from recon.lf.lock import FolderLock
 from rig.protocols import Camera, Stage
 
 LOG_NAME = "session.log"
@@ -48,6 +52,41 @@ class CaptureInterrupted(RigError):
 
 class StageNotSettledError(RigError):
     """The stage was not idle at the target when the frame was due."""
+
+
+class FrameNotProvenError(RigError):
+    """A resume without homing cannot show that the stage is in the capture's machine frame."""
+
+
+def check_machine_frame(
+    stage: Stage, completed: dict[tuple[int, int], dict[str, Any]], *, tolerance_mm: float, path: Path
+) -> None:
+    """Refuse to resume without homing unless the machine frame is proven: homed through this
+    connection (``stage.homed``), or unchanged: no reset or alarm lock seen by the driver
+    (``stage.machine_frame_doubt()``) and the stage at the position read back for the journal's last
+    view. Nothing to prove for a fresh capture."""
+    if not completed or getattr(stage, "homed", False):  # homed since power-up: the frame is the switches'
+        return
+    advice = (
+        "home it: run the same command without --no-home (with homing disabled, $22=0, enable it and home, or "
+        "capture into a new folder)"
+    )
+    doubt_of = getattr(stage, "machine_frame_doubt", None)
+    doubt = doubt_of() if callable(doubt_of) else None
+    if doubt:
+        raise FrameNotProvenError(
+            f"cannot prove the stage is in the machine frame {path} was captured in: {doubt}; "
+            f"resuming there would shift every new view. {advice[0].upper()}{advice[1:]}"
+        )
+    last = max(completed.values(), key=lambda record: str(record.get("time", "")))
+    readback = last.get("readback_mm")
+    here = stage.position()
+    if readback is None or max(abs(a - b) for a, b in zip(here, readback)) > tolerance_mm:
+        raise FrameNotProvenError(
+            f"cannot prove the stage is in the machine frame {path} was captured in: it is at {_fmt(here)}, but the "
+            f"last view was read back at {_fmt(readback)}, and GRBL cannot tell whether it moved or restarted its "
+            f"position since (a stopped move, a reset). {advice[0].upper()}{advice[1:]}"
+        )
 
 
 @dataclass
@@ -188,6 +227,7 @@ def run_capture(
     progress: ProgressCallback | None = None,
     handle_sigint: bool = True,
     should_stop: Callable[[], bool] | None = None,
+    lock: FolderLock | None = None,
 ) -> SessionResult:
     """Capture (or resume) the grid into the folder ``path``.
 
@@ -214,6 +254,9 @@ def run_capture(
         ``progress(fraction, message)`` after each view (:mod:`recon.progress`), or ``None``.
     should_stop
         Called after each view; returning True stops like a first Ctrl-C (for embedding and tests).
+    lock
+        The folder's lock (:class:`recon.lf.lock.FolderLock`) when the caller took it already (the
+        command line takes it before it opens the devices); else it is taken here.
 
     Returns
     -------
@@ -224,12 +267,17 @@ def run_capture(
     ------
     recon.errors.CaptureLayoutError
         The folder holds a capture with other settings (nothing moved).
+    recon.lf.lock.FolderLockedError
+        Another capture is running in the folder (nothing moved).
     rig.grid.GridError
         A move lies outside the stage's travel (nothing moved).
     CaptureAborted
         A stage or camera error; its ``__cause__`` is the device's error. The views on disk are kept.
     CaptureInterrupted
         A second Ctrl-C: feed hold and soft reset were sent.
+    FrameNotProvenError
+        ``home=False`` on a folder being resumed, and the machine frame is not proven unchanged
+        (:func:`check_machine_frame`). Nothing moved.
     """
     _check_session_values(settle_s=settle_s, feed_mm_min=feed_mm_min, tolerance_mm=tolerance_mm)
     path = Path(path)
@@ -243,7 +291,7 @@ def run_capture(
         stage_settings=stage_settings,
         extra=header_extra,
     )
-    writer = CaptureWriter(path, header=header)
+    writer = CaptureWriter(path, header=header, lock=lock)
     log = SessionLog(path / LOG_NAME)
     interrupts = _Interrupts(log, sys.stderr)
     total = grid.rows * grid.cols
@@ -263,6 +311,12 @@ def run_capture(
         if limits_mm is None and hasattr(stage, "limits_mm"):
             limits_mm = stage.limits_mm()
         check_limits(moves, limits_mm)
+        if not home:
+            check_machine_frame(stage, writer.completed, tolerance_mm=tolerance, path=path)
+            doubt_of = getattr(stage, "machine_frame_doubt", None)
+            doubt = doubt_of() if callable(doubt_of) else None
+            if doubt:
+                log(f"warning: not homing although {doubt}; the views are in that frame")
         if handle_sigint:
             interrupts.install()
         report(progress, done_before / total, f"{done_before} of {total} views on disk")
@@ -312,9 +366,14 @@ def run_capture(
                 stage.stop()
             except RigError as error:
                 log(f"stopping the stage failed: {error}")
+            lost = getattr(stage, "homing_required", None)
+            if lost:
+                log(f"the stage was still moving at the reset: {lost}")
             raise CaptureInterrupted(
-                f"stopped at once by a second Ctrl-C (feed hold + soft reset sent); {len(writer.completed)} of "
-                f"{total} views are in {path}. Home the stage and run the same command again to resume"
+                f"stopped at once by a second Ctrl-C (feed hold + soft reset sent"
+                + (f"; GRBL raised {lost}" if lost else "")
+                + f"); {len(writer.completed)} of {total} views are in {path}. Home the stage and run the same "
+                "command again to resume"
             ) from None
         except RigError as error:
             log(f"error: {error}")

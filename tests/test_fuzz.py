@@ -419,9 +419,8 @@ def test_depth_map_mutations(base, data, capfd):
     assert capfd.readouterr().err == ""
 
 
-@pytest.mark.xfail(strict=True, reason="#13 point 5 (owned by the journal/integrity work): a view's file must be "
-                                       "views/uUU_vVV.png inside the capture; remove this mark with that fix")
 def test_a_manifest_cannot_make_lfrig_read_outside_the_capture(base):
+    """A journal whose ``file`` points outside the capture (point 5 of #13) reads nothing there."""
     from recon.lf import read_lightfield
 
     folder, cap = copy_capture(base)

@@ -38,6 +38,8 @@ from rig.grbl import (
     open_port,
     parse_line,
     parse_status,
+    feed_hold_time_s,
+    homing_time_bound_s,
     travel_limits_mm,
 )
 
@@ -45,8 +47,8 @@ from rig.grbl import (
 
 
 def test_exact_bytes_of_each_command():
-    assert encode_move((-1.5, -2, -3)) == b"G0 X-1.500 Y-2.000 Z-3.000\n"
-    assert encode_move((0.0004, -0.0004, 12.3456), feed_mm_min=250) == b"G1 X0.000 Y0.000 Z12.346 F250.0\n"
+    assert encode_move((-1.5, -2, -3)) == b"G53 G0 X-1.500 Y-2.000 Z-3.000\n"
+    assert encode_move((0.0004, -0.0004, 12.3456), feed_mm_min=250) == b"G53 G1 X0.000 Y0.000 Z12.346 F250.0\n"
     assert encode_modes() == b"G90 G21\n"
     assert encode_dwell(0) == b"G4 P0\n"
     assert encode_dwell(0.25) == b"G4 P0.25\n"
@@ -123,10 +125,24 @@ def test_error_and_alarm_exceptions_name_grbls_meaning():
     assert issubclass(GrblCommandError, RigError) and issubclass(GrblAlarmError, RigError)
 
 
-def test_travel_limits_follow_homing_direction():
+def test_travel_limits_are_grbl_1_1h_machine_space_less_the_pull_off_at_the_switch():
     settings = {130: 100.0, 131: 80.0, 132: 50.0, 23: 0b010}
-    assert travel_limits_mm(settings) == ((-100.0, 0.0), (0.0, 80.0), (-50.0, 0.0))
+    assert travel_limits_mm(settings) == ((-100.0, 0.0), (-80.0, 0.0), (-50.0, 0.0))  # [-max, 0] whatever $23
+    settings[27] = 1.5
+    assert travel_limits_mm(settings) == ((-100.0, -1.5), (-78.5, 0.0), (-50.0, -1.5))
     assert travel_limits_mm({130: 1.0}) is None
+
+
+def test_homing_and_feed_hold_times_follow_the_settings():
+    settings = {130: 100.0, 131: 100.0, 132: 50.0, 25: 600.0, 24: 60.0, 27: 1.0, 26: 0.0,
+                110: 6000.0, 111: 6000.0, 112: 6000.0, 120: 1e9, 121: 1e9, 122: 1e9}
+    # search 1.5 x travel at 10 mm/s, two 1 mm pull-offs at 10 mm/s, locate 5 mm at 1 mm/s, per axis
+    expected = sum(1.5 * t / 10.0 + 2 * 1.0 / 10.0 + 5.0 for t in (100.0, 100.0, 50.0))
+    assert homing_time_bound_s(settings) == pytest.approx(expected, rel=1e-6)
+    settings[25] = 300.0
+    assert homing_time_bound_s(settings) > expected + 30  # slower seek: longer
+    assert feed_hold_time_s(500.0, {120: 10.0, 121: 20.0, 122: 5.0}) == pytest.approx(500 / 60 / 5.0)
+    assert feed_hold_time_s(0.0, {}) == 0.0
 
 
 # -- the driver's bytes on the wire, against the fake --------------------------------------------
@@ -148,21 +164,24 @@ def wire_since(controller, mark):
 def test_driver_sends_exactly_these_bytes(fake):
     clock, controller, url = fake
     stage = GrblStage(url, clock=clock)
-    assert wire_since(controller, 0) == b"\r\n\r\n\x18$$\n"  # wake, reset, read settings
-    assert stage.version == "1.1h" and stage.limits_mm() == ((-100.0, 0.0), (-100.0, 0.0), (-50.0, 0.0))
+    # wake, status query (answered after the welcome of the reset on open), reset, settings, status
+    assert wire_since(controller, 0) == b"\r\n\r\n?\x18$$\n?"
+    assert stage.version == "1.1h" and stage.limits_mm() == ((-100.0, -1.0), (-100.0, -1.0), (-50.0, -1.0))
+    assert stage.reset_seen and stage.open_state == "Alarm" and "reset when the port opened" in stage.machine_frame_doubt()
     mark = len(controller.rx_log)
     stage.home()
     assert wire_since(controller, mark) == b"$H\nG90 G21\n"
+    assert stage.homed and stage.machine_frame_doubt() is None
     mark = len(controller.rx_log)
     stage.move_to((-10, -20.25, -5))
-    assert wire_since(controller, mark) == b"G0 X-10.000 Y-20.250 Z-5.000\n"
+    assert wire_since(controller, mark) == b"G53 G0 X-10.000 Y-20.250 Z-5.000\n"
     mark = len(controller.rx_log)
     assert stage.wait_until_idle() == (-10.0, -20.25, -5.0)
     assert wire_since(controller, mark) == b"G4 P0\n?"
     mark = len(controller.rx_log)
     stage.move_to((-10.5, -20.25, -5), feed_mm_min=120)
     stage.wait_until_idle()
-    assert wire_since(controller, mark) == b"G1 X-10.500 Y-20.250 Z-5.000 F120.0\nG4 P0\n?"
+    assert wire_since(controller, mark) == b"G53 G1 X-10.500 Y-20.250 Z-5.000 F120.0\nG4 P0\n?"
     mark = len(controller.rx_log)
     stage.set_output(True)
     stage.set_output(False)
@@ -339,3 +358,59 @@ def test_fake_garbled_reply_lines_are_ignored(fake):
         stage.home()
         controller._out += b"<Idle|MPos:-1.0\xff\r\n"  # noise on the line before the real report
         assert stage.position() == (-1.0, -1.0, -1.0)
+
+
+def test_homing_timeout_comes_from_travel_and_seek_rate():
+    """A long, slow stage homes for longer than the 120 s the driver once allowed."""
+    clock = VirtualClock()
+    slow = {130: 1000.0, 131: 1000.0, 132: 500.0, 25: 100.0, 110: 1000.0, 111: 1000.0, 112: 1000.0}
+    controller = FakeGrbl(clock=clock, settings=slow, start_mm=(-900.0, -900.0, -400.0))
+    url = register(controller)
+    try:
+        with GrblStage(url, clock=clock) as stage:
+            t0 = clock.monotonic()
+            stage.home()
+            assert clock.monotonic() - t0 > 600  # Z then X and Y at 100 mm/min
+            assert stage.position() == (-1.0, -1.0, -1.0)
+            assert stage.home_timeout_s > clock.monotonic() - t0
+    finally:
+        unregister(url)
+
+
+def test_stop_waits_for_the_hold_at_slow_acceleration():
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock, settings={120: 5.0, 121: 5.0, 122: 5.0, 110: 600.0, 111: 600.0, 112: 600.0})
+    url = register(controller)
+    try:
+        with GrblStage(url, clock=clock) as stage:
+            stage.home()
+            stage.move_to((-90.0, -1.0, -1.0))
+            clock.sleep(4.0)  # cruising at 10 mm/s: 2 s to stop
+            stage.stop()
+            assert 3 not in controller.alarms and stage.homing_required is None
+            assert stage.status()["state"] == "Idle"
+    finally:
+        unregister(url)
+
+
+def test_fake_port_is_exclusive_like_a_tty(fake):
+    clock, controller, url = fake
+    with GrblStage(url, clock=clock):
+        with pytest.raises(GrblConnectionError, match="in use by another program"):
+            GrblStage(url, clock=clock)
+    GrblStage(url, clock=clock).close()  # free again
+
+
+def test_fake_work_offsets_g53_and_23(fake):
+    clock, controller, url = fake
+    controller.settings[23] = 0b001
+    with GrblStage(url, clock=clock) as stage:
+        stage.home()
+        assert stage.position() == (-99.0, -1.0, -1.0)  # X homed to its minimum: -max + pull-off
+        stage.command("G10 L2 P1 X5 Y6 Z7")
+        stage.command("G0 X-20 Y-20 Z-20")  # work coordinates: offset applied
+        stage.command("G4 P0", timeout_s=60)
+        assert stage.position() == (-15.0, -14.0, -13.0)
+        stage.move_to((-20.0, -20.0, -20.0))  # G53: machine coordinates
+        assert stage.wait_until_idle() == (-20.0, -20.0, -20.0)
+        assert Message("G54", "5.000,6.000,7.000") in stage.command("$#")

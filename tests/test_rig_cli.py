@@ -85,7 +85,8 @@ def test_stage_commands(capsys):
     assert main(["stage", "move", "-10", "-20", "-5", "--home"]) == 0
     assert "Idle  MPos X=-10.000, Y=-20.000, Z=-5.000" in capsys.readouterr().out
     assert main(["stage", "move", "-10", "-20", "-5"]) == 2  # a fresh controller is locked until homed
-    assert "error:9" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "error:9" in err and "warning: GRBL reset when the port opened" in err
     assert main(["stage", "home"]) == 0
     assert "Idle  MPos X=-1.000, Y=-1.000, Z=-1.000" in capsys.readouterr().out
 
@@ -140,3 +141,19 @@ def test_fake_capture_reconstructs_to_the_fake_scenes_disparity(tmp_path):
     assert np.median(error) < 0.02, np.median(error)
     assert np.mean(error > 0.07) < 0.1, np.mean(error > 0.07)
     print(f"median |d - d_true| = {np.median(error):.4f} px, BadPix0.07 = {100 * np.mean(error > 0.07):.1f} %")
+
+
+def test_stage_move_help(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["stage", "move", "--help"])
+    assert exit_.value.code == 0
+    assert "X Y Z" in capsys.readouterr().out
+
+
+def test_capture_without_homing_after_a_reset_warns(tmp_path, capsys):
+    out = tmp_path / "cap"
+    assert main(["capture", str(out), "--no-home", "--rows", "2", "--cols", "2", "--quiet", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "warning: GRBL reset when the port opened" in err and "error:9" in err  # $22=1: locked as well

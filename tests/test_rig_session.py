@@ -30,7 +30,7 @@ from rig.grbl import (
 )
 from rig.grid import GridError, GridSpec, view_position
 from recon.lf.capture import read_capture
-from rig.session import CaptureAborted, CaptureInterrupted, run_capture
+from rig.session import CaptureAborted, CaptureInterrupted, FrameNotProvenError, run_capture
 
 CENTRE = (-50.0, -50.0, -10.0)
 SHAPE = (6, 8)
@@ -151,9 +151,9 @@ def test_resume_with_other_settings_is_refused(rig, tmp_path):
 
 def test_grid_outside_travel_is_refused_before_anything_moves(rig, tmp_path):
     clock, controller, url = rig
-    spec = GridSpec(centre_mm=(-1.0, -50.0, -10.0))  # +x half of the grid is beyond machine zero
-    with open_stage(url, clock) as stage:
-        with pytest.raises(GridError, match=r"view \(0, 7\) needs x = 0\.500 mm, outside"):
+    spec = GridSpec(centre_mm=(-1.0, -50.0, -10.0))  # +x half of the grid is on or beyond the switch side
+    with open_stage(url, clock) as stage:  # travel ends 1 mm ($27 pull-off) before the switch at 0
+        with pytest.raises(GridError, match=r"view \(0, 5\) needs x = -0\.500 mm, outside .*-1\.000\]"):
             run_capture(tmp_path / "c", stage=stage, camera=PositionCamera(controller), grid=spec, clock=clock,
                         progress=None)
     assert b"$H" not in controller.rx_log and b"G0" not in controller.rx_log
@@ -215,7 +215,7 @@ def test_second_sigint_sends_feed_hold_and_reset(rig, tmp_path):
 
 
 FAULT_CASES = [
-    ("lost_ok", GrblTimeoutError, r"did not answer 'G0 X.*not sent again"),
+    ("lost_ok", GrblTimeoutError, r"did not answer 'G53 G0 X.*not sent again"),
     ("garbled", GrblCommandError, r"error:1 \(a G-code word has no letter"),
     ("alarm_mid_move", GrblAlarmError, r"ALARM:1 .*hard limit"),
     ("stall", GrblTimeoutError, r"did not finish its move.*stalled"),
@@ -245,6 +245,58 @@ def test_fault_gives_clear_error_and_resume_completes(rig, tmp_path, kind, error
     assert result.complete and result.taken == 25 - first
     assert camera.triggers == 25 and camera.moving_triggers == 0  # no frame lost or taken twice
     check_capture(tmp_path / "c", spec)
+
+
+def test_resume_without_homing_needs_the_same_machine_frame(rig, tmp_path):
+    """An Arduino resets when its port opens and GRBL restarts its position at 0 where the carriage
+    stands: a resume without homing after that must refuse, not take shifted views."""
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    with open_stage(url, clock) as stage:
+        first = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                            should_stop=lambda: camera.triggers >= 5)
+        assert first.interrupted and camera.triggers == 5
+        # same connection, homed, standing at the last view: the frame is proven
+        second = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                             home=False, should_stop=lambda: camera.triggers >= 8)
+        assert second.taken == 3
+    with open_stage(url, clock) as stage:  # reset on open
+        with pytest.raises(FrameNotProvenError, match="cannot prove .* reset when the port opened"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None, home=False)
+        assert camera.triggers == 8 and not controller.is_moving()
+    with open_stage(url, clock) as stage:
+        stage.unlock()  # unlocked, but the frame is still the one GRBL powered up in
+        with pytest.raises(FrameNotProvenError, match="cannot prove"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None, home=False)
+        stage.home()  # homed since power-up: proven, wherever the stage now stands
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                             home=False)
+    assert result.complete and camera.triggers == 12
+    check_capture(tmp_path / "c", spec)
+
+
+def test_resume_without_homing_after_a_reset_with_homing_disabled(tmp_path):
+    """$22=0 (GRBL's default): no lock after the reset on open, so nothing but the driver's evidence
+    of the reset stops a resume in a frame shifted by wherever the carriage stood."""
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock, settings={22: 0, 20: 0})
+    url = register(controller)
+    try:
+        spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+        camera = PositionCamera(controller)
+        with open_stage(url, clock) as stage:
+            first = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                                home=False, should_stop=lambda: camera.triggers >= 5)
+            assert first.interrupted
+        with open_stage(url, clock) as stage:  # the reset on open re-zeroes GRBL where the carriage stands
+            assert stage.status()["state"] == "Idle"
+            with pytest.raises(FrameNotProvenError, match="restarted at 0 wherever the carriage stood"):
+                run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                            home=False)
+        assert camera.triggers == 5 and len(view_lines(tmp_path / "c")) == 5
+    finally:
+        unregister(url)
 
 
 def test_third_sigint_while_stopping_does_not_abort_the_stop(rig, tmp_path, capsys):

@@ -3,6 +3,7 @@ are :mod:`recon.result`'s)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from recon.entropy.estimate import EntropyResult
 from recon.entropy.labels import REGION_COLOURS
 from recon.entropy.windows import N_SHAPES
 from recon.errors import ReconError
-from recon.lf.imageio import write_png
+from recon.lf.imageio import write_bytes_atomic, write_png
 from recon.lf.pfm import write_pfm
 from recon.result import (HOLES_PNG, INITIAL_DISPARITY_PFM, MATCHED_DISPARITY_PFM, REFINED_DISPARITY_PFM, REGIONS_NPY,
                           REGIONS_PNG, VIEW_SET_NPY, WINDOW_SHAPE_NPY, WINDOW_SHAPE_PNG, WINDOW_SIZE_NPY, WINDOW_SIZE_PNG)
@@ -54,7 +55,9 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     written: list[Path] = []
 
     def npy(name: str, array: np.ndarray) -> None:
-        np.save(out / name, array)
+        buffer = io.BytesIO()
+        np.save(buffer, array)
+        write_bytes_atomic(out / name, buffer.getvalue())
         written.append(out / name)
 
     def png(name: str, rgb: np.ndarray) -> None:

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import re
+import signal
 import threading
 import zlib
+from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
 
-from recon.errors import LightFieldFormatError
+from recon.errors import FileWriteError, LightFieldFormatError
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -148,25 +152,137 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> str:
-    """Write ``data`` to ``path`` so that a reader sees either the old file or the whole new one.
+#: Environment variables of the fault-injection hook used by the fault tests (``tests/test_faults.py``):
+#: ``LFRIG_FAULT=kill:N`` sends SIGKILL to this process in the middle of its N-th file write (the
+#: temporary file half written), ``LFRIG_FAULT=enospc:N`` makes the N-th write fail as a full disk
+#: would (``OSError(ENOSPC)`` after half the bytes). ``LFRIG_FAULT_LOG=FILE`` appends one line per
+#: write (``N<TAB>path``) so a test can count the writes of a command. Unset, they cost one lookup.
+FAULT_ENV = "LFRIG_FAULT"
+FAULT_LOG_ENV = "LFRIG_FAULT_LOG"
+_writes = 0
 
-    The bytes go to a temporary file in the same folder (named with the process id, so two processes
-    writing the same file never share it), are flushed to disk, and the file is renamed into place;
-    the folder is synced so the rename survives a power cut. Returns the SHA-256 hex digest.
-    """
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fd = os.open(path.parent, os.O_RDONLY)
+
+def fault_point(path: Path) -> None:
+    """Count one write of ``path`` and, when the fault hook asks for it, fail it here."""
+    global _writes
+    fault = os.environ.get(FAULT_ENV)
+    log = os.environ.get(FAULT_LOG_ENV)
+    if not fault and not log:
+        return
+    _writes += 1
+    if log:
+        with open(log, "a", encoding="utf-8") as f:
+            f.write(f"{_writes}\t{path}\n")
+    if fault:
+        mode, _, number = fault.partition(":")
+        if number.isdigit() and int(number) == _writes:
+            if mode == "kill":
+                os.kill(os.getpid(), signal.SIGKILL)
+            if mode == "enospc":
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
+def write_error(path: Path, error: OSError) -> FileWriteError:
+    """The user-facing error for a failed write of ``path``."""
+    reason = error.strerror or str(error)
+    hint = "free some space" if error.errno in (errno.ENOSPC, errno.EDQUOT) else "check the folder"
+    return FileWriteError(f"{path}: cannot write ({reason}); {hint} and run the command again")
+
+
+def _sync_folder(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def temporary_name(path: Path) -> Path:
+    """The temporary file beside ``path`` that an atomic write of ``path`` goes through.
+
+    Hidden (a leading dot) and named with the process id, so two processes writing the same file
+    never share it and readers that list a folder skip it; it keeps the suffix, because some writers
+    (open3d, OpenCV) choose the format by it: ``.model.1234.tmp.ply`` for ``model.ply``.
+    """
+    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> str:
+    """Write ``data`` to ``path`` so that a reader sees either the old file or the whole new one.
+
+    The bytes go to a temporary file in the same folder (:func:`temporary_name`), are flushed to
+    disk, and the file is renamed into place; the folder is synced so the rename survives a power
+    cut. Returns the SHA-256 hex digest.
+
+    Raises
+    ------
+    FileWriteError
+        When the file cannot be written (a full disk, no permission); the temporary file is removed
+        and ``path`` keeps its previous content.
+    """
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            half = len(data) // 2
+            f.write(data[:half])
+            f.flush()
+            fault_point(path)
+            f.write(data[half:])
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        _sync_folder(path.parent)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        raise write_error(path, error) from None
     return hashlib.sha256(data).hexdigest()
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove the temporary files that interrupted atomic writes left in ``folder`` (not below it).
+
+    Call it only while holding the folder's lock (:mod:`recon.lf.lock`): then no other lfrig process
+    is writing there, and every temporary is a leftover of one that died. Returns what was removed.
+    """
+    removed = []
+    for file in Path(folder).glob(".*.tmp*"):
+        if re.fullmatch(r"\..+\.\d+\.tmp(\.[^.]*)?", file.name) and file.is_file():
+            try:
+                file.unlink()
+            except OSError:
+                continue
+            removed.append(file)
+    return removed
+
+
+@contextmanager
+def atomic_output(path: Path, *, what: str = "file") -> Iterator[Path]:
+    """For writers that want a file name (open3d, mrcal, numpy): yield a temporary name beside
+    ``path``; when the block ends without an error, sync that file and rename it over ``path``.
+
+    The temporary file must exist and be non-empty when the block ends, else nothing is renamed and
+    a :class:`FileWriteError` names ``path``. On any error the temporary file is removed and
+    ``path`` keeps its previous content.
+    """
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        yield tmp
+        size = tmp.stat().st_size if tmp.exists() else 0
+        if size == 0:
+            raise FileWriteError(f"{path}: the {what} was not written (nothing on disk); check the folder and free space")
+        fault_point(path)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        _sync_folder(path.parent)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        raise write_error(path, error) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_png(path: Path, image: np.ndarray) -> str:

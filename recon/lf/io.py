@@ -20,8 +20,11 @@ from recon.lf.benchmark import BENCHMARK_VIEW, read_benchmark
 from recon.lf.lightfield import LightField
 
 
-def read_lightfield(path: str | os.PathLike) -> LightField:
+def read_lightfield(path: str | os.PathLike, *, verify: bool = True) -> LightField:
     """Read a light-field folder in the benchmark layout or lfrig's capture layout.
+
+    ``verify``: check each view of a capture against its journalled SHA-256
+    (:func:`recon.lf.capture.read_capture`); the benchmark layout has no checksums.
 
     Raises
     ------
@@ -35,7 +38,7 @@ def read_lightfield(path: str | os.PathLike) -> LightField:
     if not path.is_dir():
         raise LightFieldFormatError(f"{path}: not a folder; pass the folder that holds the views")
     if capture.is_capture(path):
-        return capture.read_capture(path)
+        return capture.read_capture(path, verify=verify)
     if any(BENCHMARK_VIEW.match(p.name) for p in path.iterdir()):
         return read_benchmark(path)
     raise LightFieldFormatError(

@@ -61,9 +61,9 @@ def write_parameters(path: str | os.PathLike, parameters: Parameters) -> None:
         lines.append(f"[{section}]")
         lines.extend(f"{key} = {value}" for key, value in values.items())
         lines.append("")
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines), encoding="utf-8")
-    os.replace(tmp, path)
+    from recon.lf.imageio import write_bytes_atomic
+
+    write_bytes_atomic(path, "\n".join(lines).encode("utf-8"))
 
 
 #: The most views per grid side a light field may declare (``num_cams_x``, ``num_cams_y``, a capture's

@@ -82,9 +82,6 @@ def write_pfm(path: str | os.PathLike, image: np.ndarray) -> None:
     kind = "PF" if image.ndim == 3 else "Pf"
     height, width = image.shape[:2]
     body = np.ascontiguousarray(image[::-1], dtype="<f4").tobytes()
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(f"{kind}\n{width} {height}\n-1.0\n".encode("ascii"))
-        f.write(body)
-    os.replace(tmp, path)
+    from recon.lf.imageio import write_bytes_atomic
+
+    write_bytes_atomic(Path(path), f"{kind}\n{width} {height}\n-1.0\n".encode("ascii") + body)

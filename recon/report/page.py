@@ -42,7 +42,7 @@ import numpy as np
 from recon.camera import Camera
 from recon.colour import colour_map, robust_range
 from recon.depth import depth_error_scores
-from recon.lf.imageio import write_png
+from recon.lf.imageio import write_bytes_atomic, write_png
 from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
                                       colourbar_figure, display_scale, image_figure, line_plot, region_picture,
                                       shaded_relief)
@@ -270,7 +270,7 @@ def write_report(
         + "\n</main></body></html>\n"
     )
     path = out / "index.html"
-    path.write_text(page, encoding="utf-8")
+    write_bytes_atomic(path, page.encode("utf-8"))
     return path
 
 

@@ -327,10 +327,14 @@ def _finish(job: CaptureJob, request: BatchRequest, fingerprint: str, report: di
     names = report["names"]
     if transfer == "ship":
         from recon.lf.imageio import write_bytes_atomic
+        from recon.lf.lock import FolderLock
+        from recon.result import clear_result
 
-        for name in sorted(names, key=lambda n: n == RESULT_JSON):  # result.json last, as on the worker
-            (job.out_dir / name).parent.mkdir(parents=True, exist_ok=True)
-            write_bytes_atomic(job.out_dir / name, report["files"][name])
+        with FolderLock(job.out_dir, what="reconstruction"):
+            clear_result(job.out_dir)  # one run per folder, as reconstruct_to_folder does on the worker
+            for name in sorted(names, key=lambda n: n == RESULT_JSON):  # result.json last, as on the worker
+                (job.out_dir / name).parent.mkdir(parents=True, exist_ok=True)
+                write_bytes_atomic(job.out_dir / name, report["files"][name])
     missing = [name for name in names if not (job.out_dir / name).is_file()]
     if missing:
         outcome.error = (

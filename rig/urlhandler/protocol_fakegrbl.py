@@ -104,11 +104,17 @@ class Serial(SerialBase):
             raise SerialException("port is already open")
         if self._port is None:
             raise SerialException("port must be configured before it can be used")
-        self.controller = controller_for_url(self.port)
+        controller = controller_for_url(self.port)
+        if self._exclusive and controller._ports_open:  # like a tty opened with exclusive=True (flock)
+            raise SerialException(f"Could not exclusively lock port {self.port}: [Errno 11] Resource temporarily unavailable")
+        self.controller = controller
         self.controller.power_on()
+        self.controller._ports_open += 1
         self.is_open = True
 
     def close(self) -> None:
+        if self.is_open and self.controller is not None:
+            self.controller._ports_open = max(self.controller._ports_open - 1, 0)
         self.is_open = False
 
     def _reconfigure_port(self, *args: Any, **kwargs: Any) -> None:

@@ -1,0 +1,382 @@
+"""The stage driver and capture sessions against two controllers on a serial device (a pty): the
+real GRBL 1.1h firmware (``../shared/grbl-sim``, built once per test session) and lfrig's fake.
+
+Every test runs on both (``-k fake`` / ``-k firmware``). The fake was written from the same reading
+of GRBL's documents as the driver; the firmware is the judge. Motion is real time on both: the
+settings (``grbl_devices.FAST``) are a small, fast stage. Under CI (env ``CI`` set) a missing
+``../shared/grbl-sim`` or a failed build fails the firmware half instead of skipping it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from grbl_devices import FAST, GRBL_SIM, FakeOnPty, Firmware, build_firmware
+from rig.main import main
+from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, travel_limits_mm
+
+pytestmark = pytest.mark.slow  # real-time motion: about 3 min on the firmware, 2 on the fake
+
+ROOT = Path(__file__).resolve().parents[1]
+LFRIG = [sys.executable, "-m", "rig.main"]
+CENTRE = (-10.0, -10.0, -5.0)
+CAMERA = ["--camera", "fake", "--binning", "8", "--supersample", "1", "--settle-s", "0.02", "--quiet"]
+TOL = 0.0041  # one step at 250 steps/mm, plus rounding
+
+
+@pytest.fixture(scope="session")
+def firmware_exe(tmp_path_factory):
+    if not (GRBL_SIM / "build.sh").is_file():
+        message = f"GRBL simulator not found at {GRBL_SIM} (it must sit in ../shared beside the checkout)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    try:
+        return build_firmware(tmp_path_factory.mktemp("grbl-sim"))
+    except (OSError, RuntimeError, subprocess.SubprocessError) as error:
+        pytest.fail(f"building the GRBL simulator failed: {error}")
+
+
+@pytest.fixture(params=["fake", "firmware"])
+def make_device(request, tmp_path):
+    """``make_device(settings=..., start_mm=...)``: a controller on a pty (stopped at teardown)."""
+    made = []
+
+    def make(settings: dict | None = None, start_mm=None):
+        merged = {**FAST, **(settings or {})}
+        if request.param == "firmware":
+            exe = request.getfixturevalue("firmware_exe")
+            device = Firmware(exe, tmp_path / f"grbl{len(made)}", settings=merged, start_mm=start_mm)
+        else:
+            device = FakeOnPty(settings=merged, start_mm=start_mm)
+        made.append(device)
+        return device
+
+    yield make
+    for device in made:
+        device.close()
+
+
+def close_to(a, b, tol=TOL) -> bool:
+    return max(abs(x - y) for x, y in zip(a, b)) <= tol
+
+
+def views_in(path: Path) -> list[dict]:
+    manifest = path / "manifest.jsonl"
+    if not manifest.is_file():
+        return []
+    records = []
+    for line in manifest.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    return [r for r in records if r.get("kind") == "view"]
+
+
+def capture_args(out: Path, device, *extra: str, rows: int = 9, cols: int = 9, centre=CENTRE) -> list[str]:
+    return ["capture", str(out), "--stage", device.url, "--rows", str(rows), "--cols", str(cols),
+            "--centre-mm", *(f"{c:g}" for c in centre), *CAMERA, *extra]
+
+
+def start_capture(args: list[str]) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([*LFRIG, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for_views(process: subprocess.Popen, out: Path, n: int, timeout_s: float = 120) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(views_in(out)) < n:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the capture did not get going"
+        time.sleep(0.01)
+
+
+def check_views(out: Path, total: int) -> None:
+    """Every view once, read back at its commanded machine position."""
+    views = views_in(out)
+    counts = Counter((v["u"], v["v"]) for v in views)
+    assert len(counts) == total and set(counts.values()) == {1}, counts
+    for v in views:
+        assert close_to(v["readback_mm"], v["commanded_mm"]), v
+
+
+# -- status, move, unlock, homing -------------------------------------------------------------------
+
+
+def test_status_unlock_move_and_the_power_up_lock(make_device, capsys):
+    device = make_device()
+    assert main(["stage", "status", "--stage", device.url]) == 0
+    assert capsys.readouterr().out.startswith("Alarm  MPos X=0.000, Y=0.000, Z=0.000")  # $22=1: locked
+    assert main(["stage", "move", "-2", "-3", "-1", "--stage", device.url]) == 2
+    assert "error:9" in capsys.readouterr().err
+    assert main(["stage", "unlock", "--stage", device.url]) == 0
+    assert capsys.readouterr().out.startswith("Idle  MPos X=0.000")
+    with GrblStage(device.path) as stage:
+        stage.prepare()
+        stage.move_to((-2.0, -3.0, -1.0))
+        assert close_to(stage.wait_until_idle(), (-2.0, -3.0, -1.0))
+    # with homing off ($22=0, GRBL's default) the controller starts unlocked
+    device.configure({22: 0})
+    assert main(["stage", "status", "--stage", device.url]) == 0
+    assert capsys.readouterr().out.startswith("Idle  MPos X=0.000")
+
+
+def test_homing_finds_the_switches_and_defines_the_frame(make_device):
+    device = make_device()
+    with GrblStage(device.path) as stage:
+        assert stage.home_timeout_s < 60  # derived from $130-$132 and $25, not a fixed 120 s
+        stage.home()
+        assert close_to(stage.position(), (-1.0, -1.0, -1.0))  # switches at 0, pull-off $27
+        assert close_to(device.carriage_mm(), (-1.0, -1.0, -1.0))
+        stage.move_to((-12.0, -7.5, -4.0))
+        assert close_to(stage.wait_until_idle(), (-12.0, -7.5, -4.0))
+        assert close_to(device.carriage_mm(), (-12.0, -7.5, -4.0))
+
+
+def test_homing_towards_the_minimum_with_23_3(make_device):
+    """$23=3: X and Y home to their minimum; GRBL 1.1h keeps the travel at [-max, 0] all the same."""
+    device = make_device({23: 3})
+    with GrblStage(device.path) as stage:
+        limits = stage.limits_mm()
+        assert limits == ((-19.0, 0.0), (-19.0, 0.0), (-10.0, -1.0))  # pull-off kept from each switch
+        stage.home()
+        assert close_to(stage.position(), (-19.0, -19.0, -1.0))
+        assert close_to(device.carriage_mm(), (-19.0, -19.0, -1.0))
+        stage.move_to((-0.5, -15.0, -5.0))
+        assert close_to(stage.wait_until_idle(), (-0.5, -15.0, -5.0))
+        with pytest.raises(GrblLimitError, match=r"X=2\.000 mm is outside"):
+            stage.move_to((2.0, -15.0, -5.0))
+
+
+@pytest.mark.parametrize("report", [1, 0], ids=["MPos", "WPos"])
+def test_work_offset_left_by_another_program_does_not_shift_moves(make_device, report):
+    device = make_device({10: report})  # $10=0: reports in work coordinates, MPos = WPos + WCO
+    device.raw(b"$X\n")
+    device.raw(b"G10 L2 P1 X3 Y2 Z1\n")  # G54 offset (kept in EEPROM), like a CAM program leaves it
+    device.raw(b"G55\n")
+    device.raw(b"G10 L20 P2 X0 Y0 Z0\n")  # G55 = here, and selected
+    with GrblStage(device.path) as stage:
+        stage.home()
+        stage.move_to((-6.0, -5.0, -2.0))
+        assert close_to(stage.wait_until_idle(), (-6.0, -5.0, -2.0))
+        assert close_to(device.carriage_mm(), (-6.0, -5.0, -2.0))
+
+
+# -- limits -----------------------------------------------------------------------------------------
+
+
+def test_soft_limits_refuse_a_grid_outside_the_travel(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    assert main(capture_args(out, device, rows=3, cols=3, centre=(2.0, -10, -5))) == 2
+    assert "outside the stage's travel" in capsys.readouterr().err
+    assert views_in(out) == []
+    with GrblStage(device.path) as stage:
+        stage.home()
+        with pytest.raises(GrblAlarmError, match=r"ALARM:2 .*soft limit"):
+            stage.command("G53 G0 X5")  # the driver's own check bypassed: GRBL refuses too
+
+
+def test_hard_limit_raises_alarm_1(make_device):
+    device = make_device({20: 0, 21: 1, 22: 0})  # no homing, no soft limits: only the switch
+    with GrblStage(device.path) as stage:
+        assert stage.limits_mm() is None
+        start = device.carriage_mm()
+        stage.prepare()
+        stage.move_to((15.0, 0.0, 0.0))  # the carriage is mid-travel: its switch is 10 mm away
+        with pytest.raises(GrblAlarmError, match=r"ALARM:1 .*hard limit"):
+            stage.wait_until_idle()
+    assert device.carriage_mm()[0] == pytest.approx(0.0, abs=0.05) and start[0] < -5
+
+
+def test_travel_check_keeps_the_pull_off_from_the_switch(make_device):
+    device = make_device({21: 1})
+    with GrblStage(device.path) as stage:
+        stage.home()
+        assert stage.limits_mm() == ((-20.0, -1.0), (-20.0, -1.0), (-10.0, -1.0))
+        with pytest.raises(GrblLimitError, match=r"X=0\.000 mm is outside"):
+            stage.move_to((0.0, -5.0, -5.0))  # on the switch: ALARM:1 with $21=1
+        stage.move_to((-1.0, -5.0, -5.0))
+        assert close_to(stage.wait_until_idle(), (-1.0, -5.0, -5.0))
+        assert stage.status()["state"] == "Idle"
+
+
+def test_limit_formula_matches_grbl_1_1h():
+    settings = {130: 100.0, 131: 80.0, 132: 50.0, 23: 0b010, 27: 2.0}
+    assert travel_limits_mm(settings) == ((-100.0, -2.0), (-78.0, 0.0), (-50.0, -2.0))
+
+
+# -- stopping, resetting, reconnecting --------------------------------------------------------------
+
+SLOW = {110: 300, 111: 300, 112: 300, 120: 4, 121: 4, 122: 4}  # 5 mm/s, 4 mm/s^2: 1.25 s to stop
+
+
+def test_stop_waits_for_the_feed_hold_to_end(make_device):
+    device = make_device({**SLOW, 22: 0, 20: 0})
+    before = device.carriage_mm()
+    with GrblStage(device.path) as stage:
+        stage.prepare()
+        stage.move_to((-15.0, 0.0, 0.0))
+        time.sleep(1.6)  # cruising at 5 mm/s
+        stage.stop()
+        status = stage.status()
+        assert status["state"] == "Idle", status  # no ALARM:3: the reset came after Hold:0
+        assert stage.homing_required is None
+        assert -15.0 < status["mpos_mm"][0] < -5.0
+    moved = [c - b for c, b in zip(device.carriage_mm(), before)]
+    assert close_to(moved, status["mpos_mm"])  # no step lost
+
+
+def test_reset_in_motion_reports_alarm_3_and_requires_homing(make_device):
+    device = make_device({22: 1})
+    with GrblStage(device.path) as stage:
+        stage.home()
+        stage.move_to((-19.0, -19.0, -9.0), feed_mm_min=300)  # 3.6 s at 5 mm/s
+        time.sleep(0.3)
+        stage.reset()
+        assert stage.homing_required and "ALARM:3" in stage.homing_required
+        with pytest.raises(GrblAlarmError, match=r"ALARM:3.*home"):
+            stage.unlock()
+        with pytest.raises(GrblAlarmError, match=r"ALARM:3.*home"):
+            stage.move_to((-5.0, -5.0, -5.0))
+        stage.home()
+        assert stage.homing_required is None
+        stage.move_to((-5.0, -5.0, -5.0))
+        assert close_to(stage.wait_until_idle(), (-5.0, -5.0, -5.0))
+
+
+def test_reconnect_during_a_move_lets_the_move_finish(make_device):
+    """A process killed mid-move leaves GRBL moving: the next one must not abort that move (ALARM:3)."""
+    device = make_device({**SLOW, 22: 0, 20: 0})
+    with GrblStage(device.path) as stage:
+        stage.prepare()
+        stage.move_to((-6.0, 0.0, 0.0))  # about 1.8 s; the port is closed without stopping it
+    with GrblStage(device.path) as stage:
+        status = stage.status()
+        assert status["state"] == "Idle", status
+        assert close_to(status["mpos_mm"], (-6.0, 0.0, 0.0))
+        assert stage.homing_required is None
+
+
+def test_the_port_is_opened_exclusively(make_device):
+    device = make_device()
+    with GrblStage(device.path):
+        with pytest.raises(GrblConnectionError, match="another program"):
+            GrblStage(device.path)
+
+
+# -- captures ---------------------------------------------------------------------------------------
+
+
+def test_full_81_view_capture(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    start = time.perf_counter()
+    assert main(capture_args(out, device)) == 0, capsys.readouterr().err
+    elapsed = time.perf_counter() - start
+    assert "81 of 81 views" in capsys.readouterr().out
+    check_views(out, 81)
+    print(f"81-view capture on the {device.kind}: {elapsed:.1f} s wall")
+
+
+def test_sigint_then_resume_without_homing(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    process = start_capture(capture_args(out, device, rows=4, cols=4))
+    wait_for_views(process, out, 3)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    first = len(views_in(out))
+    assert 3 <= first < 16
+    # the carriage sits at the last view and nothing reset: the frame is proven, no homing needed
+    assert main(capture_args(out, device, "--no-home", rows=4, cols=4)) == 0, capsys.readouterr().err
+    check_views(out, 16)
+    assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+
+
+def test_kill_9_then_resume(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    process = start_capture(capture_args(out, device, rows=4, cols=4))
+    wait_for_views(process, out, 4)
+    process.kill()
+    process.communicate(timeout=30)
+    first = len(views_in(out))
+    time.sleep(0.3)  # the move under way when the process died ends
+    proven = close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+    code = main(capture_args(out, device, "--no-home", rows=4, cols=4))
+    if not proven:  # killed during a move: the stage is not where the journal's last view was taken
+        err = capsys.readouterr().err
+        assert code == 2 and "last view was read back at" in err, err
+        assert len(views_in(out)) == first
+        code = main(capture_args(out, device, rows=4, cols=4))
+    assert code == 0, capsys.readouterr().err
+    check_views(out, 16)
+    assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+
+
+@pytest.mark.parametrize("homing", [False, True], ids=["no-homing", "homing"])
+def test_controller_restart_between_runs(make_device, tmp_path, capsys, homing):
+    """A reset between runs (power dip, Arduino reset on open) restarts GRBL's position at 0 where
+    the carriage stands: a resume must re-home or refuse, never take views in a shifted frame."""
+    device = make_device({22: 1} if homing else {22: 0, 20: 0})
+    out = tmp_path / "cap"
+    if homing:
+        args = capture_args(out, device, rows=4, cols=4)
+    else:  # the frame is wherever GRBL powered up: the lab's --no-home habit with $22=0
+        args = capture_args(out, device, "--no-home", rows=4, cols=4, centre=(-3.0, -3.0, -2.0))
+    process = start_capture(args)
+    wait_for_views(process, out, 3)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    first = len(views_in(out))
+    assert first < 16
+    # power cycle with the carriage a little off (moved by hand while the controller was off)
+    device.restart(start_mm=tuple(c + d for c, d in zip(device.carriage_mm(), (2.0, 1.5, -0.5))))
+    code = main(args)
+    err = capsys.readouterr().err
+    if homing:
+        assert code == 0, err
+        check_views(out, 16)
+        assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+    else:
+        assert code == 2 and "cannot prove" in err, err
+        assert len(views_in(out)) == first
+
+
+def test_ctrl_c_twice_during_a_long_slow_move(make_device, tmp_path):
+    device = make_device({**SLOW, 22: 0, 20: 0})
+    out = tmp_path / "cap"
+    # the first move runs 12 mm from the power-up position: 1.25 s up to 5 mm/s, cruise, 1.25 s down
+    process = start_capture(capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-12.0, 0.0, 0.0)))
+    deadline = time.monotonic() + 60
+    log = out / "session.log"
+    while not re.search(r"grbl > '(G53 )?G0", log.read_text() if log.exists() else ""):
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    time.sleep(1.6)  # cruising: a feed hold needs 1.25 s
+    assert views_in(out) == [] and process.poll() is None
+    process.send_signal(signal.SIGINT)
+    time.sleep(0.2)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130 and "second Ctrl-C" in err, err
+    assert "ALARM:3" not in err
+    with GrblStage(device.path) as stage:
+        status = stage.status()
+    assert status["state"] == "Idle", status  # stopped by a feed hold, not an abort
+    assert -12.6 < status["mpos_mm"][0] < -3.0  # short of the first target, x = -12.7
