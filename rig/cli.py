@@ -166,7 +166,10 @@ def _capture(args: argparse.Namespace) -> int:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
         devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
         doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
-        if args.no_home and doubt and not args.out_dir.exists():  # a resume is checked by the session
+        from recon.lf.capture import is_capture
+
+        # (not "the folder exists": the lock above has just created it)
+        if args.no_home and doubt and not is_capture(args.out_dir):  # a resume is checked by the session
             print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
                   "resume without homing will be refused after any reset", file=sys.stderr)
         try:

@@ -97,19 +97,18 @@ def open_camera(args: Any, devices: Devices, *, centre_mm: tuple[float, float, f
 
         base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[args.fake_rig]
         rig = base(ref_mm=tuple(centre_mm))  # the scene is centred on the grid's centre view
-        if args.binning is None:  # --binning is shared with aravis, where None keeps the camera's
-            args.binning = 2
+        binning = 2 if args.binning is None else args.binning  # --binning is shared with aravis (None: the camera's)
         if devices.controller is not None:
             position, moving = devices.controller.physical_position, devices.controller.is_moving
         else:
             position, moving = devices.stage.position, None
         try:
-            camera = FakeCamera(position, rig=rig, binning=args.binning, roi=tuple(args.roi) if args.roi else None,
+            camera = FakeCamera(position, rig=rig, binning=binning, roi=tuple(args.roi) if args.roi else None,
                                 supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth,
                                 is_moving=moving)
         except ValueError as error:
             raise RigError(f"--camera fake: {error}") from None
-        request = {"device": "fake", "rig": args.fake_rig, "binning": args.binning,
+        request = {"device": "fake", "rig": args.fake_rig, "binning": binning,
                    "roi": list(args.roi) if args.roi else None, "supersample": args.supersample,
                    "noise_sigma": args.noise, "bit_depth": args.bit_depth}
         return camera, request
