@@ -7,14 +7,16 @@ import argparse
 import json
 from pathlib import Path
 
+from recon.cliargs import output_file, output_folder, positive_float
+
 
 def _board_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS",
                    help="inner corners per row x per column, e.g. 10x7 for a board of 11x8 squares")
-    p.add_argument("--square-mm", type=float, required=True, metavar="S", help="side of one square, mm")
+    p.add_argument("--square-mm", type=positive_float, required=True, metavar="S", help="side of one square, mm")
     p.add_argument("--charuco", metavar="DICT",
                    help="the board is a ChArUco board with this ArUco dictionary (e.g. DICT_5X5_100)")
-    p.add_argument("--marker-mm", type=float, help="ChArUco marker side, mm (default 0.7 squares)")
+    p.add_argument("--marker-mm", type=positive_float, help="ChArUco marker side, mm (default 0.7 squares)")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -38,13 +40,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     intr.add_argument("images", nargs="+", type=Path, metavar="IMAGES", help="board images (PNG, JPEG, TIFF)")
     _board_args(intr)
-    intr.add_argument("-o", "--output", type=Path, required=True, metavar="CAM.cameramodel")
+    intr.add_argument("-o", "--output", type=output_file, required=True, metavar="CAM.cameramodel")
     intr.add_argument("--lensmodel", default="LENSMODEL_OPENCV8",
                       help="mrcal lens model (LENSMODEL_OPENCV4/5/8, LENSMODEL_SPLINED_STEREOGRAPHIC_...)")
-    intr.add_argument("--focal-px", type=float, help="seed for the focal length (default: estimated)")
-    intr.add_argument("--working-distance-mm", type=float, default=1000.0,
+    intr.add_argument("--focal-px", type=positive_float, help="seed for the focal length (default: estimated)")
+    intr.add_argument("--working-distance-mm", type=positive_float, default=1000.0,
                       help="distance at which the projection uncertainty is reported")
-    intr.add_argument("--residuals", type=Path, metavar="PNG",
+    intr.add_argument("--residuals", type=output_file, metavar="PNG",
                       help="residual picture (default: next to the model, .residuals.png)")
     intr.add_argument("--quiet", action="store_true", help="no progress output")
     intr.set_defaults(handler=_intrinsics)
@@ -62,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.add_argument("capture", type=Path, metavar="CAPTURE_DIR")
     st.add_argument("--model", type=Path, required=True, metavar="CAM.cameramodel")
     _board_args(st)
-    st.add_argument("-o", "--output", type=Path, required=True, metavar="STAGE.json")
+    st.add_argument("-o", "--output", type=output_file, required=True, metavar="STAGE.json")
     st.add_argument("--quiet", action="store_true", help="no progress output")
     st.add_argument("--no-verify", dest="verify", action="store_false",
                     help="do not check the capture's views against the checksums in its journal")
@@ -82,8 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rect.add_argument("capture", type=Path, metavar="CAPTURE_DIR")
     rect.add_argument("--model", type=Path, required=True, metavar="CAM.cameramodel")
     rect.add_argument("--stage", type=Path, required=True, metavar="STAGE.json")
-    rect.add_argument("-o", "--output", type=Path, required=True, metavar="RECT_DIR")
-    rect.add_argument("--focal-px", type=float, help="focal length of the rectified views (default: the camera's)")
+    rect.add_argument("-o", "--output", type=output_folder, required=True, metavar="RECT_DIR")
+    rect.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views (default: the camera's)")
     rect.add_argument("--no-crop", dest="crop", action="store_false",
                       help="keep the camera's image size, with black where no camera pixel maps")
     rect.add_argument("--no-verify", dest="verify", action="store_false",
@@ -102,9 +104,14 @@ def _intrinsics(args: argparse.Namespace) -> int:
     from calib.intrinsics import calibrate_intrinsics_from_images, write_residual_picture
     from recon.progress import Progress
 
+    from recon.paths import writable_file
+
     board = _board(args)
     if not args.output.parent.is_dir():
         raise CalibError(f"{args.output.parent}: no such folder for the camera model")
+    picture = args.residuals or args.output.with_suffix(".residuals.png")
+    writable_file(args.output, what="camera model")  # before the solve, not after it
+    writable_file(picture, what="residual picture")
     with Progress("finding corners", quiet=args.quiet) as bar:
         result = calibrate_intrinsics_from_images(args.images, board=board, lensmodel=args.lensmodel,
                                                   focal_estimate_px=args.focal_px,
@@ -116,7 +123,6 @@ def _intrinsics(args: argparse.Namespace) -> int:
     # leaves the previous model (or none), never half of one.
     with atomic_output(args.output, what="camera model") as tmp:
         result.model.write(str(tmp), note=note)
-    picture = args.residuals or args.output.with_suffix(".residuals.png")
     with atomic_output(picture, what="residual picture") as tmp:
         write_residual_picture(result, tmp)
     print(result.report())
@@ -128,8 +134,11 @@ def _stage(args: argparse.Namespace) -> int:
     from calib.stage import calibrate_stage_from_capture, load_model
     from recon.progress import Progress
 
+    from recon.paths import writable_file
+
     model = load_model(args.model)
     board = _board(args)
+    writable_file(args.output, what="stage calibration")
     with Progress("finding corners", quiet=args.quiet) as bar:
         stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar,
                                                 verify=args.verify)
@@ -141,6 +150,9 @@ def _stage(args: argparse.Namespace) -> int:
 
 def _rectify(args: argparse.Namespace) -> int:
     from calib.rectify import rectify_capture
+    from recon.paths import writable_folder
+
+    writable_folder(args.output, what="rectified capture")  # read-only, full, a file: before the work
 
     rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
                            focal_px=args.focal_px, crop=args.crop, verify=args.verify)

@@ -91,6 +91,12 @@ def parse_board(text: str, *, square_mm: float, charuco: str | None = None, mark
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not m:
         raise CalibError(f"--board {text!r}: expected COLSxROWS of inner corners, e.g. 10x7")
+    if not (2 <= int(m[1]) <= 200 and 2 <= int(m[2]) <= 200):
+        raise CalibError(f"--board {text!r}: a board has 2 to 200 inner corners per row and per column")
+    if not (math.isfinite(square_mm) and square_mm > 0):
+        raise CalibError(f"--square-mm {square_mm}: give the side of one square, a positive number of mm")
+    if marker_mm is not None and not (math.isfinite(marker_mm) and 0 < marker_mm < square_mm):
+        raise CalibError(f"--marker-mm {marker_mm}: give a positive size smaller than the square ({square_mm} mm)")
     return Board(int(m[1]), int(m[2]), float(square_mm), charuco, marker_mm)
 
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from calib.errors import CalibError
+from recon.lf.params import is_finite
 from calib.intrinsics import Board, detect_corners
 
 FORMAT = "lfrig-stage"
@@ -166,8 +167,10 @@ class StageCalibration:
             d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise CalibError(f"{path}: no such stage calibration; make one with `lfrig calibrate stage`") from None
-        except json.JSONDecodeError as e:
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise CalibError(f"{path}: not valid JSON ({e}); make it again with `lfrig calibrate stage`") from None
+        except OSError as e:
+            raise CalibError(f"{path}: cannot read the stage calibration ({e.strerror})") from None
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise CalibError(f"{path}: not an lfrig stage calibration (format {FORMAT!r})")
         if d.get("version") != VERSION:
@@ -176,7 +179,7 @@ class StageCalibration:
         d.pop("version")
         d.pop("derived", None)
         try:
-            return cls(
+            stage = cls(
                 grid=tuple(d.pop("grid")),
                 step_u_mm=np.asarray(d.pop("step_u_mm"), dtype=float),
                 step_v_mm=np.asarray(d.pop("step_v_mm"), dtype=float),
@@ -184,8 +187,48 @@ class StageCalibration:
                 t_cam_board_mm=np.asarray(d.pop("t_cam_board_mm"), dtype=float),
                 **d,
             )
-        except (KeyError, TypeError) as e:
-            raise CalibError(f"{path}: incomplete stage calibration ({e}); make it again") from None
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
+            raise CalibError(f"{path}: incomplete or malformed stage calibration ({e}); make it again "
+                             "with `lfrig calibrate stage`") from None
+        problem = stage._problem()
+        if problem:
+            raise CalibError(f"{path}: {problem}; make it again with `lfrig calibrate stage`")
+        return stage
+
+    def _problem(self) -> str | None:
+        """What makes a loaded calibration unusable, or ``None``."""
+        def number(value: Any) -> bool:
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and is_finite(value)
+
+        if not (len(self.grid) == 2 and all(isinstance(n, int) and not isinstance(n, bool) and n > 0
+                                             for n in self.grid)):
+            return f"grid = {list(self.grid)!r} must be [rows, cols], positive integers"
+        if not (number(self.pitch_mm) and self.pitch_mm > 0):
+            return f"pitch_mm = {self.pitch_mm!r} must be a positive number of mm"
+        for name in ("step_u_mm", "step_v_mm", "r_cam_board", "t_cam_board_mm"):
+            vector = getattr(self, name)
+            if vector.shape != (3,) or not np.isfinite(vector).all():
+                return f"{name} must be three finite numbers; got {vector.tolist()!r}"
+        if not (self.pitch_u_mm > 0 and self.pitch_v_mm > 0):
+            return "a step vector is zero"
+        if not np.linalg.norm(np.cross(self.step_u_mm, self.step_v_mm)) > 1e-9 * self.pitch_u_mm * self.pitch_v_mm:
+            return "the two step vectors are parallel"
+        for name in ("rms_px", "max_px"):
+            if not (number(getattr(self, name)) and getattr(self, name) >= 0):
+                return f"{name} = {getattr(self, name)!r} must be a number >= 0"
+        for name in ("n_views", "n_corners", "n_outliers"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+                return f"{name} = {value!r} must be an integer >= 0"
+        if not (isinstance(self.skipped, list) and all(isinstance(v, str) for v in self.skipped)):
+            return "skipped must be a list of view names"
+        if not (isinstance(self.per_view_rms_px, dict) and all(number(v) for v in self.per_view_rms_px.values())):
+            return "per_view_rms_px must map view names to numbers"
+        if not isinstance(self.lensmodel, str):
+            return "lensmodel must be a string"
+        if not (isinstance(self.intrinsics, list) and all(number(v) for v in self.intrinsics)):
+            return "intrinsics must be a list of numbers"
+        return None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -360,9 +403,34 @@ def load_model(path: str | os.PathLike):
     if not path.is_file():
         raise CalibError(f"{path}: no such camera model; make one with `lfrig calibrate intrinsics`")
     try:
-        return mrcal.cameramodel(str(path))
+        model = mrcal.cameramodel(str(path))
     except Exception as e:  # mrcal raises plain exceptions for broken files
         raise CalibError(f"{path}: not a readable mrcal camera model ({e})") from None
+    problem = _model_problem(model)
+    if problem:
+        raise CalibError(f"{path}: {problem}; calibrate the camera again with `lfrig calibrate intrinsics`")
+    return model
+
+
+def _model_problem(model: Any) -> str | None:
+    """What makes a read camera model unusable (zero or negative focal length, non-finite numbers,
+    an empty imager), or ``None``. Every mrcal lens model starts with ``fx, fy, cx, cy``."""
+    try:
+        _, intrinsics = model.intrinsics()
+        width, height = (int(v) for v in model.imagersize())
+        extrinsics = np.asarray(model.extrinsics_rt_fromref(), dtype=float)
+    except Exception as e:  # noqa: BLE001 - mrcal raises plain exceptions
+        return f"incomplete camera model ({e})"
+    intrinsics = np.asarray(intrinsics, dtype=float)
+    if intrinsics.size < 4 or not np.isfinite(intrinsics).all():
+        return "the intrinsics are not all finite numbers"
+    if not (intrinsics[0] > 0 and intrinsics[1] > 0):
+        return f"focal lengths fx = {intrinsics[0]:g}, fy = {intrinsics[1]:g} px must be positive"
+    if width < 1 or height < 1:
+        return f"imager size {width}x{height} is empty"
+    if not np.isfinite(extrinsics).all():
+        return "the extrinsics are not all finite numbers"
+    return None
 
 
 __all__ = ["StageCalibration", "calibrate_stage", "calibrate_stage_from_capture", "detect_grid_corners",

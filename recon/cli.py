@@ -12,6 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from recon.cliargs import (finite_float, float_range, nonnegative_int, output_file, output_folder, positive_float,
+                           positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
 
@@ -50,9 +52,9 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     rec.add_argument("lf_dir", type=Path, metavar="LF_DIR", help="light-field folder (benchmark or capture layout)")
-    rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
+    rec.add_argument("-o", "--output", type=output_folder, required=True, metavar="OUT_DIR", help="folder for the results")
     add_method_arguments(rec)
-    rec.add_argument("--ply", type=Path, metavar="OUT.ply",
+    rec.add_argument("--ply", type=output_file, metavar="OUT.ply",
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
@@ -69,7 +71,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     )
     ev.add_argument("estimate", type=Path, metavar="ESTIMATE.pfm")
     ev.add_argument("gt", type=Path, metavar="GT.pfm")
-    ev.add_argument("--border", type=int, default=15, help="pixels left out on every side (default 15)")
+    ev.add_argument("--border", type=nonnegative_int, default=15, help="pixels left out on every side (default 15)")
     ev.add_argument("--json", action="store_true", help="print the scores as JSON")
     ev.set_defaults(handler=_evaluate)
 
@@ -84,13 +86,13 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     :func:`method_options` turns the parsed flags into the chosen method's options."""
     parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
-    parser.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
+    parser.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
                              "entropy finds it from its initial estimate and baseline searches -4 4)")
-    parser.add_argument("--step", type=float, default=None,
+    parser.add_argument("--step", type=positive_float, default=None,
                         help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
     base = parser.add_argument_group("baseline method")
-    base.add_argument("--window", type=int, default=None, help="square window side in pixels (default 7)")
+    base.add_argument("--window", type=positive_int, default=None, help="square window side in pixels (default 7)")
     _add_entropy_options(parser.add_argument_group(
         "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
 
@@ -117,9 +119,14 @@ def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
             group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
         elif isinstance(default, tuple):
             kind = type(default[0]) if default else float
-            group.add_argument(flag, type=kind, nargs="+", default=None, metavar="N", help=text)
+            group.add_argument(flag, type=_flag_type(kind), nargs="+", default=None, metavar="N", help=text)
         else:
-            group.add_argument(flag, type=type(default), default=None, help=text)
+            group.add_argument(flag, type=_flag_type(type(default)), default=None, help=text)
+
+
+def _flag_type(kind: type):
+    """Floats must be finite (no ``nan``/``inf``); the estimator's own check judges the rest."""
+    return finite_float if kind is float else kind
 
 
 def method_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -246,17 +253,9 @@ def _format_scores(scores: dict[str, float]) -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> None:
-    from recon.evaluate import score
-    from recon.lf.pfm import read_pfm
+    from recon.evaluate import score_files
 
-    estimate = read_pfm(args.estimate)
-    gt = read_pfm(args.gt)
-    if estimate.ndim != 2 or gt.ndim != 2:
-        from recon.errors import ReconError
-
-        bad = args.estimate if estimate.ndim != 2 else args.gt
-        raise ReconError(f"{bad}: a disparity map has one channel; this PFM has three")
-    scores = score(estimate, gt, border=args.border)
+    scores = score_files(args.estimate, args.gt, border=args.border)
     if args.json:
         print(json.dumps(scores, indent=2))
     else:
@@ -282,7 +281,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     export.add_argument("result_dir", type=Path, metavar="RESULT_DIR", help="output folder of lfrig reconstruct")
-    export.add_argument("--ply", type=Path, metavar="OUT.ply", help="write a PLY point cloud or mesh here")
+    export.add_argument("--ply", type=output_file, metavar="OUT.ply", help="write a PLY point cloud or mesh here")
     kind = export.add_mutually_exclusive_group()
     kind.add_argument("--mesh", dest="kind", action="store_const", const="mesh",
                       help="triangulate the depth grid, cut at depth jumps (the default)")
@@ -292,21 +291,21 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--ascii", action="store_true", help="ASCII PLY instead of binary")
     export.add_argument("--poisson", action="store_true",
                         help="mesh by screened Poisson reconstruction of the point cloud instead of the grid")
-    export.add_argument("--max-jump", type=float, default=None, metavar="FRACTION",
+    export.add_argument("--max-jump", type=positive_float, default=None, metavar="FRACTION",
                         help="neighbours whose depths differ by more than this fraction are not joined "
                              "(default 0.05)")
-    export.add_argument("--min-confidence", type=float, default=None, metavar="C",
+    export.add_argument("--min-confidence", type=float_range(0.0, 1.0), default=None, metavar="C",
                         help="leave out pixels whose confidence is below C, in [0, 1] (default 0.4)")
     export.add_argument("--keep-all", action="store_true",
                         help="keep every finite pixel, whatever its confidence or range")
-    export.add_argument("--depth", type=Path, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
+    export.add_argument("--depth", type=output_file, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
                         help="also write the depth map in mm (16-bit PNG records its scale); may repeat")
-    export.add_argument("--report", type=Path, metavar="REPORT_DIR",
+    export.add_argument("--report", type=output_folder, metavar="REPORT_DIR",
                         help="also write an HTML report (index.html and PNG figures) into this folder")
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
-    camera.add_argument("--focal-px", type=float, help="focal length of the rectified views in pixels")
-    camera.add_argument("--pitch-mm", type=float, help="grid pitch (distance between neighbouring views) in mm")
-    camera.add_argument("--disparity-offset", type=float, help="refocusing shift d0 in pixels per view step")
+    camera.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views in pixels")
+    camera.add_argument("--pitch-mm", type=positive_float, help="grid pitch (distance between neighbouring views) in mm")
+    camera.add_argument("--disparity-offset", type=finite_float, help="refocusing shift d0 in pixels per view step")
     export.set_defaults(handler=_export)
 
 
@@ -392,10 +391,10 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
     )
     rec.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE_DIR",
                      help="light-field folders (capture or benchmark layout)")
-    rec.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="folder for the results")
+    rec.add_argument("-o", "--output", type=output_folder, required=True, metavar="OUT_DIR", help="folder for the results")
     rec.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                      help="address of a running `dask scheduler` (default: start a local cluster)")
-    rec.add_argument("--workers", type=int, metavar="N",
+    rec.add_argument("--workers", type=positive_int, metavar="N",
                      help="local cluster: worker processes (default: one per core, at most one per capture "
                           "unless tiling)")
     rec.add_argument("--transfer", choices=("auto", "shared", "ship"), default="auto",
@@ -405,10 +404,13 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
     add_method_arguments(rec)  # the flags of `lfrig reconstruct`: the same flags give the same result folder
     rec.add_argument("--export", choices=("mesh", "points", "none"), default="mesh",
                      help="PLY written beside each result: mesh.ply, points.ply or none (default mesh)")
-    rec.add_argument("--tile", type=int, metavar="SIZE",
+    rec.add_argument("--tile", type=positive_int, metavar="SIZE",
                      help="split each centre view into SIZE x SIZE tiles run as separate tasks, then stitch")
-    rec.add_argument("--halo", type=int, metavar="PX", help="with --tile: halo in pixels (default: the method's)")
+    rec.add_argument("--halo", type=nonnegative_int, metavar="PX", help="with --tile: halo in pixels (default: the method's)")
     rec.add_argument("--force", action="store_true", help="redo captures whose results are complete")
+    rec.add_argument("--worker-timeout-s", type=positive_float, default=60.0, metavar="S",
+                     help="with no worker connected for this long (at the start or after all were lost), say so "
+                          "and stop; the captures not run are reported as failed (default 60)")
     rec.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
                      help="local cluster: where the dashboard listens, a free port if this one is taken "
                           "(default 127.0.0.1:8787)")
@@ -444,11 +446,12 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
         outcomes = run_batch(None, plan, transfer=transfer, on_outcome=show)
     else:
         with connect(scheduler=args.scheduler, workers=args.workers, tasks=None if args.tile else len(plan.todo),
-                     dashboard_address=args.dashboard_address) as connection:
+                     dashboard_address=args.dashboard_address, timeout_s=args.worker_timeout_s) as connection:
             print(connection.describe() + f"; data: {transfer}", flush=True)
             print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
-                                 on_outcome=show)
+                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", flush=True),
+                                 no_worker_timeout_s=args.worker_timeout_s)
     print()
     print(format_summary(outcomes))
     failed = [o for o in outcomes if o.status == "failed"]

@@ -357,22 +357,46 @@ def read_depth(path) -> np.ndarray:
 
         return read_pfm(path)
     if suffix == ".npy":
-        return np.load(path)
+        try:
+            depth = np.load(path, allow_pickle=False)
+        except Exception as error:  # noqa: BLE001 - numpy's header parser raises many kinds on a damaged file
+            raise DepthFormatError(f"{path}: not a readable .npy depth map ({type(error).__name__}: "
+                                   f"{str(error)[:120]})") from None
+        if not (isinstance(depth, np.ndarray) and depth.ndim == 2 and depth.dtype.kind in "fiu"):
+            raise DepthFormatError(f"{path}: a depth map is a 2-D array of numbers; this one is "
+                                   f"{getattr(depth, 'shape', '?')} {getattr(depth, 'dtype', type(depth).__name__)}")
+        return depth
     if suffix == ".png":
-        import cv2
+        from recon.lf.imageio import _decode_quietly, png_problem
+        from recon.lf.params import is_finite
 
         data = path.read_bytes()
+        problem = png_problem(data)
+        if problem:
+            raise DepthFormatError(f"{path}: {problem}")
         texts = _read_text_chunks(data)
-        if PNG_SCALE_KEY in texts:
-            metadata = json.loads(texts[PNG_SCALE_KEY])
-        elif png_sidecar_path(path).is_file():
-            metadata = json.loads(png_sidecar_path(path).read_text())
-        else:
+        try:
+            if PNG_SCALE_KEY in texts:
+                metadata = json.loads(texts[PNG_SCALE_KEY])
+            elif png_sidecar_path(path).is_file():
+                metadata = json.loads(png_sidecar_path(path).read_text(encoding="utf-8"))
+            else:
+                metadata = None
+        except (ValueError, UnicodeDecodeError) as error:
+            raise DepthFormatError(f"{path}: the depth scale is not valid JSON ({error})") from None
+        if metadata is not None and not (
+                isinstance(metadata, dict) and all(
+                    isinstance(metadata.get(k), (int, float)) and not isinstance(metadata.get(k), bool)
+                    and is_finite(metadata[k]) for k in ("offset_mm", "scale_mm"))
+                and metadata["scale_mm"] > 0):
+            raise DepthFormatError(f"{path}: the depth scale must give finite offset_mm and positive scale_mm; "
+                                   f"got {metadata!r}"[:300])
+        if metadata is None:
             raise DepthFormatError(
                 f"{path}: a 16-bit depth PNG needs its scale, but there is no '{PNG_SCALE_KEY}' text "
                 f"chunk and no {png_sidecar_path(path).name}; write it with lfrig or supply the sidecar"
             )
-        stored = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        stored = _decode_quietly(np.frombuffer(data, dtype=np.uint8))
         if stored is None or stored.dtype != np.uint16 or stored.ndim != 2:
             raise DepthFormatError(f"{path}: not a single-channel 16-bit PNG")
         return decode_depth_png(stored, metadata)

@@ -32,6 +32,11 @@ class ExportError(ReconError):
     """A reconstruction folder cannot be read or exported, or a PLY or depth file cannot be written."""
 
 
+class OutputPathError(ReconError):
+    """An output path cannot be written: a file where a folder is wanted (or the reverse), a
+    read-only or full filesystem, no permission. Checked before the work starts."""
+
+
 class FileWriteError(ReconError):
     """A file could not be written (full disk, no permission, a folder that went away...).
 

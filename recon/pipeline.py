@@ -13,6 +13,7 @@ readable ``result.json`` holds the disparity maps it describes.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from recon.errors import ReconError
+from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
 from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
 from recon.progress import ProgressCallback
@@ -33,6 +35,12 @@ from recon.result import (CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_
 #: here (:func:`recon.scale.tiles.tiled_estimator`). ``progress`` is ``None`` or
 #: ``progress(fraction, message)`` (:mod:`recon.progress`).
 Estimator = Callable[[LightField, str, dict[str, Any], Any], MethodResult]
+
+#: The finest candidate spacing accepted (pixels per view step): finer steps resolve nothing more
+#: (the sub-step parabola does that) and make the cost volume enormous.
+MIN_STEP_PX = 1e-3
+#: The largest matching window accepted (pixels).
+MAX_WINDOW_PX = 255
 
 
 @dataclass
@@ -64,11 +72,28 @@ def check_options(method: str, options: Mapping[str, Any]) -> None:
     a bug and keeps its traceback.
     """
     rng = options.get("disparity_range")
-    if rng is not None and not (len(rng) == 2 and float(rng[0]) < float(rng[1])):
-        raise ReconError(f"disparity range {tuple(rng)}: MIN must be less than MAX")
+    if rng is not None:
+        try:
+            low, high = (float(v) for v in rng)
+        except (TypeError, ValueError):
+            raise ReconError(f"disparity range {rng!r}: give two numbers, MIN and MAX") from None
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ReconError(f"disparity range ({low}, {high}): give finite MIN < MAX, pixels per view step")
+    for name, value in options.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ReconError(f"{method}: {name} = {value}: give a finite number")
+    for name in ("step", "initial_step"):
+        value = options.get(name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < MIN_STEP_PX:
+            raise ReconError(f"{method}: {name} = {value:g} px is finer than any estimate resolves and would make "
+                             f"millions of candidate disparities; give at least {MIN_STEP_PX:g}, e.g. 0.02")
+    sizes = [options.get("window")] + list(options.get("window_sizes") or [])
+    for size in sizes:
+        if isinstance(size, int) and not isinstance(size, bool) and size > MAX_WINDOW_PX:
+            raise ReconError(f"{method}: window of {size} px is larger than {MAX_WINDOW_PX} px; give a smaller one")
     try:
         check_method_options(method, options)
-    except ValueError as error:
+    except (ValueError, TypeError) as error:
         raise ReconError(f"{method}: {error}") from None
 
 
@@ -130,9 +155,9 @@ def reconstruct_to_folder(
     check_options(method, opts)
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ReconError(f"{out}: exists and is not a folder; choose a folder for the results")
+    out = writable_folder(out_dir, what="result folder")  # a file, read-only, full: now, not after the work
+    if ply is not None:
+        writable_file(ply, what="PLY")
     # One writer per result folder; the lock ends with the process, whatever way it ends.
     with FolderLock(out, what="reconstruction"):
         return _reconstruct_locked(lf, out, method=method, opts=opts, ply=ply, ply_kind=ply_kind,
@@ -147,6 +172,12 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     from recon.lf import read_ground_truth
     from recon.lf.pfm import write_pfm
 
+    gt = read_ground_truth(lf)  # before the work: a broken truth file fails now, not after the estimate
+    if gt is not None and gt.shape != lf.image_shape:
+        from recon.evaluate import describe_map
+
+        raise ReconError(f"{lf.metadata.get('ground_truth')}: ground truth is {describe_map(gt)} but the views are "
+                         f"{lf.image_shape[1]}x{lf.image_shape[0]}; remove or replace it")
     # The folder holds one run: the previous run's files go first, result.json before the rest, so
     # an interrupted run leaves a folder without result.json (clearly unfinished) and never old maps
     # beside new ones. The new result.json is renamed in last.
@@ -164,7 +195,6 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
         files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
-    gt = read_ground_truth(lf)
     files.append(RESULT_JSON)
     listed = list(files)
     if ply is not None:

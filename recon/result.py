@@ -16,7 +16,6 @@ holds:
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ import numpy as np
 
 from recon.camera import Camera
 from recon.errors import ExportError
+from recon.lf.params import is_finite
 
 RESULT_JSON = "result.json"
 DISPARITY_PFM = "disparity.pfm"
@@ -130,7 +130,7 @@ class ResultRecord:
         principal = record.get("principal_point_px")
         if principal is not None:
             if not (isinstance(principal, list) and len(principal) == 2
-                    and all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in principal)):
+                    and all(isinstance(c, (int, float)) and not isinstance(c, bool) and is_finite(c) for c in principal)):
                 raise ExportError(f"{where}: principal_point_px = {principal!r} must be [cx, cy] in pixels")
             values["principal_point_px"] = [float(c) for c in principal]
         if values.get("options") is None:
@@ -145,7 +145,7 @@ def _number(record: dict, key: str, where: Path, *, positive: bool) -> float | N
     value = record.get(key)
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not is_finite(value) or (positive and value <= 0):
         need = "a positive number" if positive else "a finite number"
         raise ExportError(f"{where}: {key} = {value!r} must be {need}")
     return float(value)

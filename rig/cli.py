@@ -8,6 +8,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
+                           positive_float, positive_int)
+from recon.lf.params import MAX_GRID_SIDE
 from rig.devices import FAKE_CENTRE_MM, Devices, is_fake_stage, open_camera, open_stage
 from rig.errors import RigError
 
@@ -23,48 +26,48 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    cap.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="capture folder (created, or resumed)")
+    cap.add_argument("out_dir", type=output_folder, metavar="OUT_DIR", help="capture folder (created, or resumed)")
     _stage_argument(cap)
     cap.add_argument("--camera", default="fake", metavar="SPEC",
                      help="fake, opencv:INDEX|PATH, or aravis:[DEVICE_ID] (a GenICam camera; lfrig camera list)")
     cap.add_argument("--dry-run", action="store_true", help="print the moves and check them against the travel; move nothing")
     grid = cap.add_argument_group("grid")
-    grid.add_argument("--rows", type=int, default=9, help="views per column (u)")
-    grid.add_argument("--cols", type=int, default=9, help="views per row (v)")
-    grid.add_argument("--pitch-mm", type=float, default=0.5, help="distance between neighbouring views")
-    grid.add_argument("--centre-mm", type=float, nargs=3, metavar=("X", "Y", "Z"),
+    grid.add_argument("--rows", type=int_range(1, MAX_GRID_SIDE), default=9, help="views per column (u)")
+    grid.add_argument("--cols", type=int_range(1, MAX_GRID_SIDE), default=9, help="views per row (v)")
+    grid.add_argument("--pitch-mm", type=positive_float, default=0.5, help="distance between neighbouring views")
+    grid.add_argument("--centre-mm", type=finite_float, nargs=3, metavar=("X", "Y", "Z"),
                       help=f"machine position of the centre view (required for a real stage; fake: {FAKE_CENTRE_MM})")
     grid.add_argument("--row-axis", default="+y", help="stage axis along which u (the row) grows")
     grid.add_argument("--col-axis", default="+x", help="stage axis along which v (the column) grows")
     grid.add_argument("--order", choices=("serpentine", "raster"), default="serpentine", help="visiting order")
-    grid.add_argument("--backlash-mm", type=float, default=0.2,
+    grid.add_argument("--backlash-mm", type=nonnegative_float, default=0.2,
                       help="overshoot so every view is approached moving in + direction (0: off)")
     motion = cap.add_argument_group("motion")
-    motion.add_argument("--settle-s", type=float, default=0.2, help="wait after the stage stops, before the frame")
-    motion.add_argument("--feed-mm-min", type=float, help="feed for G1 moves (default: rapid G0 moves)")
-    motion.add_argument("--tolerance-mm", type=float, default=0.005, help="accepted distance from the target")
+    motion.add_argument("--settle-s", type=nonnegative_float, default=0.2, help="wait after the stage stops, before the frame")
+    motion.add_argument("--feed-mm-min", type=positive_float, help="feed for G1 moves (default: rapid G0 moves)")
+    motion.add_argument("--tolerance-mm", type=positive_float, default=0.005, help="accepted distance from the target")
     motion.add_argument("--no-home", action="store_true", help="do not run the homing cycle first")
-    motion.add_argument("--limits-mm", type=float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
+    motion.add_argument("--limits-mm", type=finite_float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
                         help="travel to check against (default: from the controller's $130-$132 settings)")
     camera = cap.add_argument_group("camera (opencv)")
-    camera.add_argument("--width", type=int, help="requested frame width in pixels")
-    camera.add_argument("--height", type=int, help="requested frame height in pixels")
-    camera.add_argument("--exposure", type=float, help="exposure in the backend's units (V4L2: 100 us)")
-    camera.add_argument("--gain", type=float, help="gain in the backend's units")
-    camera.add_argument("--drop-frames", type=int, help="buffered frames dropped per trigger (default 4)")
+    camera.add_argument("--width", type=positive_int, help="requested frame width in pixels")
+    camera.add_argument("--height", type=positive_int, help="requested frame height in pixels")
+    camera.add_argument("--exposure", type=positive_float, help="exposure in the backend's units (V4L2: 100 us)")
+    camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
+    camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
     camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
     gen = cap.add_argument_group("camera (aravis)")
     gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
-    gen.add_argument("--exposure-us", type=float, help="exposure time in microseconds (auto exposure off)")
-    gen.add_argument("--gain-db", type=float, help="gain in dB (auto gain off)")
+    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
+    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
     gen.add_argument("--trigger", default="software", metavar="MODE",
                      help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
-    gen.add_argument("--frame-timeout-s", type=float, default=5.0, help="longest wait for a frame after the trigger")
+    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
     fake = cap.add_argument_group("camera (fake; --binning and --roi also for aravis)")
-    fake.add_argument("--binning", type=int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
-    fake.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
-    fake.add_argument("--supersample", type=int, default=2, help="samples per pixel along each axis")
-    fake.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma, fraction of full scale")
+    fake.add_argument("--binning", type=positive_int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
+    fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
+    fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
+    fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
     fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
     fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
                       help="true geometry of the simulated camera and stage")
@@ -81,8 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _stage_argument(home)
     move = actions.add_parser("move", help="move to an absolute machine position (mm) and wait")
     for axis in "xyz":  # three positionals: argparse cannot print a tuple metavar of a positional
-        move.add_argument(axis, type=float, metavar=axis.upper(), help=f"machine {axis.upper()} in mm")
-    move.add_argument("--feed-mm-min", type=float, help="feed (default: rapid)")
+        move.add_argument(axis, type=finite_float, metavar=axis.upper(), help=f"machine {axis.upper()} in mm")
+    move.add_argument("--feed-mm-min", type=positive_float, help="feed (default: rapid)")
     move.add_argument("--home", action="store_true", help="home first")
     _stage_argument(move)
     status = actions.add_parser("status", help="print the controller's state and position")
@@ -97,7 +100,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _stage_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stage", default="fake", metavar="SPEC",
                         help="fake[?clock=real|virtual&fault=KIND&after=N], grbl://DEVICE, a device path or a pyserial URL")
-    parser.add_argument("--baud", type=int, default=115200, help="serial baud rate")
+    parser.add_argument("--baud", type=positive_int, default=115200, help="serial baud rate")
 
 
 # --------------------------------------------------------------------------------------------------

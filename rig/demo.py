@@ -32,6 +32,9 @@ MARKER = "summary.json"
 #: Boards: intrinsics board 10x7 squares of 8 mm (inner corners 9x6), stage board 11x8 of 10 mm.
 INTRINSICS_BOARD = (9, 6, 8.0)
 STAGE_BOARD = (10, 7, 10.0)
+#: Coarsest detector binning at which the boards still fit the image; fewest board pictures mrcal needs.
+MAX_BINNING = 4
+MIN_BOARDS = 3
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,12 +44,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    demo.add_argument("-o", "--output", type=Path, default=Path("runs/demo"), metavar="DIR",
+    from recon.cliargs import float_range, int_range, output_folder
+    from recon.methods import METHODS
+
+    demo.add_argument("-o", "--output", type=output_folder, default=Path("runs/demo"), metavar="DIR",
                       help="folder for everything the session writes (made afresh)")
-    demo.add_argument("--binning", type=int, default=2, help="detector binning (1 = full 1280x980; slower)")
-    demo.add_argument("--boards", type=int, default=12, help="board pictures for the intrinsics")
-    demo.add_argument("--noise", type=float, default=0.002, help="camera noise, standard deviation in full scale")
-    demo.add_argument("--method", default="entropy", help="reconstruction method (see lfrig reconstruct --help)")
+    demo.add_argument("--binning", type=int_range(1, MAX_BINNING), default=2, help="detector binning (1 = full 1280x980; slower)")
+    demo.add_argument("--boards", type=int_range(MIN_BOARDS, 200), default=12, help="board pictures for the intrinsics")
+    demo.add_argument("--noise", type=float_range(0.0, 0.5), default=0.002, help="camera noise, standard deviation in full scale")
+    demo.add_argument("--method", choices=list(METHODS), default="entropy", help="reconstruction method (see lfrig reconstruct --help)")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
     demo.set_defaults(handler=_demo)
 
@@ -119,6 +125,17 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from rig.fakecam import FakeCamera, FakeRig, calibration_poses
     from rig.render import chessboard_scene, default_scene
 
+    from recon.errors import LfrigError
+    from recon.methods import METHODS
+
+    if isinstance(binning, bool) or not isinstance(binning, int) or not 1 <= binning <= MAX_BINNING:
+        raise LfrigError(f"binning = {binning!r}: give an integer from 1 to {MAX_BINNING}")
+    if isinstance(boards, bool) or not isinstance(boards, int) or boards < MIN_BOARDS:
+        raise LfrigError(f"boards = {boards!r}: mrcal needs at least {MIN_BOARDS} board pictures")
+    if not (isinstance(noise, (int, float)) and 0 <= noise <= 0.5):
+        raise LfrigError(f"noise = {noise!r}: give a standard deviation from 0 to 0.5 of full scale")
+    if method not in METHODS:
+        raise LfrigError(f"method = {method!r}: choose one of {', '.join(METHODS)}")
     folder = Path(folder)
     _prepare(folder)
     steps = Steps()

@@ -52,6 +52,9 @@ from rig.render import (ENGINES, Packed, Scene, chessboard_scene, default_scene,
 #: barrel distortion in the corners of the full 1280x980 detector, plus a little decentring.
 DEFAULT_DISTORTION = (-0.35, 0.9, 2.0e-4, -1.5e-4, 0.0, 0.0, 0.0, 0.0)
 
+#: The smallest image side the fake camera renders (pixels), whatever the binning.
+MIN_IMAGE_PX = 8
+
 
 @dataclass(frozen=True)
 class FakeRig:
@@ -338,6 +341,12 @@ class FakeCamera:
             raise ValueError(f"supersample must be a positive integer; got {supersample!r}")
         full_w = self.rig.sensor_size_px[0] // binning
         full_h = self.rig.sensor_size_px[1] // binning
+        if full_w < MIN_IMAGE_PX or full_h < MIN_IMAGE_PX:
+            raise ValueError(f"binning {binning} leaves a {full_w}x{full_h} image of the "
+                             f"{self.rig.sensor_size_px[0]}x{self.rig.sensor_size_px[1]} detector; give a binning "
+                             f"of at most {min(self.rig.sensor_size_px) // MIN_IMAGE_PX}")
+        if not (math.isfinite(noise_sigma) and 0 <= noise_sigma <= 1):
+            raise ValueError(f"noise_sigma must be from 0 to 1 of full scale; got {noise_sigma!r}")
         if roi is not None:
             x0, y0, w, h = (int(v) for v in roi)
             if x0 < 0 or y0 < 0 or w < 1 or h < 1 or x0 + w > full_w or y0 + h > full_h:

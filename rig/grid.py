@@ -21,6 +21,7 @@ prints and :func:`check_limits` checks against the travel before anything moves.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Sequence
 
@@ -70,16 +71,16 @@ class GridSpec:
     def __post_init__(self) -> None:
         if not (isinstance(self.rows, int) and isinstance(self.cols, int) and self.rows >= 1 and self.cols >= 1):
             raise GridError(f"grid size must be at least 1x1; got {self.rows}x{self.cols}")
-        if not self.pitch_mm > 0:
+        if not (math.isfinite(self.pitch_mm) and self.pitch_mm > 0):
             raise GridError(f"pitch must be positive (mm); got {self.pitch_mm!r}")
         if self.order not in ORDERS:
             raise GridError(f"order must be one of {', '.join(ORDERS)}; got {self.order!r}")
         if any(a not in (1, -1) for a in self.approach):
             raise GridError(f"approach must be +1 or -1 per axis; got {self.approach!r}")
-        if self.backlash_mm < 0:
-            raise GridError(f"backlash_mm must be >= 0; got {self.backlash_mm!r}")
-        if len(self.centre_mm) != 3:
-            raise GridError(f"centre must be (x, y, z) in mm; got {self.centre_mm!r}")
+        if not (math.isfinite(self.backlash_mm) and self.backlash_mm >= 0):
+            raise GridError(f"backlash_mm must be a finite distance >= 0 (mm); got {self.backlash_mm!r}")
+        if len(self.centre_mm) != 3 or not all(math.isfinite(c) for c in self.centre_mm):
+            raise GridError(f"centre must be (x, y, z), finite numbers of mm; got {self.centre_mm!r}")
         dot = sum(a * b for a, b in zip(self.row_axis, self.col_axis))
         if dot != 0:
             raise GridError("row and column axes must be different stage axes")

@@ -5,26 +5,58 @@ Each package contributes its subcommands through the ``register(subparsers)`` of
 ``batch``), :mod:`rig.cli` (``capture``, ``stage``) and :mod:`calib.cli` (``calibrate``, ``rectify``).
 A handler receives the parsed arguments and returns an exit code (``None`` means 0). Errors a user
 can cause are :class:`recon.errors.LfrigError`; they are printed as one line, without a traceback,
-and the command exits with status 2. Anything else is a bug and keeps its traceback.
+and the command exits with status 2. So are usage errors (a flag's value is checked by the types of
+:mod:`recon.cliargs`) and an ``OSError`` that a user's path or disk causes (read-only, full, no
+permission: :data:`USER_PATH_ERRNOS`, when the error names a path). Anything else is a bug and keeps
+its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 
 import calib.cli
 import recon.cli
 import rig.cli
 import rig.demo
+from recon.cliargs import OneLineParser, print_error
 from recon.errors import LfrigError
+
+#: ``OSError``s that a user's paths or disks cause (a read-only or full output folder, a file where a
+#: folder should be, no permission...): printed as one line naming the path, exit status 2. Any other
+#: ``OSError``, or one without a path, is a bug and keeps its traceback.
+USER_PATH_ERRNOS = {
+    errno.EACCES: "choose a folder you may write to, or fix its permissions",
+    errno.EPERM: "choose a folder you may write to, or fix its permissions",
+    errno.EROFS: "the filesystem is read-only; choose another folder",
+    errno.ENOSPC: "the disk is full; free some space or choose another folder, then run the same command again",
+    errno.EDQUOT: "the disk quota is used up; free some space or choose another folder",
+    errno.EFBIG: "the file is too large for this filesystem; choose another folder",
+    errno.EEXIST: "choose another path",
+    errno.ENOTDIR: "a part of the path is a file, not a folder; choose another path",
+    errno.EISDIR: "it is a folder; give a file name",
+    errno.ENOENT: "check the path",
+    errno.ENAMETOOLONG: "choose a shorter path",
+    errno.ELOOP: "the path loops through symbolic links",
+}
+
+
+def user_path_error(error: OSError) -> str | None:
+    """The one line for an ``OSError`` caused by a user's path or disk, or ``None`` for anything else."""
+    hint = USER_PATH_ERRNOS.get(error.errno)
+    if hint is None or error.filename is None:
+        return None
+    path = error.filename if error.filename2 is None else f"{error.filename} -> {error.filename2}"
+    return f"{path}: {error.strerror or 'OS error'}; {hint}"
 
 #: The modules whose ``register(subparsers)`` add subcommands, in the order ``--help`` lists them.
 COMMAND_MODULES = (rig.demo, recon.cli, rig.cli, calib.cli)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="lfrig",
         description="Light-field capture on a translation stage, calibration, and disparity/depth reconstruction.",
     )
@@ -36,11 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help (0) or a usage error, already printed as one line (2)
+        return done.code if isinstance(done.code, int) else 2
     try:
         status = args.handler(args)
     except LfrigError as error:
-        print(f"lfrig: error: {error}", file=sys.stderr)
+        print_error(str(error))
+        return 2
+    except OSError as error:
+        line = user_path_error(error)
+        if line is None:
+            raise
+        print_error(line)
         return 2
     except KeyboardInterrupt:
         print("lfrig: interrupted", file=sys.stderr)

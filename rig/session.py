@@ -22,6 +22,7 @@ appended to ``OUT_DIR/session.log``.
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import threading
@@ -130,6 +131,8 @@ class _Interrupts:
         self.count = 0
         self.in_write = False
         self.pending = False
+        #: Set when the hard stop is raised: later Ctrl-Cs must not interrupt the stop itself.
+        self.hard_stopping = False
         self.log = log
         self.stream = stream
         self._old: Any = None
@@ -156,9 +159,15 @@ class _Interrupts:
         if self.count == 1:
             self._say("Ctrl-C: finishing the current view, then stopping (Ctrl-C again stops the stage at once)")
             return
+        if self.hard_stopping:
+            # A third Ctrl-C while the stage is being stopped: raising again would abort the feed
+            # hold and soft reset half-sent. Say so and let the stop finish.
+            self._say("Ctrl-C: already stopping the stage (feed hold + soft reset), please wait")
+            return
         if self.in_write:
             self.pending = True
             return
+        self.hard_stopping = True
         raise _HardStop()
 
     @property
@@ -169,6 +178,7 @@ class _Interrupts:
         self.in_write = False
         if self.pending:
             self.pending = False
+            self.hard_stopping = True
             raise _HardStop()
 
 
@@ -269,6 +279,7 @@ def run_capture(
         ``home=False`` on a folder being resumed, and the machine frame is not proven unchanged
         (:func:`check_machine_frame`). Nothing moved.
     """
+    _check_session_values(settle_s=settle_s, feed_mm_min=feed_mm_min, tolerance_mm=tolerance_mm)
     path = Path(path)
     clock = clock if clock is not None else SystemClock()
     tolerance = tolerance_mm if tolerance_mm is not None else getattr(stage, "tolerance_mm", 0.005)
@@ -382,6 +393,19 @@ def run_capture(
     finally:
         writer.close()
         log.close()
+
+
+def _check_session_values(*, settle_s: float, feed_mm_min: float | None, tolerance_mm: float | None) -> None:
+    """Reject values that cannot drive a capture, before the stage moves (each names its flag)."""
+    def finite(value: Any) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    if not (finite(settle_s) and settle_s >= 0):
+        raise RigError(f"settle time {settle_s!r} s (--settle-s): give a number of seconds >= 0")
+    if feed_mm_min is not None and not (finite(feed_mm_min) and feed_mm_min > 0):
+        raise RigError(f"feed {feed_mm_min!r} mm/min (--feed-mm-min): give a positive feed, or none for rapid moves")
+    if tolerance_mm is not None and not (finite(tolerance_mm) and tolerance_mm > 0):
+        raise RigError(f"tolerance {tolerance_mm!r} mm (--tolerance-mm): give a positive distance")
 
 
 def _all_views(grid: GridSpec) -> list[tuple[int, int]]:

@@ -72,8 +72,7 @@ def test_user_mistakes_are_one_line_errors(result_dir, capsys, extra, message):
 
 
 def test_mesh_and_points_are_exclusive(result_dir):
-    with pytest.raises(SystemExit):
-        main(["export", str(result_dir), "--ply", "x.ply", "--mesh", "--points"])
+    assert main(["export", str(result_dir), "--ply", "x.ply", "--mesh", "--points"]) == 2
 
 
 def test_unknown_camera_asks_for_flags(result_dir, tmp_path, capsys):

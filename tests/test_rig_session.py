@@ -297,3 +297,32 @@ def test_resume_without_homing_after_a_reset_with_homing_disabled(tmp_path):
         assert camera.triggers == 5 and len(view_lines(tmp_path / "c")) == 5
     finally:
         unregister(url)
+
+
+def test_third_sigint_while_stopping_does_not_abort_the_stop(rig, tmp_path, capsys):
+    """#13: a third Ctrl-C during the feed hold + soft reset raised _HardStop out of stage.stop():
+    a traceback, and no soft reset sent. Now it is ignored (with a word) and the stop completes."""
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
+
+    def on_trigger(n):
+        if n == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    camera = PositionCamera(controller, on_trigger=on_trigger)
+    with open_stage(url, clock) as stage:
+        original_stop = stage.stop
+
+        def impatient_stop():
+            os.kill(os.getpid(), signal.SIGINT)  # the third Ctrl-C, while stopping
+            original_stop()
+
+        stage.stop = impatient_stop
+        before = len(controller.rx_log)
+        with pytest.raises(CaptureInterrupted, match="second Ctrl-C"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+        tail = bytes(controller.rx_log[before:])
+        assert b"!" in tail and tail.rindex(b"\x18") > tail.rindex(b"!")
+    assert "already stopping the stage" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -31,7 +31,7 @@ from recon.lf.imageio import (fault_point, read_images, remove_stale_temporaries
 from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
-from recon.lf.params import camera_from_parameters, parameters_for, read_parameters, write_parameters
+from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, is_finite, parameters_for, read_parameters, write_parameters
 
 FORMAT = "lfrig-capture"
 VERSION = 1
@@ -108,11 +108,22 @@ def _read_journal(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         raise CaptureLayoutError(
             f"{manifest}: capture format version {header.get('version')!r}; this lfrig reads version {VERSION}"
         )
-    grid = header.get("grid", {})
-    if not (isinstance(grid, dict) and isinstance(grid.get("rows"), int) and isinstance(grid.get("cols"), int)
-            and grid["rows"] > 0 and grid["cols"] > 0):
-        raise CaptureLayoutError(f"{manifest}: header has no valid grid rows/cols")
+    grid = header.get("grid")
+    if not (isinstance(grid, dict) and _is_int(grid.get("rows")) and _is_int(grid.get("cols"))
+            and 0 < grid["rows"] <= MAX_GRID_SIDE and 0 < grid["cols"] <= MAX_GRID_SIDE):
+        raise CaptureLayoutError(
+            f"{manifest}: header has no valid grid (rows and cols must be integers from 1 to {MAX_GRID_SIDE})")
+    pitch = grid.get("pitch_mm")
+    if pitch is not None and not (isinstance(pitch, (int, float)) and not isinstance(pitch, bool)
+                                  and is_finite(pitch) and pitch > 0):
+        raise CaptureLayoutError(f"{manifest}: header grid pitch_mm = {pitch!r} must be a positive number of mm")
+    if not isinstance(header.get("settings", {}), dict):
+        raise CaptureLayoutError(f"{manifest}: header settings must be a JSON object")
     return header, records[1:]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _view_key(record: dict[str, Any], *, rows: int, cols: int) -> tuple[tuple[int, int] | None, bool]:
@@ -476,7 +487,7 @@ def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: d
                         writer.write_view(u, v, lf.views[u, v])
             writer.write_parameters(
                 image_shape=lf.image_shape,
-                pitch_mm=lf.pitch_mm if lf.pitch_mm is not None else 0.0,
+                pitch_mm=lf.pitch_mm,
                 focal_px=lf.focal_px,
                 disparity_range=lf.disparity_range,
                 disparity_offset=lf.disparity_offset,

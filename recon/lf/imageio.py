@@ -7,6 +7,8 @@ import hashlib
 import os
 import re
 import signal
+import threading
+import zlib
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -18,15 +20,82 @@ import numpy as np
 from recon.errors import FileWriteError, LightFieldFormatError
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_problem(data: bytes) -> str | None:
+    """What is structurally wrong with PNG bytes (truncated, a chunk's CRC, no IHDR/IEND), or ``None``.
+
+    Checked before decoding, so that a damaged file is reported by lfrig in one line and not first by
+    libpng on stderr (libpng prints its own errors, which OpenCV does not catch). Cheap: one CRC-32
+    pass over the bytes, no decompression.
+    """
+    if not data.startswith(PNG_SIGNATURE):
+        return "not a PNG (no PNG signature)"
+    pos, first, view = len(PNG_SIGNATURE), True, memoryview(data)
+    while True:
+        if pos + 12 > len(data):
+            return f"truncated at byte {pos} of {len(data)} (no IEND chunk)"
+        length = int.from_bytes(view[pos:pos + 4], "big")
+        kind = bytes(view[pos + 4:pos + 8])
+        end = pos + 12 + length
+        if length > 0x7FFFFFFF or end > len(data):
+            return f"truncated in the {kind.decode('latin-1')!r} chunk at byte {pos}"
+        crc = int.from_bytes(view[end - 4:end], "big")
+        if zlib.crc32(view[pos + 4:end - 4]) != crc:
+            return f"damaged {kind.decode('latin-1')!r} chunk at byte {pos} (CRC mismatch)"
+        if first and kind != b"IHDR":
+            return "damaged (the first chunk is not IHDR)"
+        first = False
+        if kind == b"IEND":
+            return None
+        pos = end
+
+
+def _decode_quietly(data: np.ndarray) -> np.ndarray | None:
+    """``cv2.imdecode`` with OpenCV's own log silenced: a failure is reported by the caller."""
+    with _QUIET_LOCK:
+        global _quiet_depth
+        if _quiet_depth == 0:
+            _quiet_saved[0] = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _quiet_depth += 1
+    try:
+        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        return None
+    finally:
+        with _QUIET_LOCK:
+            _quiet_depth -= 1
+            if _quiet_depth == 0:
+                cv2.utils.logging.setLogLevel(_quiet_saved[0])
+
+
+_QUIET_LOCK = threading.Lock()
+_quiet_depth = 0
+_quiet_saved = [0]
+
+
 def read_image(path: Path) -> np.ndarray:
-    """Read one image as ``(H, W)`` or ``(H, W, 3)`` RGB in its stored dtype (alpha is dropped)."""
+    """Read one image as ``(H, W)`` or ``(H, W, 3)`` RGB in its stored dtype (alpha is dropped).
+
+    Raises
+    ------
+    LightFieldFormatError
+        Naming the file: missing, unreadable, a damaged PNG (checked by :func:`png_problem` before
+        decoding), or not an image OpenCV can decode.
+    """
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except FileNotFoundError:
         raise LightFieldFormatError(f"{path}: no such file") from None
     except OSError as error:
         raise LightFieldFormatError(f"{path}: cannot read ({error.strerror})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if data[:8].tobytes() == PNG_SIGNATURE:
+        problem = png_problem(data.tobytes())
+        if problem:
+            raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
+    image = _decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
     if image.ndim == 3:

@@ -66,12 +66,27 @@ def write_parameters(path: str | os.PathLike, parameters: Parameters) -> None:
     write_bytes_atomic(path, "\n".join(lines).encode("utf-8"))
 
 
-def _number(parameters: Parameters, section: str, key: str, path: Path) -> float | None:
+#: The most views per grid side a light field may declare (``num_cams_x``, ``num_cams_y``, a capture's
+#: grid): far beyond any rig, small enough that a typo cannot make lfrig allocate for millions of views.
+MAX_GRID_SIDE = 1024
+
+
+def is_finite(value: int | float) -> bool:
+    """``math.isfinite`` that says False for an integer too large for a float (instead of raising)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def _number(parameters: Parameters, section: str, key: str, path: Path, *, positive: bool = False) -> float | None:
     value = parameters.get(section, {}).get(key)
     if value is None:
         return None
-    if not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not is_finite(value):
         raise LightFieldFormatError(f"{path}: [{section}] {key} = {value!r} is not a finite number")
+    if positive and not value > 0:
+        raise LightFieldFormatError(f"{path}: [{section}] {key} = {value!r} must be positive; fix or remove the line")
     return float(value)
 
 
@@ -96,18 +111,18 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
     The benchmark's focal length in pixels is :func:`benchmark_focal_px` and its views are refocused
     at ``focus_distance_m``, so ``d0`` is :func:`focus_disparity_px`.
     """
-    pitch_mm = _number(parameters, "extrinsics", "baseline_mm", path)
-    focal_px = _number(parameters, "lfrig", "focal_px", path)
+    pitch_mm = _number(parameters, "extrinsics", "baseline_mm", path, positive=True)
+    focal_px = _number(parameters, "lfrig", "focal_px", path, positive=True)
     if focal_px is None:
-        focal_mm = _number(parameters, "intrinsics", "focal_length_mm", path)
-        sensor_mm = _number(parameters, "intrinsics", "sensor_size_mm", path)
-        res_x = _number(parameters, "intrinsics", "image_resolution_x_px", path)
-        res_y = _number(parameters, "intrinsics", "image_resolution_y_px", path)
+        focal_mm = _number(parameters, "intrinsics", "focal_length_mm", path, positive=True)
+        sensor_mm = _number(parameters, "intrinsics", "sensor_size_mm", path, positive=True)
+        res_x = _number(parameters, "intrinsics", "image_resolution_x_px", path, positive=True)
+        res_y = _number(parameters, "intrinsics", "image_resolution_y_px", path, positive=True)
         if None not in (focal_mm, sensor_mm, res_x, res_y) and sensor_mm > 0:
             focal_px = benchmark_focal_px(focal_length_mm=focal_mm, sensor_size_mm=sensor_mm, width_px=res_x, height_px=res_y)
     offset = _number(parameters, "lfrig", "disparity_offset_px", path)
+    focus_m = _number(parameters, "extrinsics", "focus_distance_m", path, positive=True)
     if offset is None:
-        focus_m = _number(parameters, "extrinsics", "focus_distance_m", path)
         offset = 0.0
         if focus_m and focal_px and pitch_mm and "lfrig" not in parameters:
             offset = focus_disparity_px(focal_px=focal_px, pitch_mm=pitch_mm, focus_distance_m=focus_m)
@@ -121,9 +136,11 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
     cols = parameters.get("extrinsics", {}).get("num_cams_x")
     num_cams = None
     if rows is not None or cols is not None:
-        if not (isinstance(rows, int) and isinstance(cols, int) and rows > 0 and cols > 0):
+        if not (isinstance(rows, int) and isinstance(cols, int) and 0 < rows <= MAX_GRID_SIDE
+                and 0 < cols <= MAX_GRID_SIDE):
             raise LightFieldFormatError(
-                f"{path}: [extrinsics] num_cams_x = {cols!r}, num_cams_y = {rows!r} must be positive integers"
+                f"{path}: [extrinsics] num_cams_x = {cols!r}, num_cams_y = {rows!r} must be integers "
+                f"from 1 to {MAX_GRID_SIDE}"
             )
         num_cams = (rows, cols)
     return num_cams, {
@@ -139,7 +156,7 @@ def parameters_for(
     *,
     grid: tuple[int, int],
     image_shape: tuple[int, int],
-    pitch_mm: float,
+    pitch_mm: float | None,
     focal_px: float | None = None,
     focal_length_mm: float | None = None,
     sensor_size_mm: float | None = None,
@@ -163,8 +180,10 @@ def parameters_for(
         intrinsics.update(focal_length_mm=focal_length_mm, sensor_size_mm=sensor_size_mm)
     sections: dict[str, dict[str, Any]] = {
         "intrinsics": intrinsics,
-        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0], "baseline_mm": pitch_mm},
+        "extrinsics": {"num_cams_x": grid[1], "num_cams_y": grid[0]},
     }
+    if pitch_mm is not None:  # unknown pitch: no line, rather than a baseline of 0
+        sections["extrinsics"]["baseline_mm"] = pitch_mm
     if disparity_range is not None:
         sections["meta"] = {"disp_min": disparity_range[0], "disp_max": disparity_range[1]}
     lfrig: dict[str, Any] = {"disparity_offset_px": disparity_offset}

@@ -8,6 +8,7 @@ flip rows.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -56,7 +57,7 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
         width, height, scale = int(tokens[1]), int(tokens[2]), float(tokens[3])
     except ValueError:
         raise LightFieldFormatError(f"{path}: broken PFM header (size or scale is not a number)") from None
-    if width <= 0 or height <= 0 or scale == 0:
+    if width <= 0 or height <= 0 or scale == 0 or not math.isfinite(scale):
         raise LightFieldFormatError(f"{path}: broken PFM header (size {width}x{height}, scale {scale})")
     channels = 3 if kind == b"PF" else 1
     count = width * height * channels

@@ -45,6 +45,14 @@ SUMMARY = "batch-summary.json"
 MARKER_FORMAT = "lfrig-batch-task"
 MARKER_VERSION = 1
 
+#: How often a capture whose worker was lost (killed, out of memory, its shipped views gone with it)
+#: is submitted again before it is reported as failed.
+MAX_ATTEMPTS = 3
+#: How long the batch waits for a worker when none is connected to the scheduler, seconds.
+NO_WORKER_TIMEOUT_S = 60.0
+#: How long a lost connection to the scheduler may take to come back before the batch stops, seconds.
+SCHEDULER_GRACE_S = 10.0
+
 Transfer = Literal["shared", "ship"]
 Status = Literal["ok", "skipped", "failed"]
 
@@ -382,6 +390,8 @@ def run_batch(
     threads: int | None = None,
     max_in_flight: int | None = None,
     on_outcome: Callable[[Outcome, int, int], None] | None = None,
+    on_note: Callable[[str], None] | None = None,
+    no_worker_timeout_s: float = NO_WORKER_TIMEOUT_S,
 ) -> list[Outcome]:
     """Run the captures of ``plan`` still to do on ``client`` (a ``distributed.Client``; may be
     ``None`` when there is nothing to do); return one :class:`Outcome` per capture, in the order given.
@@ -399,6 +409,16 @@ def run_batch(
         that shipped views do not pile up in the workers' memory.
     on_outcome
         ``on_outcome(outcome, done, total)`` as each capture finishes (skipped ones first).
+    on_note
+        ``on_note(text)`` for what happens to the cluster: a lost worker's capture submitted again, no
+        worker connected (and connected again).
+    no_worker_timeout_s
+        With no worker connected for this long, the captures not run yet are reported as failed and
+        the batch stops.
+
+    A capture whose worker dies (killed, out of memory, and with it the views shipped to it) is
+    submitted again, up to :data:`MAX_ATTEMPTS` times in all. Losing the scheduler raises
+    :class:`ScaleError` (the summary is not written; complete captures keep their markers).
 
     A capture that fails (bad folder, a bug, a worker that died) is an outcome with ``status
     "failed"`` and its ``error``; the others go on. ``OUT_DIR/batch-summary.json`` lists all outcomes.
@@ -420,54 +440,186 @@ def run_batch(
     if plan.todo:
         if client is None:
             raise ValueError(f"{len(plan.todo)} capture(s) to run but no client")
-        _run(client, plan, transfer=transfer, threads=threads, max_in_flight=max_in_flight, report=report)
+        _run(client, plan, transfer=transfer, threads=threads, max_in_flight=max_in_flight, report=report,
+             note=on_note, no_worker_timeout_s=no_worker_timeout_s)
     ordered = [outcomes[job.name] for job in plan.jobs]
     write_json_atomic(plan.out_dir / SUMMARY, {"request": request.identity(), "transfer": transfer,
                                                "captures": [o.as_dict() for o in ordered]})
     return ordered
 
 
+@dataclass
+class _Task:
+    job: CaptureJob
+    fingerprint: str
+    attempt: int = 1
+    payload: Any = None  # the scattered views (ship mode): kept referenced while the task runs
+
+
+def _lost_with_worker(error: BaseException) -> bool:
+    """Whether a task's exception means its worker (or the data shipped to it) was lost, rather than
+    a failure of the capture itself: such a task is submitted again."""
+    from concurrent.futures import CancelledError
+
+    from distributed.comm.core import CommClosedError
+
+    return isinstance(error, (CancelledError, CommClosedError, ConnectionError))
+
+
 def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | None, max_in_flight: int | None,
-         report: Callable[[Outcome], None]) -> None:
-    from distributed import as_completed
+         report: Callable[[Outcome], None], note: Callable[[str], None] | None = None,
+         attempts: int = MAX_ATTEMPTS, no_worker_timeout_s: float = NO_WORKER_TIMEOUT_S,
+         poll_s: float = 0.2) -> None:
+    """Submit the captures, at most ``window`` at a time; resubmit one whose worker was lost (up to
+    ``attempts`` times); stop when no worker is connected for ``no_worker_timeout_s``; raise
+    :class:`ScaleError` when the scheduler is gone."""
+    from collections import deque
 
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+
+    say = note or (lambda text: None)
     request = plan.request
+    address = getattr(client.scheduler, "address", "?")
     window = max_in_flight or max(2, 2 * (sum(client.nthreads().values()) or 1))
-    pending = iter(plan.todo)
-    running: dict[Any, tuple[CaptureJob, str]] = {}
-    queue = as_completed()
+    pending: deque[_Task] = deque(_Task(job, fingerprint) for job, fingerprint in plan.todo)
+    running: dict[Any, _Task] = {}
+    no_worker_since: float | None = None
+    disconnected_since: float | None = None
+    finished: set[str] = set()
 
-    def submit_next() -> bool:
-        for job, fingerprint in pending:
-            try:
-                payload = read_payload(job.source) if transfer == "ship" else None
-            except (OSError, ScaleError) as error:
-                report(Outcome(name=job.name, source=str(job.source), out_dir=str(job.out_dir), status="failed",
-                               error=str(error)))
-                continue
+    def report_one(outcome: Outcome) -> None:
+        finished.add(outcome.name)
+        report(outcome)
+
+    def failed(task: _Task, error: str) -> None:
+        report_one(Outcome(name=task.job.name, source=str(task.job.source), out_dir=str(task.job.out_dir),
+                       status="failed", error=error))
+
+    def workers() -> int:
+        try:
+            return len(client.scheduler_info().get("workers", {}))
+        except Exception:  # noqa: BLE001 - asked while the connection is down: treat as none
+            return 0
+
+    def submit(task: _Task) -> bool:
+        """Submit one capture; False when sending failed (the task is back in ``pending``)."""
+        job = task.job
+        try:
+            payload = read_payload(job.source) if transfer == "ship" else None
+        except (OSError, ScaleError) as error:
+            failed(task, str(error))
+            return True
+        try:
             if payload is not None:
                 # straight to a worker, not through the scheduler's graph (a list, so the dict is one piece)
-                payload = client.scatter([payload], hash=False)[0]
+                task.payload = client.scatter([payload], hash=False)[0]
             future = client.submit(reconstruct_capture, str(job.source),
-                                   None if transfer == "ship" else str(job.out_dir), request, payload, threads,
+                                   None if transfer == "ship" else str(job.out_dir), request, task.payload, threads,
                                    pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
-            running[future] = (job, fingerprint)
-            queue.add(future)
-            return True
-        return False
+        except (CommClosedError, ConnectionError, TimeoutError) as error:
+            # the worker chosen for the views (or the scheduler) went away during the call: try again;
+            # if it was the scheduler, the loop's status check stops the batch
+            task.payload = None
+            pending.appendleft(task)
+            say(f"{job.name}: sending it failed ({type(error).__name__}); trying again")
+            return False
+        running[future] = task
+        return True
 
-    while len(running) < window and submit_next():
-        pass
-    for future in queue:
-        job, fingerprint = running.pop(future)
-        try:
-            result = future.result()
-        except Exception as error:  # noqa: BLE001 - e.g. KilledWorker: the worker died on this capture
-            result = {"status": "failed", "error": f"{type(error).__name__}: {error}", "seconds": None}
-        report(_finish(job, request, fingerprint, result, transfer))
+    def release(future: Any, task: _Task) -> None:
         future.release()
-        while len(running) < window and submit_next():
-            pass
+        if task.payload is not None:
+            task.payload.release()
+            task.payload = None
+
+    def scheduler_lost() -> ScaleError:
+        return ScaleError(
+            f"lost the connection to the Dask scheduler at {address}; {len(plan.todo) - len(finished)} capture(s) "
+            "were not finished. Start the scheduler and workers again and run the same command: complete "
+            "captures are skipped"
+        )
+
+    def loop() -> None:
+        nonlocal no_worker_since, disconnected_since
+        while pending or running:
+            status = getattr(client, "status", "running")
+            if status != "running":
+                now = time.monotonic()
+                disconnected_since = disconnected_since or now
+                if status in ("closed", "closing", "failed") or now - disconnected_since > SCHEDULER_GRACE_S:
+                    raise scheduler_lost()
+            else:
+                disconnected_since = None
+            count = workers() if status == "running" else 0
+            if count == 0:
+                now = time.monotonic()
+                if no_worker_since is None:
+                    no_worker_since = now
+                    say(f"no Dask worker is connected to {address}; waiting up to {no_worker_timeout_s:.0f} s for one "
+                        f"(start one with `dask worker {address} --nthreads 1`)")
+                elif now - no_worker_since > no_worker_timeout_s:
+                    left = list(running.values()) + list(pending)
+                    for future, task in list(running.items()):
+                        future.cancel()
+                        release(future, task)
+                    running.clear()
+                    pending.clear()
+                    why = (f"not run: no Dask worker was connected to {address} for {no_worker_timeout_s:.0f} s; "
+                           "start workers and run the same command again")
+                    say(f"no Dask worker for {no_worker_timeout_s:.0f} s: stopping; {len(left)} capture(s) not run")
+                    for task in left:
+                        failed(task, why)
+                    break
+            elif no_worker_since is not None:
+                no_worker_since = None
+                say(f"{count} Dask worker(s) connected again; going on")
+            while count and pending and len(running) < window:
+                if not submit(pending.popleft()):
+                    time.sleep(poll_s)
+                    break
+            if not running:
+                time.sleep(poll_s)
+                continue
+            done = [future for future in running if future.done()]  # finished, failed or cancelled
+            if not done:
+                time.sleep(poll_s)
+                continue
+            for future in done:
+                task = running.pop(future)
+                try:
+                    result = future.result()
+                except KilledWorker as error:  # this capture's task took several workers down with it
+                    result = {"status": "failed", "seconds": None,
+                              "error": f"its task killed {error.args[0] if error.args else 'several'} worker(s) in a row "
+                                       "(out of memory?); not tried again"}
+                except Exception as error:  # noqa: BLE001 - a lost worker, or a task that raised
+                    if getattr(client, "status", "running") != "running":
+                        release(future, task)
+                        pending.appendleft(task)
+                        raise scheduler_lost() from None
+                    if _lost_with_worker(error) and task.attempt < attempts:
+                        release(future, task)
+                        task.attempt += 1
+                        say(f"{task.job.name}: its worker was lost ({type(error).__name__}); running it again "
+                            f"(attempt {task.attempt} of {attempts})")
+                        pending.appendleft(task)
+                        continue
+                    reason = f"lost with its worker {attempts} times; " if _lost_with_worker(error) else ""
+                    result = {"status": "failed", "error": f"{reason}{type(error).__name__}: {error}", "seconds": None}
+                release(future, task)
+                report_one(_finish(task.job, request, task.fingerprint, result, transfer))
+
+    try:
+        loop()
+    except (CommClosedError, ConnectionError):  # the scheduler went away mid-call (a status query, a release)
+        deadline = time.monotonic() + SCHEDULER_GRACE_S
+        while getattr(client, "status", "running") == "running" and time.monotonic() < deadline:
+            time.sleep(poll_s)
+        if getattr(client, "status", "running") == "running":
+            raise  # not the scheduler: a bug, keep the traceback
+        raise scheduler_lost() from None
+
 
 
 def format_summary(outcomes: Sequence[Outcome]) -> str:

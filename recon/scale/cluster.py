@@ -117,6 +117,7 @@ def connect(
     """
     from distributed import Client, LocalCluster
 
+    quiet = _QuietDistributedLogs()
     cluster = None
     if scheduler is None:
         plan = plan_local(workers=workers, tasks=tasks)
@@ -137,12 +138,13 @@ def connect(
             raise ScaleError("--workers sizes a local cluster; with --scheduler, start that many `dask worker`s instead")
         try:
             client = Client(scheduler, timeout=timeout_s)
-        except (OSError, TimeoutError) as error:
+        except (OSError, TimeoutError, ValueError, TypeError) as error:  # ValueError: not an address
             raise ScaleError(
                 f"cannot reach the Dask scheduler at {scheduler} ({error}); start one with "
                 "`dask scheduler` and pass the address it prints (tcp://HOST:PORT)"
             ) from None
         task_threads = None
+    quiet.__enter__()
     try:
         try:
             client.wait_for_workers(1, timeout=timeout_s)
@@ -151,8 +153,12 @@ def connect(
                 f"the scheduler at {client.scheduler.address} has no worker after {timeout_s:.0f} s; "
                 f"start one with `dask worker {client.scheduler.address} --nthreads 1`"
             ) from None
+        from distributed.comm.core import CommClosedError
+
         probes = client.run(probe_worker, on_error="return")
-        broken = {addr: result for addr, result in probes.items() if isinstance(result, BaseException)}
+        # A worker that left while being probed (CommClosedError, a timeout) is not a broken install.
+        broken = {addr: result for addr, result in probes.items() if isinstance(result, BaseException)
+                  and not isinstance(result, (CommClosedError, OSError, TimeoutError))}
         if broken:
             addr, error = next(iter(broken.items()))
             raise ScaleError(
@@ -165,6 +171,37 @@ def connect(
             threads=sum(w.get("nthreads", 1) for w in info.values()), task_threads=task_threads,
         )
     finally:
-        client.close()
+        try:
+            client.close(timeout=10)
+        except Exception:  # noqa: BLE001 - closing a client whose scheduler is gone: nothing left to do
+            pass
         if cluster is not None:
             cluster.close()
+        quiet.__exit__()
+
+
+class _QuietDistributedLogs:
+    """While a batch runs, distributed's own log messages (a lost worker or scheduler, with their
+    tracebacks) are not printed: lfrig reports what happened in its own words (the batch's notes, a
+    :class:`ScaleError`). Set ``LFRIG_DASK_LOGS=1`` to see them."""
+
+    NAMES = ("distributed", "tornado")
+
+    def __init__(self) -> None:
+        self.saved: dict[str, int] = {}
+
+    def __enter__(self) -> "_QuietDistributedLogs":
+        if not os.environ.get("LFRIG_DASK_LOGS"):
+            # every logger of the family: distributed's config gives some children their own level
+            known = [name for name in logging.root.manager.loggerDict
+                     if any(name == n or name.startswith(n + ".") for n in self.NAMES)]
+            for name in sorted(set(known) | set(self.NAMES)):
+                logger = logging.getLogger(name)
+                self.saved[name] = logger.level
+                logger.setLevel(logging.CRITICAL + 1)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for name, level in self.saved.items():
+            logging.getLogger(name).setLevel(level)
+        self.saved.clear()

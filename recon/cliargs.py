@@ -1,0 +1,131 @@
+"""Argument types shared by every ``cli`` module (``recon.cli``, ``calib.cli``, ``rig.cli``, ``rig.demo``).
+
+A flag's value is checked where it is parsed, so that a user's mistake is one line from argparse
+(``lfrig: error: argument --feed-mm-min: 0 is not a positive number ... (see lfrig capture --help)``) and exit status 2,
+before anything is read, moved or written. The library checks the same values again at its public
+entry (scikit-image style); these types only make the command line say it earlier and in the flag's
+own words.
+
+Every type is a plain function ``str -> value`` raising :class:`argparse.ArgumentTypeError`, usable
+as ``type=`` of ``add_argument``. The bounded ones are made by :func:`int_range` and
+:func:`float_range`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Callable, NoReturn
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose errors are one line (no usage block), exit status 2.
+
+    ``lfrig`` uses it for the top parser; ``add_subparsers`` makes every subcommand's parser of the
+    same class, so every command's usage errors are one line too.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"lfrig: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(text: str, kind: type) -> float | int:
+    try:
+        return kind(text)
+    except (TypeError, ValueError):
+        what = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+
+
+def finite_float(text: str) -> float:
+    """A finite float (no ``nan``, ``inf``)."""
+    value = float(_number(text, float))
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite float > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive number; give a value > 0")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    """A finite float >= 0."""
+    value = finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative; give a value >= 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    value = int(_number(text, int))
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive integer; give a value >= 1")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """An integer >= 0."""
+    value = int(_number(text, int))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative; give a value >= 0")
+    return value
+
+
+def int_range(low: int, high: int) -> Callable[[str], int]:
+    """An integer in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        value = int(_number(text, int))
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{text} is outside {low}..{high}")
+        return value
+
+    parse.__name__ = f"int_in_{low}_{high}"
+    return parse
+
+
+def float_range(low: float, high: float, *, low_open: bool = False) -> Callable[[str], float]:
+    """A finite float in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
+
+    def parse(text: str) -> float:
+        value = finite_float(text)
+        if not ((low < value) if low_open else (low <= value)) or not value <= high:
+            bracket = "(" if low_open else "["
+            raise argparse.ArgumentTypeError(f"{text} is outside {bracket}{low:g}, {high:g}]")
+        return value
+
+    parse.__name__ = f"float_in_{low}_{high}"
+    return parse
+
+
+def output_file(text: str) -> Path:
+    """A path for a file to write: not an existing folder (its folder is checked when writing)."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty path")
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name")
+    return path
+
+
+def output_folder(text: str) -> Path:
+    """A path for a folder to write into: a folder or nothing yet, not an existing file."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty path")
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file; give a folder (new or existing)")
+    return path
+
+
+def print_error(message: str) -> None:
+    """Print a user's error as lfrig's one line on stderr."""
+    print(f"lfrig: error: {message}", file=sys.stderr)

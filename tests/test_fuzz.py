@@ -1,0 +1,565 @@
+"""Property-based mutation tests of every loader and of the command line's argument checking (#13).
+
+A seeded mutation fuzzer (hypothesis, ``derandomize=True``: the same examples on every run, no
+example database) damages valid files the way disks, editors and half-finished writes do (flipped,
+inserted, deleted and truncated bytes; JSON values replaced by NaN, huge, negative, wrongly typed or
+missing ones; INI values replaced by junk) and feeds them to each loader: ``manifest.jsonl`` and the
+views of a capture, ``parameters.cfg``, PFM, ``result.json``, ``stage.json``, mrcal camera models,
+PNG images, depth maps (PNG with its scale, PFM, NPY). Argument vectors are drawn from each command's flags with good and bad values.
+
+The properties:
+
+- a loader returns or raises :class:`recon.errors.LfrigError` (or a subclass), nothing else;
+- ``lfrig`` exits 0, or prints exactly one line starting ``lfrig: error:`` and exits 2 (expensive
+  work is replaced by a stand-in that only records that validation let the values through);
+- nothing is written outside the example's own folder, and nothing is read outside it apart from
+  Python, the installed packages and the system (an audit hook watches every ``open``).
+
+Bounded for CI: the whole file runs in well under a minute on a loaded 2-core machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import random
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from recon.errors import LfrigError
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_CAPTURE = ROOT / "fixtures" / "tiny_capture"
+TRUTH = ROOT / "fixtures" / "tiny_capture_truth.pfm"
+
+FUZZ = settings(derandomize=True, database=None, deadline=None, max_examples=60,
+                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
+                                       HealthCheck.data_too_large])
+
+# --------------------------------------------------------------------------------------------------
+# nothing read or written outside the example's folder: an audit hook on every open
+
+
+class FileAudit:
+    """Records every file opened (and removed, renamed, made) while :attr:`active`."""
+
+    def __init__(self) -> None:
+        self.active = False
+        self.events: list[tuple[str, str, bool]] = []  # (event, path, writes)
+
+    def hook(self, event: str, args: tuple) -> None:
+        if not self.active:
+            return
+        if event == "open":
+            path, mode, flags = args
+            if isinstance(path, int):
+                return
+            writes = bool((mode and any(c in mode for c in "wax+"))
+                          or (flags or 0) & (os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC))
+            self.events.append((event, os.fsdecode(path), writes))
+        elif event in ("os.remove", "os.rename", "os.mkdir", "os.rmdir", "shutil.rmtree", "os.truncate"):
+            path = args[0]
+            if not isinstance(path, int):
+                self.events.append((event, os.fsdecode(path), True))
+
+    @contextlib.contextmanager
+    def watch(self):
+        self.events.clear()
+        self.active = True
+        try:
+            yield self
+        finally:
+            self.active = False
+
+    def outside(self, folder: Path) -> list[tuple[str, str, bool]]:
+        """Events outside ``folder``: any write; reads other than Python's, the packages' and the system's."""
+        allowed_reads = tuple(str(Path(p).resolve()) for p in {sys.prefix, sys.base_prefix, sys.exec_prefix}) + (
+            str(ROOT / "recon"), str(ROOT / "rig"), str(ROOT / "calib"), "/usr", "/lib", "/etc", "/proc", "/sys",
+            "/dev/null", "/dev/urandom", "/dev/shm")
+        bad = []
+        for event, path, writes in self.events:
+            resolved = str(Path(os.path.abspath(path)).resolve()) if path else path
+            if resolved.startswith(str(folder.resolve()) + os.sep) or resolved == str(folder.resolve()):
+                continue
+            if not writes and resolved.startswith(allowed_reads):
+                continue
+            bad.append((event, path, writes))
+        return bad
+
+
+AUDIT = FileAudit()
+sys.addaudithook(AUDIT.hook)
+
+
+def fresh_folder(base: Path) -> Path:
+    return Path(tempfile.mkdtemp(dir=base))
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("fuzz")
+
+
+def call_loader(folder: Path, load) -> object:
+    """Run ``load()``: it returns or raises LfrigError, touching nothing outside ``folder``."""
+    with AUDIT.watch():
+        try:
+            result = load()
+        except LfrigError as error:
+            assert str(error) and "\n" not in str(error).strip(), repr(error)
+            result = error
+    outside = AUDIT.outside(folder)
+    assert not outside, f"touched outside {folder}: {outside[:5]}"
+    return result
+
+
+# --------------------------------------------------------------------------------------------------
+# mutations
+
+INTERESTING = [None, True, False, 0, -1, 1, 3, 100000, 2**63, -(2**63), 1e308, -1e308, float("nan"),
+               float("inf"), float("-inf"), -0.0, 1e-300, 0.5, "", "x", "0.5", "\udcff", [], [0], [1, 2, 3],
+               [[1], [2, 3]], {}, {"rows": 3}]
+TOKENS = ["nan", "inf", "-inf", "-1", "0", "0.0", "1e308", "1e-308", "100000", "-100000", "abc", "", "3",
+          "0.5", "1e3", "0x10", "\u00ff", "[x]", "= =", "9" * 400]
+
+
+def byte_mutation(rng: random.Random, data: bytes) -> bytes:
+    """1-4 of: flip a byte, overwrite a run, insert bytes, delete a range, truncate, duplicate a range."""
+    out = bytearray(data)
+    for _ in range(rng.randint(1, 4)):
+        op = rng.choice(["flip", "overwrite", "insert", "delete", "truncate", "duplicate"])
+        n = len(out)
+        at = rng.randint(0, max(0, n - 1))
+        if op == "flip" and n:
+            out[at] ^= rng.randint(1, 255)
+        elif op == "overwrite":
+            chunk = rng.randbytes(rng.randint(1, 16))
+            out[at:at + len(chunk)] = chunk
+        elif op == "insert":
+            out[at:at] = rng.randbytes(rng.randint(1, 16))
+        elif op == "delete":
+            del out[at:at + rng.randint(1, 64)]
+        elif op == "truncate":
+            del out[at:]
+        elif op == "duplicate":
+            out[at:at] = out[at:at + rng.randint(1, 64)]
+    return bytes(out)
+
+
+def _paths(value, prefix=()):
+    yield prefix
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield from _paths(item, prefix + (key,))
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            yield from _paths(item, prefix + (i,))
+
+
+def json_mutation(rng: random.Random, value):
+    """Replace, delete or wrap the value at a random place in a JSON document (1-3 times)."""
+    value = json.loads(json.dumps(value))
+    for _ in range(rng.randint(1, 3)):
+        paths = [p for p in _paths(value) if p]
+        if not paths:
+            return rng.choice(INTERESTING)
+        path = rng.choice(paths)
+        parent = value
+        for key in path[:-1]:
+            parent = parent[key]
+        key = path[-1]
+        op = rng.choice(["replace", "replace", "delete", "wrap"])
+        if op == "replace":
+            parent[key] = rng.choice(INTERESTING)
+        elif op == "delete":
+            del parent[key]
+        else:
+            parent[key] = [parent[key]]
+    return value
+
+
+def dump_json(value) -> bytes:
+    return json.dumps(value).encode("utf-8", "surrogatepass")
+
+
+def ini_mutation(rng: random.Random, text: str) -> bytes:
+    """Replace values by junk, delete lines, add section headers or junk lines (1-3 times)."""
+    lines = text.splitlines()
+    for _ in range(rng.randint(1, 3)):
+        values = [i for i, line in enumerate(lines) if "=" in line]
+        op = rng.choice(["value", "value", "value", "delete", "section", "garbage"])
+        if op == "value" and values:
+            i = rng.choice(values)
+            lines[i] = lines[i].split("=")[0] + "= " + rng.choice(TOKENS)
+        elif op == "delete" and lines:
+            del lines[rng.randint(0, len(lines) - 1)]
+        elif op == "section":
+            lines.insert(rng.randint(0, len(lines)), rng.choice(["[extrinsics]", "[lfrig]", "[", "[]"]))
+        else:
+            lines.insert(rng.randint(0, len(lines)), rng.choice(TOKENS))
+    return "\n".join(lines).encode("utf-8", "surrogateescape")
+
+
+def rng_of(data) -> random.Random:
+    """A seeded generator for one example: hypothesis draws the seed (derandomized: the same seeds on
+    every run), the mutations use it. Reproduce a failure with ``random.Random(seed)``."""
+    return random.Random(data.draw(st.integers(0, 2**32 - 1), label="seed"))
+
+
+# --------------------------------------------------------------------------------------------------
+# the loaders
+
+
+def copy_capture(base: Path) -> tuple[Path, Path]:
+    folder = fresh_folder(base)
+    shutil.copytree(TINY_CAPTURE, folder / "cap")
+    return folder, folder / "cap"
+
+
+@FUZZ
+@given(data=st.data())
+def test_manifest_mutations(base, data):
+    from recon.lf import read_lightfield
+
+    folder, cap = copy_capture(base)
+    lines = (cap / "manifest.jsonl").read_text().splitlines()
+    rng = rng_of(data)
+    if rng.random() < 0.7:
+        i = rng.randint(0, len(lines) - 1)
+        lines[i] = dump_json(json_mutation(rng, json.loads(lines[i]))).decode("utf-8", "surrogateescape")
+        raw = ("\n".join(lines) + "\n").encode("utf-8", "surrogateescape")
+    else:
+        raw = byte_mutation(rng, (cap / "manifest.jsonl").read_bytes())
+    (cap / "manifest.jsonl").write_bytes(raw)
+    call_loader(folder, lambda: read_lightfield(cap))
+
+
+@settings(FUZZ, max_examples=200)
+@given(data=st.data())
+def test_parameters_mutations(base, data):
+    from recon.lf import read_lightfield
+
+    folder, cap = copy_capture(base)
+    text = (cap / "parameters.cfg").read_text()
+    rng = rng_of(data)
+    raw = ini_mutation(rng, text) if rng.random() < 0.85 else byte_mutation(rng, text.encode())
+    (cap / "parameters.cfg").write_bytes(raw)
+    # as a capture, and as a benchmark folder with the same views and parameters
+    bench = folder / "bench"
+    bench.mkdir()
+    for i, view in enumerate(sorted((cap / "views").iterdir())):
+        shutil.copy(view, bench / f"input_Cam{i:03d}.png")
+    shutil.copy(cap / "parameters.cfg", bench / "parameters.cfg")
+    for source in (cap, bench):
+        lf = call_loader(folder, lambda: read_lightfield(source))
+        if not isinstance(lf, LfrigError):
+            for name in ("pitch_mm", "focal_px"):
+                value = getattr(lf, name)
+                assert value is None or (math.isfinite(value) and value > 0), (name, value)
+            assert math.isfinite(lf.disparity_offset)
+
+
+@FUZZ
+@given(data=st.data())
+def test_pfm_mutations(base, data):
+    from recon.lf.pfm import read_pfm
+
+    folder = fresh_folder(base)
+    original = TRUTH.read_bytes()
+    rng = rng_of(data)
+    if rng.random() < 0.5:
+        header = original[:40].split(b"\n")[:3]
+        body = original[len(b"\n".join(header)) + 1:]
+        tokens = b" ".join(header).split()
+        tokens[rng.randint(0, len(tokens) - 1)] = rng.choice(TOKENS).encode("utf-8", "surrogateescape")
+        raw = b"\n".join([tokens[0], b" ".join(tokens[1:3]), b" ".join(tokens[3:])]) + b"\n" + body
+    else:
+        raw = byte_mutation(rng, original)
+    (folder / "x.pfm").write_bytes(raw)
+    call_loader(folder, lambda: read_pfm(folder / "x.pfm"))
+
+
+def write_result_folder(folder: Path) -> dict:
+    from recon.lf.imageio import write_png
+    from recon.lf.pfm import write_pfm
+
+    result = folder / "res"
+    result.mkdir()
+    write_pfm(result / "disparity.pfm", np.zeros((16, 16), np.float32))
+    write_png(result / "centre_view.png", np.zeros((16, 16, 3), np.uint8))
+    write_png(result / "mask.png", np.full((16, 16), 255, np.uint8))
+    record = {"method": "baseline", "options": {"window": 3}, "source": None, "image": [16, 16], "grid": [3, 3],
+              "focal_px": 1000.0, "pitch_mm": 0.5, "disparity_offset": 0.0, "principal_point_px": [7.5, 7.5],
+              "disparity_png_range": [-1.0, 1.0], "seconds": 0.1, "mask": "mask.png"}
+    return record
+
+
+@FUZZ
+@given(data=st.data())
+def test_result_json_mutations(base, data):
+    from recon.result import read_result
+
+    folder = fresh_folder(base)
+    record = write_result_folder(folder)
+    rng = rng_of(data)
+    raw = dump_json(json_mutation(rng, record)) if rng.random() < 0.7 else byte_mutation(rng, dump_json(record))
+    (folder / "res" / "result.json").write_bytes(raw)
+    result = call_loader(folder, lambda: read_result(folder / "res"))
+    if not isinstance(result, LfrigError):
+        call_loader(folder, lambda: result.camera())
+
+
+def stage_record() -> dict:
+    from calib import stage
+
+    return {"format": stage.FORMAT, "version": stage.VERSION, "grid": [9, 9], "pitch_mm": 0.5,
+            "step_u_mm": [0.0, 0.5, 0.0], "step_v_mm": [0.5, 0.0, 0.0], "r_cam_board": [0.0, 0.0, 0.0],
+            "t_cam_board_mm": [0.0, 0.0, 1000.0], "rms_px": 0.1, "max_px": 0.3, "n_views": 81, "n_corners": 100,
+            "n_outliers": 0, "skipped": [], "per_view_rms_px": {"u00_v00": 0.1}, "lensmodel": "LENSMODEL_PINHOLE",
+            "intrinsics": [1000.0, 1000.0, 15.5, 15.5]}
+
+
+@FUZZ
+@given(data=st.data())
+def test_stage_json_mutations(base, data):
+    from calib.stage import StageCalibration
+
+    folder = fresh_folder(base)
+    rng = rng_of(data)
+    raw = (dump_json(json_mutation(rng, stage_record())) if rng.random() < 0.7
+           else byte_mutation(rng, dump_json(stage_record())))
+    (folder / "stage.json").write_bytes(raw)
+    stage = call_loader(folder, lambda: StageCalibration.load(folder / "stage.json"))
+    if not isinstance(stage, LfrigError):
+        assert stage.pitch_u_mm > 0 and stage.pitch_v_mm > 0 and math.isfinite(stage.tilt_deg)
+
+
+@pytest.fixture(scope="module")
+def model_text(tmp_path_factory) -> str:
+    import mrcal
+
+    path = tmp_path_factory.mktemp("model") / "cam.cameramodel"
+    mrcal.cameramodel(intrinsics=("LENSMODEL_OPENCV4", np.array([1000.0, 1000.0, 15.5, 15.5, 0, 0, 0, 0])),
+                      imagersize=np.array([32, 32]), extrinsics_rt_fromref=np.zeros(6)).write(str(path))
+    return path.read_text()
+
+
+@settings(FUZZ, max_examples=150)
+@given(data=st.data())
+def test_camera_model_mutations(base, model_text, data):
+    from calib.stage import load_model
+
+    folder = fresh_folder(base)
+    rng = rng_of(data)
+    if rng.random() < 0.6:
+        import re
+
+        numbers = list(re.finditer(r"-?\d+(\.\d+)?(e-?\d+)?", model_text))
+        match = rng.choice(numbers)
+        raw = (model_text[:match.start()] + rng.choice(["0", "-1", "nan", "inf", "1e308", "-0", "'x'", "[]"])
+               + model_text[match.end():]).encode()
+    else:
+        raw = byte_mutation(rng, model_text.encode())
+    (folder / "cam.cameramodel").write_bytes(raw)
+    model = call_loader(folder, lambda: load_model(folder / "cam.cameramodel"))
+    if not isinstance(model, LfrigError):
+        _, intrinsics = model.intrinsics()
+        assert np.isfinite(intrinsics).all() and intrinsics[0] > 0 and intrinsics[1] > 0
+
+
+@FUZZ
+@given(data=st.data())
+def test_png_view_mutations(base, data, capfd):
+    from recon.lf import read_lightfield
+
+    folder, cap = copy_capture(base)
+    views = sorted((cap / "views").iterdir())
+    rng = rng_of(data)
+    view = rng.choice(views)
+    view.write_bytes(byte_mutation(rng, view.read_bytes()))
+    capfd.readouterr()
+    call_loader(folder, lambda: read_lightfield(cap))
+    # lfrig's errors only: nothing printed by libpng or OpenCV on the way
+    assert capfd.readouterr().err == ""
+
+
+@settings(FUZZ, max_examples=90)
+@given(data=st.data())
+def test_depth_map_mutations(base, data, capfd):
+    from recon.depth import read_depth, write_depth
+
+    folder = fresh_folder(base)
+    rng = rng_of(data)
+    suffix = rng.choice([".png", ".pfm", ".npy"])
+    path = folder / f"depth{suffix}"
+    depth = np.full((8, 8), 1000.0)
+    depth[2:5, 3:6] = np.nan
+    write_depth(path, depth)
+    target = path
+    if suffix == ".png" and rng.random() < 0.4:  # the sidecar holds the scale too
+        target = path.with_name(path.name + ".json")
+        if rng.random() < 0.5:
+            path.write_bytes(path.read_bytes().replace(b"tEXt", b"teXt"))  # only the sidecar is left
+    if target.suffix == ".json" and rng.random() < 0.7:
+        target.write_bytes(dump_json(json_mutation(rng, json.loads(target.read_text()))))
+    else:
+        target.write_bytes(byte_mutation(rng, target.read_bytes()))
+    capfd.readouterr()
+    call_loader(folder, lambda: read_depth(path))
+    assert capfd.readouterr().err == ""
+
+
+def test_a_manifest_cannot_make_lfrig_read_outside_the_capture(base):
+    """A journal whose ``file`` points outside the capture (point 5 of #13) reads nothing there."""
+    from recon.lf import read_lightfield
+
+    folder, cap = copy_capture(base)
+    outside = fresh_folder(base)
+    shutil.copy(cap / "views" / "u00_v00.png", outside / "x.png")
+    lines = (cap / "manifest.jsonl").read_text().splitlines()
+    record = json.loads(lines[1])
+    record["file"] = os.path.relpath(outside / "x.png", cap)
+    lines[1] = json.dumps(record)
+    (cap / "manifest.jsonl").write_text("\n".join(lines) + "\n")
+    call_loader(folder, lambda: read_lightfield(cap))
+
+
+# --------------------------------------------------------------------------------------------------
+# the command line's argument checking
+
+
+class Reached(Exception):
+    """Raised by the stand-ins for expensive work: validation let the arguments through."""
+
+
+@pytest.fixture(scope="module")
+def cli_world(tmp_path_factory):
+    """Inputs for the argument fuzzer: a capture, a result folder, PFMs, a file and a folder."""
+    from rig.main import main
+
+    root = tmp_path_factory.mktemp("cli")
+    shutil.copytree(TINY_CAPTURE, root / "cap")
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["reconstruct", str(root / "cap"), "-o", str(root / "res"), "--method", "baseline",
+                     "--window", "3", "--step", "0.1", "--quiet"]) == 0
+    shutil.copy(TRUTH, root / "truth.pfm")
+    (root / "afile").write_text("not a folder")
+    (root / "emptydir").mkdir()
+    return root
+
+
+PATHS = ["{root}/cap", "{root}/res", "{root}/truth.pfm", "{root}/afile", "{root}/emptydir", "{root}/missing",
+         "{root}/out", "{root}/out/x.ply", "{root}/res/disparity.pfm", "", "{root}/afile/below"]
+NUMBERS = ["0", "1", "-1", "0.5", "-0.5", "3", "9", "1e-9", "1e9", "100000", "nan", "inf", "-inf", "abc", "",
+           "0x10", "2.5e-3", "9" * 40]
+
+
+def flag(name: str, count: int = 1, values=NUMBERS) -> tuple[str, int, list[str]]:
+    return (name, count, values)
+
+
+COMMANDS = {
+    "info": (["{root}/cap"], [flag("--json", 0)]),
+    "evaluate": (["{root}/res/disparity.pfm", "{root}/truth.pfm"], [flag("--border"), flag("--json", 0)]),
+    "reconstruct": (["{root}/cap", "-o", "{root}/out"], [
+        flag("--method", values=["baseline", "entropy", "nope"]), flag("--step"), flag("--window"),
+        flag("--disparity-range", 2), flag("--ply", values=PATHS), flag("--points", 0), flag("--quiet", 0),
+        flag("--window-sizes", 2), flag("--initial-step"), flag("-o", values=PATHS)]),
+    "export": (["{root}/res"], [
+        flag("--ply", values=PATHS), flag("--points", 0), flag("--mesh", 0), flag("--ascii", 0), flag("--max-jump"),
+        flag("--depth", values=PATHS + ["{root}/out/d.png", "{root}/out/d.xyz"]), flag("--focal-px"),
+        flag("--pitch-mm"), flag("--disparity-offset"), flag("--poisson", 0)]),
+    "capture": (["{root}/out/c"], [
+        flag("--dry-run", 0), flag("--rows"), flag("--cols"), flag("--pitch-mm"), flag("--centre-mm", 3),
+        flag("--row-axis", values=["+y", "-x", "z", "q", ""]), flag("--backlash-mm"), flag("--settle-s"),
+        flag("--feed-mm-min"), flag("--tolerance-mm"), flag("--limits-mm", 6), flag("--binning"), flag("--noise"),
+        flag("--supersample"), flag("--roi", 4), flag("--stage", values=["fake", "fake?fault=nope", "grbl://", "x"]),
+        flag("--camera", values=["fake", "opencv:", "zzz"]), flag("--quiet", 0)]),
+    "stage": (["status"], [flag("--stage", values=["fake", "fake?clock=nope", "grbl://"]), flag("--baud")]),
+    "batch": (["reconstruct", "{root}/cap", "-o", "{root}/out/b"], [
+        flag("--workers"), flag("--tile"), flag("--halo"), flag("--step"), flag("--scheduler", values=["garbage", ""]),
+        flag("--worker-timeout-s"), flag("--transfer", values=["ship", "shared", "x"]),
+        flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"])]),
+    "calibrate": (["intrinsics", "{root}/res/centre_view.png", "-o", "{root}/out/cam.cameramodel"], [
+        flag("--board", values=["9x6", "0x0", "1x1", "x", "10000x3", "9X6"]), flag("--square-mm"),
+        flag("--marker-mm"), flag("--focal-px"), flag("--working-distance-mm"), flag("--quiet", 0)]),
+    "rectify": (["{root}/cap", "--model", "{root}/afile", "--stage", "{root}/afile"], [
+        flag("-o", values=PATHS), flag("--focal-px"), flag("--no-crop", 0)]),
+    "demo": ([], [flag("-o", values=PATHS), flag("--binning"), flag("--boards"), flag("--noise"),
+                  flag("--method", values=["baseline", "entropy", "x"])]),
+}
+
+
+def random_argv(rng: random.Random) -> list[str]:
+    """A command with its positional arguments and up to four flags with good or bad values."""
+    command = rng.choice(sorted(COMMANDS))
+    positional, flags = COMMANDS[command]
+    argv = [command, *positional]
+    if command == "calibrate":
+        argv += ["--board", "9x6", "--square-mm", "8"]
+    if command == "rectify":
+        argv += ["-o", "{root}/out/rect"]
+    for _ in range(rng.randint(0, 4)):
+        name, count, values = rng.choice(flags)
+        argv += [name, *(rng.choice(values) for _ in range(count))]
+    if rng.random() < 0.2:  # a stray word or flag, or a missing value
+        argv.insert(rng.randint(0, len(argv)), rng.choice(["--nope", "extra", "-o"]))
+    return argv
+
+
+@pytest.fixture
+def stand_ins(monkeypatch):
+    """Expensive work is replaced by stand-ins that raise :class:`Reached` (validation passed)."""
+    import calib.intrinsics
+    import calib.rectify
+    import calib.stage
+    import recon.pipeline
+    import recon.scale.cluster
+    import rig.demo
+    import rig.session
+
+    def reached(*args, **kwargs):
+        raise Reached()
+
+    for module, name in [(recon.pipeline, "run_in_process"), (rig.session, "run_capture"), (rig.demo, "run_demo"),
+                         (calib.intrinsics, "calibrate_intrinsics_from_images"), (calib.rectify, "rectify_capture"),
+                         (calib.stage, "calibrate_stage_from_capture"), (recon.scale.cluster, "connect")]:
+        monkeypatch.setattr(module, name, reached)
+
+
+@settings(FUZZ, max_examples=150)
+@given(data=st.data())
+def test_cli_argument_vectors(cli_world, stand_ins, data):
+    from rig.main import main
+
+    root = cli_world
+    argv = [a.format(root=root) for a in random_argv(rng_of(data))]
+    shutil.rmtree(root / "out", ignore_errors=True)
+    out, err = io.StringIO(), io.StringIO()
+    reached = False
+    with AUDIT.watch(), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = main(argv)
+        except Reached:
+            reached, status = True, None
+    lines = [line for line in err.getvalue().splitlines() if line.strip()]
+    assert "Traceback" not in err.getvalue(), (argv, err.getvalue())
+    if not reached:
+        if argv[0] == "batch":
+            assert status in (0, 1, 2), (argv, status)
+        else:
+            assert status in (0, 2), (argv, status, err.getvalue())
+        if status == 2:
+            assert len(lines) == 1 and lines[0].startswith("lfrig: error:"), (argv, err.getvalue())
+    outside = AUDIT.outside(root)
+    assert not outside, (argv, outside[:5])
