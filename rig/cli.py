@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
                            positive_float, positive_int)

@@ -370,7 +370,7 @@ def run_capture(
             if lost:
                 log(f"the stage was still moving at the reset: {lost}")
             raise CaptureInterrupted(
-                f"stopped at once by a second Ctrl-C (feed hold + soft reset sent"
+                "stopped at once by a second Ctrl-C (feed hold + soft reset sent"
                 + (f"; GRBL raised {lost}" if lost else "")
                 + f"); {len(writer.completed)} of {total} views are in {path}. Home the stage and run the same "
                 "command again to resume"

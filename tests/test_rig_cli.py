@@ -144,8 +144,6 @@ def test_fake_capture_reconstructs_to_the_fake_scenes_disparity(tmp_path):
 
 
 def test_stage_move_help(capsys):
-    import pytest
-
     assert main(["stage", "move", "--help"]) == 0  # main returns argparse's exit status
     assert "X Y Z" in capsys.readouterr().out
 
