@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (finite_float, float_range, nonnegative_int, output_file, output_folder, positive_float,
+from recon.cliargs import (finite_float, nonnegative_int, output_file, output_folder, positive_float,
                            positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
@@ -294,7 +294,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--max-jump", type=positive_float, default=None, metavar="FRACTION",
                         help="neighbours whose depths differ by more than this fraction are not joined "
                              "(default 0.05)")
-    export.add_argument("--min-confidence", type=float_range(0.0, 1.0), default=None, metavar="C",
+    export.add_argument("--min-confidence", type=finite_float, default=None, metavar="C",
                         help="leave out pixels whose confidence is below C, in [0, 1] (default 0.4)")
     export.add_argument("--keep-all", action="store_true",
                         help="keep every finite pixel, whatever its confidence or range")
