@@ -367,7 +367,7 @@ def read_depth(path) -> np.ndarray:
                                    f"{getattr(depth, 'shape', '?')} {getattr(depth, 'dtype', type(depth).__name__)}")
         return depth
     if suffix == ".png":
-        from recon.lf.imageio import _decode_quietly, png_problem
+        from recon.lf.imageio import decode_quietly, png_problem
         from recon.lf.params import is_finite
 
         data = path.read_bytes()
@@ -396,7 +396,7 @@ def read_depth(path) -> np.ndarray:
                 f"{path}: a 16-bit depth PNG needs its scale, but there is no '{PNG_SCALE_KEY}' text "
                 f"chunk and no {png_sidecar_path(path).name}; write it with lfrig or supply the sidecar"
             )
-        stored = _decode_quietly(np.frombuffer(data, dtype=np.uint8))
+        stored = decode_quietly(np.frombuffer(data, dtype=np.uint8))
         if stored is None or stored.dtype != np.uint16 or stored.ndim != 2:
             raise DepthFormatError(f"{path}: not a single-channel 16-bit PNG")
         return decode_depth_png(stored, metadata)

@@ -52,7 +52,7 @@ def png_problem(data: bytes) -> str | None:
         pos = end
 
 
-def _decode_quietly(data: np.ndarray) -> np.ndarray | None:
+def decode_quietly(data: np.ndarray) -> np.ndarray | None:
     """``cv2.imdecode`` with OpenCV's own log silenced: a failure is reported by the caller."""
     with _QUIET_LOCK:
         global _quiet_depth
@@ -95,7 +95,7 @@ def read_image(path: Path) -> np.ndarray:
         problem = png_problem(data.tobytes())
         if problem:
             raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
-    image = _decode_quietly(data) if data.size else None
+    image = decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
     if image.ndim == 3:
