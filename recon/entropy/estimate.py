@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from recon.entropy.aperture import informative_strips
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import initial_disparity, range_from_initial
@@ -27,7 +28,7 @@ from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_
                                     line_search)
 from recon.entropy.windows import N_SHAPES
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
-from recon.entropy.windows import window_rect
+from recon.entropy.windows import STRIP_SHAPES, window_rect
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.errors import ReconError
@@ -129,6 +130,13 @@ class EntropyOptions:
              "the noise, not the texture, shapes the cost curve (0: off, the paper and the default; "
              "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
              "docs/entropy-method.md)")
+    strip_aperture: float = _opt(
+        2.0, "a strip window is offered (joint search) only where the centre view varies along it: "
+             "the mean absolute difference of neighbouring pixels along the strip must exceed this "
+             "times what noise alone gives (2 sigma / sqrt(pi)), at least half a grey level; a strip "
+             "matches over the views in line with it only, so a structure that does not vary along "
+             "it (a thin pole, an edge along the strip) matches at every disparity "
+             "(recon/entropy/aperture.py; 0: strips everywhere, as before)")
     flat_windows: str = _opt(
         "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
@@ -305,6 +313,8 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"visible_sets must be one of {VISIBLE_SET_SCOPES}, got {opts.visible_sets!r}")
     if opts.flat_windows not in FLAT_WINDOW_SCOPES:
         raise ValueError(f"flat_windows must be one of {FLAT_WINDOW_SCOPES}, got {opts.flat_windows!r}")
+    if not (np.isfinite(opts.strip_aperture) and opts.strip_aperture >= 0):
+        raise ValueError(f"strip_aperture must be a finite factor >= 0 (0: off), got {opts.strip_aperture}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
     rng = opts.disparity_range
@@ -388,10 +398,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     reporter.step("initial", "initial disparity (nine views)")
     holes0 = None
     if initial is None:
+        strip_ok0 = _strip_ok(gray[u0, v0], (opts.initial_window,), noise, opts)
+        strip_ok0 = None if strip_ok0 is None else strip_ok0[..., 0]
         d0, _, ambiguity0 = initial_disparity(
             gray, disparity_range=initial_rng, step=opts.initial_step, window=opts.initial_window,
             shiftable=opts.initial_shiftable, strips=opts.strip_windows,
-            ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within)
+            ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within,
+            strip_ok=strip_ok0)
         if stop_after == "initial":
             lap("initial")
             return _partial(d0, flat, ambiguity0, noise, timings, opts, known)
@@ -449,6 +462,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
         if opts.flat_windows == "largest":
             penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
+        if opts.strip_windows and opts.strip_aperture > 0:
+            penalty = _gate_strips(penalty, raw_gray[u0, v0], sizes=sizes, noise=noise,
+                                   factor=opts.strip_aperture)
         matched, cost, k, ambiguity = joint_line_search(
             gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
@@ -511,6 +527,36 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -
     has_square = np.take_along_axis(square, largest[..., None], 2)[..., 0]
     bar |= (flat & has_square)[..., None] & (np.arange(K) >= n_sizes)[None, None, :]
     return np.where(bar, np.inf, penalty).astype(np.float32)
+
+
+#: Least variation along a strip that counts as texture: Eq. 12's floor, half an 8-bit grey level.
+STRIP_FLOOR = 0.5 / 255
+
+
+def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
+              opts: EntropyOptions) -> np.ndarray | None:
+    """``(H, W, 2, len(sizes))`` :func:`informative_strips`, or ``None`` when not gated."""
+    if not opts.strip_windows or opts.strip_aperture == 0:
+        return None
+    return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
+                              floor=STRIP_FLOOR)
+
+
+def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                 factor: float) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
+    with the strip windows barred where they cannot measure disparity
+    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
+    n = len(sizes)
+    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR)
+    out = penalty.copy()
+    for j, shape in enumerate(STRIP_SHAPES):
+        block = out[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :]] = np.inf
+    # A pixel offered nothing but uninformative strips keeps them: some window must be matched.
+    none_left = ~np.isfinite(out).any(axis=2)
+    out[none_left] = penalty[none_left]
+    return out.astype(np.float32)
 
 
 def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from recon.entropy.matching import disparity_candidates, min_window_line_search
-from recon.entropy.windows import N_SHAPES
+from recon.entropy.windows import N_SHAPES, STRIP_SHAPES
 
 
 def initial_view_mask(grid_shape: tuple[int, int]) -> np.ndarray:
@@ -31,7 +31,8 @@ def initial_view_mask(grid_shape: tuple[int, int]) -> np.ndarray:
 
 def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float], step: float,
                       window: int, shiftable: bool = True, strips: bool = True,
-                      ambiguity_delta: float | None = None, progress=None):
+                      ambiguity_delta: float | None = None, progress=None,
+                      strip_ok: np.ndarray | None = None):
     """Line search over the nine views of :func:`initial_view_mask` (see the module docstring).
 
     Parameters
@@ -48,6 +49,9 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
         Least cost over the square and W1..W8 with their visible sets (default) or the square alone.
     strips
         With ``shiftable``, also the two strip windows with their sets (lfrig's extension).
+    strip_ok
+        ``(H, W, 2)`` bool or ``None``: where the horizontal and the vertical strip may be used
+        (:func:`recon.entropy.aperture.informative_strips`); default everywhere.
 
     Returns
     -------
@@ -57,10 +61,15 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
     """
     U, V = gray.shape[:2]
     candidates = disparity_candidates(disparity_range[0], disparity_range[1], step)
-    shapes = range(N_SHAPES if strips else 9) if shiftable else (0,)
+    shapes = list(range(N_SHAPES if strips else 9) if shiftable else (0,))
+    allowed = None
+    if strip_ok is not None and len(shapes) == N_SHAPES:
+        H, W = gray.shape[2:]
+        allowed = np.ones((H, W, N_SHAPES), bool)
+        allowed[..., list(STRIP_SHAPES)] = strip_ok
     return min_window_line_search(gray, candidates, windows=[(s, window, s) for s in shapes],
                                   view_mask=initial_view_mask((U, V)),
-                                  ambiguity_delta=ambiguity_delta, progress=progress)
+                                  ambiguity_delta=ambiguity_delta, progress=progress, allowed=allowed)
 
 
 def range_from_initial(d0: np.ndarray, *, percentile: float, margin: float,

@@ -297,13 +297,17 @@ class WindowCost:
 
 
 @numba.njit(cache=True, parallel=True)
-def _min_window_cost_kernel(integrals, window_set, rects, counts, out):
+def _min_window_cost_kernel(integrals, window_set, rects, counts, allowed, out):
+    # allowed: (H, W, K) bool, or (1, 1, K) for every pixel alike.
     H = out.shape[0]
     W = out.shape[1]
+    per_pixel = allowed.shape[0] > 1
     for y in numba.prange(H):
         for x in range(W):
             best = 1e300
             for k in range(rects.shape[0]):
+                if not (allowed[y, x, k] if per_pixel else allowed[0, 0, k]):
+                    continue
                 ya = max(y + rects[k, 0], 0)
                 yb = min(y + rects[k, 1], H - 1) + 1
                 xa = max(x + rects[k, 2], 0)
@@ -328,12 +332,14 @@ def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
                            windows: list[tuple[int, int, int]],
                            view_mask: np.ndarray | None = None,
-                           ambiguity_delta: float | None = None, progress=None):
+                           ambiguity_delta: float | None = None, progress=None,
+                           allowed: np.ndarray | None = None):
     """Line search whose cost at each candidate is the least over several windows.
 
     ``windows`` lists ``(shape, size, view_set)``; at every candidate disparity each pixel takes the
     smallest mean absolute difference over them (a "shiftable window": near an edge one of the side
-    windows with its visible views lies on the pixel's own surface). Returns ``(disparity, cost)``,
+    windows with its visible views lies on the pixel's own surface); with ``allowed`` (``(H, W, K)``
+    bool, every pixel allowed at least one window) over the windows allowed at the pixel only. Returns ``(disparity, cost)``,
     ``(H, W)`` float32, with the parabolic sub-step refinement of :func:`subpixel_argmin`, and
     with ``ambiguity_delta`` also :func:`cost_ambiguity` of the cost curves. ``progress(fraction)``
     is called after each candidate.
@@ -348,11 +354,16 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     gray = np.ascontiguousarray(gray, dtype=np.float32)
     buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
+    if allowed is None:
+        allowed = np.ones((1, 1, len(windows)), np.bool_)
+    elif allowed.shape != (H, W, len(windows)) or not allowed.any(axis=2).all():
+        raise ValueError(f"allowed must be ({H}, {W}, {len(windows)}) bool with a window at every pixel")
+    allowed = np.ascontiguousarray(allowed, dtype=np.bool_)
     costs = np.empty((len(candidates), H, W), np.float32)
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, sets, out=integrals)
-        _min_window_cost_kernel(integrals, window_set, rects, wcounts, costs[i])
+        _min_window_cost_kernel(integrals, window_set, rects, wcounts, allowed, costs[i])
         if progress is not None:
             progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
