@@ -16,7 +16,13 @@ The factors, each in ``(0, 1]``, multiply:
   side; a 1-2 px structure loses confidence here.
 - **black holes** (flat pixels whose valley is a plateau: data term dropped, value interpolated by
   the refinement) have neither a valley nor a matched value: they get ``hole_confidence`` (0.5)
-  times the neighbour factor, below an exactly matched pixel but kept by a threshold under 0.5.
+  times the neighbour factor, below an exactly matched pixel but kept by a threshold under 0.5 ...
+- ... times their **support**: an interpolated value is no surer than the values it is interpolated
+  from. ``support`` = the harmonic interpolation (:func:`recon.entropy.refine.harmonic_fill`, the
+  same fill the refinement starts from) into the holes of the measured pixels' confidence; factor
+  ``min(1, support / hole_support)``. A hole whose rim was matched surely keeps ``hole_confidence``;
+  one whose rim is unsure (the rim of a thin textureless pole matched at a wrong disparity, a plain
+  floor whose every measured pixel has a wide valley) falls with it.
 
 It is 0 where the disparity is not finite or lies outside the searched range, and where the matched
 value sits on the first or last candidate (no minimum inside the range: the true one may lie
@@ -28,11 +34,13 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from recon.entropy.refine import harmonic_fill
+
 
 def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.ndarray, step: float,
                    disparity_range: tuple[float, float], holes: np.ndarray | None = None,
                    valley_px: float = 0.3, change_px: float = 0.1,
-                   hole_confidence: float = 0.5) -> np.ndarray:
+                   hole_confidence: float = 0.5, hole_support: float = 0.25) -> np.ndarray:
     """``(H, W)`` float32 confidence in ``[0, 1]`` (see the module docstring).
 
     Parameters
@@ -47,9 +55,14 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
         ``(min, max)`` searched; a refined value outside it gets 0.
     holes
         ``(H, W)`` bool black holes (data term dropped), or ``None``.
+    valley_px, change_px, hole_confidence, hole_support
+        See the module docstring; ``hole_support`` 0 gives every hole ``hole_confidence`` times the
+        neighbour factor, whatever its rim.
     """
     if valley_px <= 0 or change_px <= 0 or step <= 0:
         raise ValueError(f"valley_px, change_px and step must be > 0, got {valley_px}, {change_px}, {step}")
+    if not 0 <= hole_support <= 1 or not 0 <= hole_confidence <= 1:
+        raise ValueError(f"hole_confidence and hole_support must be in [0, 1], got {hole_confidence}, {hole_support}")
     refined = np.asarray(refined, np.float64)
     matched = np.asarray(matched, np.float64)
     finite = np.isfinite(refined)
@@ -62,8 +75,13 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     lo, hi = disparity_range
     on_end = (np.abs(matched - lo) < 0.5 * step) | (np.abs(matched - hi) < 0.5 * step)
     conf = valley * agree * neighbours * ~on_end
-    if holes is not None:
+    if holes is not None and np.any(holes):
         holes = np.asarray(holes, bool)
-        conf = np.where(holes, hole_confidence * neighbours, conf)
+        factor = hole_confidence * neighbours
+        if hole_support > 0:
+            measured = np.where(holes | ~finite, 0.0, np.nan_to_num(conf)).astype(np.float32)
+            support = harmonic_fill(measured, holes).astype(np.float64)
+            factor = factor * np.clip(support / hole_support, 0.0, 1.0)
+        conf = np.where(holes, factor, conf)
     inside = finite & (refined >= lo - 1e-6) & (refined <= hi + 1e-6)
     return np.where(inside, np.nan_to_num(conf), 0.0).astype(np.float32)

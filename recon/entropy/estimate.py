@@ -131,12 +131,25 @@ class EntropyOptions:
              "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
              "docs/entropy-method.md)")
     strip_aperture: float = _opt(
-        2.0, "a strip window is offered (joint search) only where the centre view varies along it: "
-             "the mean absolute difference of neighbouring pixels along the strip must exceed this "
-             "times what noise alone gives (2 sigma / sqrt(pi)), at least half a grey level; a strip "
-             "matches over the views in line with it only, so a structure that does not vary along "
-             "it (a thin pole, an edge along the strip) matches at every disparity "
-             "(recon/entropy/aperture.py; 0: strips everywhere, as before)")
+        1.5, "a strip window is offered (see strip_aperture_scope) only where the centre view "
+             "varies along it: the mean absolute difference of neighbouring pixels along the strip, "
+             "over strip_aperture_length pixels, must exceed this times what noise alone gives "
+             "(2 sigma / sqrt(pi)), at least half a grey level; a strip matches over the views in "
+             "line with it only, so a structure that does not vary along it (a thin pole, an edge "
+             "along the strip) matches at every disparity (recon/entropy/aperture.py; 0: strips "
+             "everywhere, as before)")
+    strip_aperture_scope: str = _opt(
+        "initial", "where strip_aperture gates the strips: 'initial' (the nine-view search, whose "
+                   "5-px strips over three views in line are the most easily fooled, and whose "
+                   "estimate sets the search range and the layers) or 'all' (also the full line "
+                   "search: better on occlusion-v1, worse on suite/noisy)")
+    strip_aperture_length: int = _opt(
+        31, "length (pixels, odd) over which strip_aperture measures the variation along a strip "
+            "(at least the strip's own size)")
+    hole_support: float = _opt(
+        0.25, "confidence map only: a black hole's confidence (0.5) is scaled by min(1, s / this), "
+              "s = the measured pixels' confidence interpolated into the hole (an interpolated value "
+              "is no surer than its sources; recon/entropy/confidence.py; 0: off)")
     flat_windows: str = _opt(
         "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
@@ -220,6 +233,8 @@ class EntropyResult:
 SIDE_WINDOW_SCOPES = ("occlusion", "edges", "everywhere")
 #: Values of :attr:`EntropyOptions.flat_windows`.
 FLAT_WINDOW_SCOPES = ("largest", "all")
+#: Values of :attr:`EntropyOptions.strip_aperture_scope`.
+STRIP_APERTURE_SCOPES = ("initial", "all")
 #: Values of :attr:`EntropyOptions.visible_sets`.
 VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
 
@@ -313,6 +328,12 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"visible_sets must be one of {VISIBLE_SET_SCOPES}, got {opts.visible_sets!r}")
     if opts.flat_windows not in FLAT_WINDOW_SCOPES:
         raise ValueError(f"flat_windows must be one of {FLAT_WINDOW_SCOPES}, got {opts.flat_windows!r}")
+    if opts.strip_aperture_scope not in STRIP_APERTURE_SCOPES:
+        raise ValueError(f"strip_aperture_scope must be one of {STRIP_APERTURE_SCOPES}, got {opts.strip_aperture_scope!r}")
+    if opts.strip_aperture_length < 1 or opts.strip_aperture_length % 2 == 0:
+        raise ValueError(f"strip_aperture_length must be odd and >= 1, got {opts.strip_aperture_length}")
+    if not 0 <= opts.hole_support <= 1:
+        raise ValueError(f"hole_support must be in [0, 1] (0: off), got {opts.hole_support}")
     if not (np.isfinite(opts.strip_aperture) and opts.strip_aperture >= 0):
         raise ValueError(f"strip_aperture must be a finite factor >= 0 (0: off), got {opts.strip_aperture}")
     if not opts.noise_filter >= 0:
@@ -462,9 +483,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
         if opts.flat_windows == "largest":
             penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
-        if opts.strip_windows and opts.strip_aperture > 0:
+        if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
             penalty = _gate_strips(penalty, raw_gray[u0, v0], sizes=sizes, noise=noise,
-                                   factor=opts.strip_aperture)
+                                   factor=opts.strip_aperture, length=opts.strip_aperture_length)
         matched, cost, k, ambiguity = joint_line_search(
             gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
@@ -494,7 +515,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
         confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
                                     step=opts.step, disparity_range=rng, holes=holes,
-                                    valley_px=opts.hole_width)
+                                    valley_px=opts.hole_width, hole_support=opts.hole_support)
         lap("refine")
         reporter.done()
 
@@ -539,16 +560,17 @@ def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
     if not opts.strip_windows or opts.strip_aperture == 0:
         return None
     return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
-                              floor=STRIP_FLOOR)
+                              floor=STRIP_FLOOR, length=opts.strip_aperture_length)
 
 
 def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                 factor: float) -> np.ndarray:
+                 factor: float, length: int) -> np.ndarray:
     """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
     with the strip windows barred where they cannot measure disparity
     (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
     n = len(sizes)
-    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR)
+    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR,
+                            length=length)
     out = penalty.copy()
     for j, shape in enumerate(STRIP_SHAPES):
         block = out[..., shape * n:(shape + 1) * n]
