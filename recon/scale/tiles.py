@@ -242,9 +242,12 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     lo, hi = opts.disparity_range
     # the initial search looks one initial_step beyond a known range
     shift = _shift_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape) + 1
-    initial = shift + opts.initial_window // 2          # d0 at a pixel
+    # the strips' aperture test reads the centre view strip_aperture_length // 2 along each strip
+    gate = opts.strip_aperture_length // 2 if opts.strip_windows and opts.strip_aperture > 0 else 0
+    joint_gate = gate if opts.strip_aperture_scope == "all" else 0
+    initial = shift + max(opts.initial_window // 2, gate)  # d0 at a pixel
     layers = opts.layer_median // 2 + shift             # median of d0, then the occlusion warp
-    matching = max(opts.window_sizes) // 2 + shift      # windows over labels/entropy, then the views
+    matching = max(max(opts.window_sizes) // 2, joint_gate) + shift  # windows over labels/entropy, then the views
     # which windows a pixel may use depends on depth jumps and layers within a window of it, and the
     # side windows' centroid correction fits over one more window
     window_tests = 2 * (max(opts.window_sizes) // 2) + 1
