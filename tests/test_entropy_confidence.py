@@ -108,3 +108,15 @@ def test_a_hole_is_no_surer_than_its_rim():
     assert legacy[5, 5] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="hole_support"):
         confidence_map(**_hole_scene(1), hole_support=2.0)
+
+
+def test_a_hole_filled_as_a_steep_ramp_is_unsure():
+    scene = _hole_scene(1)
+    x = np.arange(11, dtype=np.float32)
+    gentle = dict(scene, refined=np.tile(1.0 + 0.02 * x, (11, 1)), matched=np.tile(1.0 + 0.02 * x, (11, 1)))
+    # Rims that disagree (1.1 left, 1.9 right, both matched surely): the fill is a ramp between them.
+    ramp = np.where(x < 5, 1.1, 1.9).astype(np.float32) + np.where(x == 5, -0.4, 0.0).astype(np.float32)
+    steep = dict(scene, refined=np.tile(ramp, (11, 1)), matched=np.tile(ramp, (11, 1)))
+    assert confidence_map(**gentle)[5, 5] == pytest.approx(0.5 * np.exp(-0.2), rel=0.02)  # a plane: kept at 0.4
+    assert confidence_map(**steep)[5, 5] < 0.05
+    assert confidence_map(**steep, hole_ramp=np.inf)[5, 5] > 0.4

@@ -22,7 +22,10 @@ The factors, each in ``(0, 1]``, multiply:
   same fill the refinement starts from) into the holes of the measured pixels' confidence; factor
   ``min(1, support / hole_support)``. A hole whose rim was matched surely keeps ``hole_confidence``;
   one whose rim is unsure (the rim of a thin textureless pole matched at a wrong disparity, a plain
-  floor whose every measured pixel has a wide valley) falls with it.
+  floor whose every measured pixel has a wide valley) falls with it; and times
+  ``exp(-|grad refined| / hole_ramp)``: a fill that climbs steeply (more than ``hole_ramp`` = 0.1
+  px/view per pixel) is a ramp between rims that disagree (one side of a thin pole matched right,
+  the other wrong), not a surface.
 
 It is 0 where the disparity is not finite or lies outside the searched range, and where the matched
 value sits on the first or last candidate (no minimum inside the range: the true one may lie
@@ -40,7 +43,8 @@ from recon.entropy.refine import harmonic_fill
 def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.ndarray, step: float,
                    disparity_range: tuple[float, float], holes: np.ndarray | None = None,
                    valley_px: float = 0.3, change_px: float = 0.1,
-                   hole_confidence: float = 0.5, hole_support: float = 0.25) -> np.ndarray:
+                   hole_confidence: float = 0.5, hole_support: float = 0.25,
+                   hole_ramp: float = 0.1) -> np.ndarray:
     """``(H, W)`` float32 confidence in ``[0, 1]`` (see the module docstring).
 
     Parameters
@@ -55,12 +59,14 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
         ``(min, max)`` searched; a refined value outside it gets 0.
     holes
         ``(H, W)`` bool black holes (data term dropped), or ``None``.
-    valley_px, change_px, hole_confidence, hole_support
-        See the module docstring; ``hole_support`` 0 gives every hole ``hole_confidence`` times the
-        neighbour factor, whatever its rim.
+    valley_px, change_px, hole_confidence, hole_support, hole_ramp
+        See the module docstring; ``hole_support`` 0 and ``hole_ramp`` ``inf`` give every hole
+        ``hole_confidence`` times the neighbour factor, whatever its rim and slope.
     """
     if valley_px <= 0 or change_px <= 0 or step <= 0:
         raise ValueError(f"valley_px, change_px and step must be > 0, got {valley_px}, {change_px}, {step}")
+    if not hole_ramp > 0:
+        raise ValueError(f"hole_ramp must be > 0 (inf: off), got {hole_ramp}")
     if not 0 <= hole_support <= 1 or not 0 <= hole_confidence <= 1:
         raise ValueError(f"hole_confidence and hole_support must be in [0, 1], got {hole_confidence}, {hole_support}")
     refined = np.asarray(refined, np.float64)
@@ -82,6 +88,11 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
             measured = np.where(holes | ~finite, 0.0, np.nan_to_num(conf)).astype(np.float32)
             support = harmonic_fill(measured, holes).astype(np.float64)
             factor = factor * np.clip(support / hole_support, 0.0, 1.0)
+        if np.isfinite(hole_ramp):
+            filled = np.where(finite, refined, 0.0)
+            gy, gx = (np.gradient(filled, axis=a) if filled.shape[a] > 1 else np.zeros_like(filled)
+                      for a in (0, 1))
+            factor = factor * np.exp(-np.hypot(gy, gx) / hole_ramp)
         conf = np.where(holes, factor, conf)
     inside = finite & (refined >= lo - 1e-6) & (refined <= hi + 1e-6)
     return np.where(inside, np.nan_to_num(conf), 0.0).astype(np.float32)

@@ -150,6 +150,10 @@ class EntropyOptions:
         0.25, "confidence map only: a black hole's confidence (0.5) is scaled by min(1, s / this), "
               "s = the measured pixels' confidence interpolated into the hole (an interpolated value "
               "is no surer than its sources; recon/entropy/confidence.py; 0: off)")
+    hole_ramp: float = _opt(
+        0.1, "confidence map only: a black hole's confidence is also scaled by "
+             "exp(-|grad d| / this) (px/view per pixel): a steep fill is a ramp between rims that "
+             "disagree (inf: off)")
     flat_windows: str = _opt(
         "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
@@ -332,6 +336,8 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"strip_aperture_scope must be one of {STRIP_APERTURE_SCOPES}, got {opts.strip_aperture_scope!r}")
     if opts.strip_aperture_length < 1 or opts.strip_aperture_length % 2 == 0:
         raise ValueError(f"strip_aperture_length must be odd and >= 1, got {opts.strip_aperture_length}")
+    if not opts.hole_ramp > 0:
+        raise ValueError(f"hole_ramp must be > 0 px/view per pixel (inf: off), got {opts.hole_ramp}")
     if not 0 <= opts.hole_support <= 1:
         raise ValueError(f"hole_support must be in [0, 1] (0: off), got {opts.hole_support}")
     if not (np.isfinite(opts.strip_aperture) and opts.strip_aperture >= 0):
@@ -515,7 +521,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
         confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
                                     step=opts.step, disparity_range=rng, holes=holes,
-                                    valley_px=opts.hole_width, hole_support=opts.hole_support)
+                                    valley_px=opts.hole_width, hole_support=opts.hole_support,
+                                    hole_ramp=opts.hole_ramp)
         lap("refine")
         reporter.done()
 
