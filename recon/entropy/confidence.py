@@ -60,13 +60,13 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     holes
         ``(H, W)`` bool black holes (data term dropped), or ``None``.
     valley_px, change_px, hole_confidence, hole_support, hole_ramp
-        See the module docstring; ``hole_support`` 0 and ``hole_ramp`` ``inf`` give every hole
+        See the module docstring; ``hole_support`` 0 and ``hole_ramp`` 0 give every hole
         ``hole_confidence`` times the neighbour factor, whatever its rim and slope.
     """
     if valley_px <= 0 or change_px <= 0 or step <= 0:
         raise ValueError(f"valley_px, change_px and step must be > 0, got {valley_px}, {change_px}, {step}")
-    if not hole_ramp > 0:
-        raise ValueError(f"hole_ramp must be > 0 (inf: off), got {hole_ramp}")
+    if not (np.isfinite(hole_ramp) and hole_ramp >= 0):
+        raise ValueError(f"hole_ramp must be a finite slope >= 0 (0: off), got {hole_ramp}")
     if not 0 <= hole_support <= 1 or not 0 <= hole_confidence <= 1:
         raise ValueError(f"hole_confidence and hole_support must be in [0, 1], got {hole_confidence}, {hole_support}")
     refined = np.asarray(refined, np.float64)
@@ -88,7 +88,7 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
             measured = np.where(holes | ~finite, 0.0, np.nan_to_num(conf)).astype(np.float32)
             support = harmonic_fill(measured, holes).astype(np.float64)
             factor = factor * np.clip(support / hole_support, 0.0, 1.0)
-        if np.isfinite(hole_ramp):
+        if hole_ramp > 0:
             filled = np.where(finite, refined, 0.0)
             gy, gx = (np.gradient(filled, axis=a) if filled.shape[a] > 1 else np.zeros_like(filled)
                       for a in (0, 1))

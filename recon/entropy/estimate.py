@@ -153,7 +153,7 @@ class EntropyOptions:
     hole_ramp: float = _opt(
         0.1, "confidence map only: a black hole's confidence is also scaled by "
              "exp(-|grad d| / this) (px/view per pixel): a steep fill is a ramp between rims that "
-             "disagree (inf: off)")
+             "disagree (0: off)")
     flat_windows: str = _opt(
         "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
@@ -336,8 +336,8 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"strip_aperture_scope must be one of {STRIP_APERTURE_SCOPES}, got {opts.strip_aperture_scope!r}")
     if opts.strip_aperture_length < 1 or opts.strip_aperture_length % 2 == 0:
         raise ValueError(f"strip_aperture_length must be odd and >= 1, got {opts.strip_aperture_length}")
-    if not opts.hole_ramp > 0:
-        raise ValueError(f"hole_ramp must be > 0 px/view per pixel (inf: off), got {opts.hole_ramp}")
+    if not (np.isfinite(opts.hole_ramp) and opts.hole_ramp >= 0):
+        raise ValueError(f"hole_ramp must be a finite slope >= 0 px/view per pixel (0: off), got {opts.hole_ramp}")
     if not 0 <= opts.hole_support <= 1:
         raise ValueError(f"hole_support must be in [0, 1] (0: off), got {opts.hole_support}")
     if not (np.isfinite(opts.strip_aperture) and opts.strip_aperture >= 0):
