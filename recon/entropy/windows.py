@@ -112,3 +112,27 @@ def _set_blocks() -> np.ndarray:
 
 #: ``(N_SHAPES sets, 9 blocks)`` bool: which view blocks make up the visible set of each shape.
 SET_BLOCKS = _set_blocks()
+
+
+def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float) -> np.ndarray:
+    """``(H, W)`` int64: the largest of ``sizes`` up to which every square window centred on the
+    pixel sees a mean layer value within ``tolerance`` (px/view) of the smallest square's mean.
+
+    Why: a square window matched with one disparity finds about the mean disparity of the surface
+    under it. On a plane that is the centre pixel's (the square is symmetric), so a slant alone does
+    not bias it; where the slope changes (a ridge, a pit, a crease, a curved surface) the mean moves
+    off the pixel's value by ~ slope change x radius / 4. The layer map (median of ``d0``) shows that
+    change; comparing with the smallest square's mean (not the pixel's own value) keeps ``d0``'s
+    per-pixel noise out. The smallest size is always allowed."""
+    from scipy import ndimage
+
+    sizes = tuple(sorted(int(s) for s in sizes))
+    m = np.asarray(layers, np.float64)
+    ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
+    cap = np.full(m.shape, sizes[0], np.int64)
+    allowed = np.ones(m.shape, bool)
+    for size in sizes[1:]:
+        mean = ndimage.uniform_filter(m, size, mode="nearest")
+        allowed &= np.abs(mean - ref) <= tolerance
+        cap[allowed] = size
+    return cap
