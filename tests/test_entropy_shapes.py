@@ -25,6 +25,16 @@ def test_curvature_size_cap_ignores_planes_and_caps_at_a_crease():
     assert (cap >= 3).all() and set(np.unique(cap)) <= set(SIZES)
 
 
+def test_curvature_size_cap_reads_only_measured_pixels():
+    # A bent fill (a black hole's harmonic fill) beside a plane: the plane is not capped by it.
+    y, x = np.mgrid[0:40, 0:40].astype(np.float64)
+    layers = 0.2 + 0.01 * x
+    filled = x >= 24
+    layers[filled] += 0.05 * (x[filled] - 23)   # a fill that bends away from the plane
+    assert curvature_size_cap(layers, SIZES, tolerance=0.01)[20, 20] < 15
+    assert curvature_size_cap(layers, SIZES, tolerance=0.01, measured=~filled)[20, 20] == 15
+
+
 def test_select_windows_with_a_size_cap_matches_reference():
     rng = np.random.default_rng(5)
     grey = rng.integers(0, 16, (14, 12))

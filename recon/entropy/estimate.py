@@ -97,7 +97,8 @@ class EntropyOptions:
         0.01, "texture and smooth pixels are not offered a square window whose mean layer value "
              "differs from the smallest square's by more than this (px/view): on a ridge, pit, crease "
              "or curved surface a square finds the mean disparity under it, not the pixel's (a "
-             "plane alone does not count); 0: off (the paper)")
+             "plane alone does not count; not at noise-limited pixels, whose layer value is a fill); "
+             "0: off (the paper)")
     visible_sets: str = _opt(
         "occluded", "which pixels match over their window shape's visible-viewpoint set (others use "
                     "all views): 'none', 'occluded' (the paper), 'occlusion' (occluded and "
@@ -441,8 +442,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         strips=opts.strip_windows, side_radius=side_radius,
         layers=region_info["layers"] if opts.single_layer_windows else None,
         layer_gap=opts.layer_gap, return_all=True,
-        max_size=None if opts.crease_tolerance <= 0 else curvature_size_cap(
-            region_info["layers"], sizes, tolerance=opts.crease_tolerance))
+        max_size=None if opts.crease_tolerance <= 0 else np.where(
+            noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
+            curvature_size_cap(region_info["layers"], sizes, tolerance=opts.crease_tolerance,
+                               measured=~noise_limited)))
     lap("windows")
 
     candidates = disparity_candidates(rng[0], rng[1], opts.step)

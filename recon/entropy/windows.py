@@ -114,7 +114,8 @@ def _set_blocks() -> np.ndarray:
 SET_BLOCKS = _set_blocks()
 
 
-def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float) -> np.ndarray:
+def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float,
+                       measured: np.ndarray | None = None) -> np.ndarray:
     """``(H, W)`` int64: the largest of ``sizes`` up to which every square window centred on the
     pixel sees a mean layer value within ``tolerance`` (px/view) of the smallest square's mean.
 
@@ -123,16 +124,22 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     not bias it; where the slope changes (a ridge, a pit, a crease, a curved surface) the mean moves
     off the pixel's value by ~ slope change x radius / 4. The layer map (median of ``d0``) shows that
     change; comparing with the smallest square's mean (not the pixel's own value) keeps ``d0``'s
-    per-pixel noise out. The smallest size is always allowed."""
+    per-pixel noise out. The smallest size is always allowed. ``measured`` (``(H, W)`` bool): a
+    square more than a quarter of which is unmeasured is not capped (``d0`` filled into a black hole
+    is an interpolation, not a measured surface: its bend says nothing about a crease, and a mean
+    over the measured part alone would be off the pixel on any slant)."""
     from scipy import ndimage
 
     sizes = tuple(sorted(int(s) for s in sizes))
     m = np.asarray(layers, np.float64)
     ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
+    unmeasured = (np.zeros(m.shape) if measured is None
+                  else (~np.asarray(measured, bool)).astype(np.float64))
     cap = np.full(m.shape, sizes[0], np.int64)
     allowed = np.ones(m.shape, bool)
     for size in sizes[1:]:
-        mean = ndimage.uniform_filter(m, size, mode="nearest")
-        allowed &= np.abs(mean - ref) <= tolerance
+        dev = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref)
+        blind = ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25
+        allowed &= (dev <= tolerance) | blind
         cap[allowed] = size
     return cap
