@@ -31,8 +31,10 @@ def test_curvature_size_cap_reads_only_measured_pixels():
     layers = 0.2 + 0.01 * x
     filled = x >= 24
     layers[filled] += 0.05 * (x[filled] - 23)   # a fill that bends away from the plane
-    assert curvature_size_cap(layers, SIZES, tolerance=0.01)[20, 20] < 15
-    assert curvature_size_cap(layers, SIZES, tolerance=0.01, measured=~filled)[20, 20] == 15
+    blind = curvature_size_cap(layers, SIZES, tolerance=0.01)
+    seeing = curvature_size_cap(layers, SIZES, tolerance=0.01, measured=~filled)
+    assert blind[20, 23] == 3 and seeing[20, 23] == 15     # beside the fill: mostly fill in view
+    assert blind[20, 10] == seeing[20, 10] == 15            # far from it: a plane
 
 
 def test_select_windows_with_a_size_cap_matches_reference():
