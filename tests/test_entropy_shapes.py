@@ -74,3 +74,16 @@ def test_square_windows_do_not_average_across_a_pit():
     assert np.mean(e_free > 0.07) > 0.05
     assert np.mean(e_cap > 0.07) < 0.6 * np.mean(e_free > 0.07)  # 19 % -> 9.5 %
     assert capped.window_size[36, 36] <= 7
+
+
+def test_crease_tolerance_rises_with_the_noise_of_d0():
+    # The same pit, once measured cleanly and once with noise in d0: the noisy one is capped less.
+    y, x = np.mgrid[0:60, 0:60].astype(np.float64)
+    pit = 0.03 * np.maximum(np.abs(y - 30), np.abs(x - 30))
+    noisy = pit + np.random.default_rng(2).normal(0, 0.02, pit.shape)
+    clean_cap = curvature_size_cap(pit, SIZES, tolerance=0.01, initial=pit, noise_factor=1.5)
+    noisy_cap = curvature_size_cap(pit, SIZES, tolerance=0.01, initial=noisy, noise_factor=1.5)
+    fixed_cap = curvature_size_cap(pit, SIZES, tolerance=0.01)
+    np.testing.assert_array_equal(clean_cap, fixed_cap)
+    assert noisy_cap[30, 30] > clean_cap[30, 30]
+    assert (noisy_cap >= clean_cap).all()

@@ -99,6 +99,10 @@ class EntropyOptions:
              "or curved surface a square finds the mean disparity under it, not the pixel's (a "
              "plane alone does not count; not at noise-limited pixels, whose layer value is a fill); "
              "0: off (the paper)")
+    crease_noise: float = _opt(
+        1.5, "... raised to this many times the local noise of the initial disparity (robust, over "
+             "the largest window; recon.entropy.windows.curvature_size_cap): render noise makes the "
+             "layer means wander without a crease (0: the fixed tolerance alone)")
     visible_sets: str = _opt(
         "occluded", "which pixels match over their window shape's visible-viewpoint set (others use "
                     "all views): 'none', 'occluded' (the paper), 'occlusion' (occluded and "
@@ -445,7 +449,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         max_size=None if opts.crease_tolerance <= 0 else np.where(
             noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
             curvature_size_cap(region_info["layers"], sizes, tolerance=opts.crease_tolerance,
-                               measured=~noise_limited)))
+                               measured=~noise_limited, initial=d0,
+                               noise_factor=opts.crease_noise)))
     lap("windows")
 
     candidates = disparity_candidates(rng[0], rng[1], opts.step)

@@ -115,7 +115,8 @@ SET_BLOCKS = _set_blocks()
 
 
 def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float,
-                       measured: np.ndarray | None = None) -> np.ndarray:
+                       measured: np.ndarray | None = None, initial: np.ndarray | None = None,
+                       noise_factor: float = 0.0) -> np.ndarray:
     """``(H, W)`` int64: the largest of ``sizes`` up to which every square window centred on the
     pixel sees a mean layer value within ``tolerance`` (px/view) of the smallest square's mean.
 
@@ -127,7 +128,14 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     per-pixel noise out. The smallest size is always allowed. ``measured`` (``(H, W)`` bool): a
     square more than a quarter of which is unmeasured is not capped (``d0`` filled into a black hole
     is an interpolation, not a measured surface: its bend says nothing about a crease, and a mean
-    over the measured part alone would be off the pixel on any slant)."""
+    over the measured part alone would be off the pixel on any slant).
+
+    ``noise_factor`` > 0 with ``initial`` (the ``d0`` the layers were made from): the tolerance is
+    raised to that many times the local noise of ``d0``, ``1.4826 x`` the median of
+    ``|d0 - median3(d0)|`` over the largest window (every third pixel: 25 samples; a median, so that
+    edges and creases do not count as noise). Where ``d0`` is noisy (render noise on a realistic
+    surface) its layer means wander without a crease, and capping there only makes the windows, and
+    the matching, noisier."""
     from scipy import ndimage
 
     sizes = tuple(sorted(int(s) for s in sizes))
@@ -135,11 +143,19 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
     unmeasured = (np.zeros(m.shape) if measured is None
                   else (~np.asarray(measured, bool)).astype(np.float64))
+    tol = np.full(m.shape, float(tolerance))
+    if noise_factor > 0 and initial is not None:
+        d0 = np.asarray(initial, np.float32)
+        wander = np.abs(d0 - ndimage.median_filter(d0, 3, mode="nearest"))
+        footprint = np.zeros((sizes[-1], sizes[-1]), bool)
+        footprint[::3, ::3] = True
+        local = 1.4826 * ndimage.median_filter(wander, footprint=footprint, mode="nearest")
+        tol = np.maximum(tol, noise_factor * local)
     cap = np.full(m.shape, sizes[0], np.int64)
     allowed = np.ones(m.shape, bool)
     for size in sizes[1:]:
         dev = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref)
         blind = ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25
-        allowed &= (dev <= tolerance) | blind
+        allowed &= (dev <= tol) | blind
         cap[allowed] = size
     return cap
