@@ -446,13 +446,14 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                 "all": np.ones(labels.shape, bool)}[opts.visible_sets]
     if opts.joint:
         windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
-        penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
+        penalty = _penalty(all_entropy, opts.lambda_entropy)
         if opts.flat_windows == "largest":
             penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
         matched, cost, k, ambiguity = joint_line_search(
-            gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
+            gray, candidates, windows=windows, penalty=penalty,
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
             ambiguity_delta=hole_delta, progress=reporter.within)
+        del penalty
         shape_map = k // len(sizes)
         size_map = np.asarray(sizes)[k % len(sizes)]
         entropy = np.take_along_axis(all_entropy, k[..., None], 2)[..., 0]
@@ -493,6 +494,16 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
         confidence=confidence)
+
+
+def _penalty(all_entropy: np.ndarray, lambda_entropy: float) -> np.ndarray:
+    """``(H, W, K)`` float32 ``-lambda E`` (``inf``: window not offered), a few rows at a time
+    (the float64 product of the whole volume was the largest temporary of the run)."""
+    out = np.empty(all_entropy.shape, np.float32)
+    for y in range(0, all_entropy.shape[0], 64):
+        e = all_entropy[y:y + 64]
+        out[y:y + 64] = np.where(np.isfinite(e), -lambda_entropy * e, np.inf)
+    return out
 
 
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:

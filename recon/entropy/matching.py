@@ -228,30 +228,47 @@ FIXED_INV = 1.0 / FIXED_POINT
 
 
 @numba.njit(cache=True, parallel=True)
-def _set_integrals_kernel(blocks_ad, set_weights, out):
-    # out[s] = summed-area table of round(FIXED_POINT * sum_b set_weights[s, b] * blocks_ad[b]),
-    # int64, zero first row/column.
-    S = set_weights.shape[0]
+def _set_integrals_kernel(blocks_ad, set_blocks, out):
+    # out[s] = summed-area table of round(FIXED_POINT * sum of blocks_ad over the blocks of set s),
+    # int64, zero first row/column; set_blocks[s] lists those blocks ascending (-1 padded) and
+    # they are added in that order. Rows in parallel: each block value is read once for all sets
+    # and each row's running sums are written; then each set's rows are accumulated downwards.
+    S = set_blocks.shape[0]
     B, H, W = blocks_ad.shape
-    for job in numba.prange(S * H):
-        s = job // H
-        y = job % H
-        acc = 0
-        out[s, y + 1, 0] = 0
+    for y in numba.prange(H):
+        acc = np.zeros(S, np.int64)
+        vals = np.empty(B, np.float64)
+        for s in range(S):
+            out[s, y + 1, 0] = 0
         for x in range(W):
-            v = 0.0
             for b in range(B):
-                if set_weights[s, b] != 0.0:
-                    v += blocks_ad[b, y, x]
-            acc += np.int64(np.floor(v * FIXED_POINT + 0.5))
-            out[s, y + 1, x + 1] = acc
-    for job in numba.prange(S):
-        out[job, 0, :] = 0
-    for job in numba.prange(S * (W + 1)):
-        s = job // (W + 1)
-        x = job % (W + 1)
+                vals[b] = blocks_ad[b, y, x]
+            for s in range(S):
+                v = 0.0
+                for t in range(set_blocks.shape[1]):
+                    b = set_blocks[s, t]
+                    if b < 0:
+                        break
+                    v += vals[b]
+                acc[s] += np.int64(np.floor(v * FIXED_POINT + 0.5))
+                out[s, y + 1, x + 1] = acc[s]
+    for s in numba.prange(S):
+        for x in range(W + 1):
+            out[s, 0, x] = 0
         for y in range(1, H + 1):
-            out[s, y, x] += out[s, y - 1, x]
+            prev = out[s, y - 1]
+            cur = out[s, y]
+            for x in range(W + 1):
+                cur[x] += prev[x]
+
+
+def _set_block_lists(sets: np.ndarray) -> np.ndarray:
+    """``(len(sets), 9)`` int64: the blocks of each set ascending, padded with -1."""
+    table = np.full((len(sets), N_BLOCKS), -1, np.int64)
+    for i, s in enumerate(sets):
+        members = np.nonzero(SET_BLOCKS[s])[0]
+        table[i, :len(members)] = members
+    return table
 
 
 def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
@@ -261,7 +278,7 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
     _, H, W = blocks_ad.shape
     if out is None:
         out = np.empty((len(sets), H + 1, W + 1), np.int64)
-    _set_integrals_kernel(blocks_ad, SET_BLOCKS[np.asarray(sets)].astype(np.float64), out)
+    _set_integrals_kernel(blocks_ad, _set_block_lists(np.asarray(sets)), out)
     return out
 
 
@@ -321,8 +338,13 @@ def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
     within ``delta`` of the pixel's least cost. A few (a narrow valley) where the matching tells
     disparities apart; many (a plateau) where it has no information, e.g. inside a textureless
     patch, where the window matches itself at every small shift."""
-    best = costs.min(axis=0)
-    return np.count_nonzero(costs <= best[None] + np.float32(delta), axis=0).astype(np.int32)
+    D, H = costs.shape[:2]
+    out = np.empty(costs.shape[1:], np.int32)
+    for y in range(0, H, 32):  # a few rows at a time: no (D, H, W) boolean temporary
+        c = costs[:, y:y + 32]
+        best = c.min(axis=0)
+        out[y:y + 32] = np.count_nonzero(c <= best[None] + np.float32(delta), axis=0)
+    return out
 
 
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
@@ -363,16 +385,18 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
 
 @numba.njit(cache=True, parallel=True)
 def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
-                       out, out_k):
+                       out, best, best_k):
     # Each pixel's allowed windows are ks[starts[p]:starts[p + 1]] with penalties pens[...]
-    # (a compact list: far from edges only the squares are allowed).
+    # (a compact list: far from edges only the squares are allowed). out = this candidate's
+    # objective; best/best_k = the least objective over the candidates so far and its window (the
+    # first candidate on ties, as np.argmin over the curve picks).
     H = out.shape[0]
     W = out.shape[1]
     for y in numba.prange(H):
         for x in range(W):
             p = y * W + x
-            best = 1e300
-            best_k = -1
+            c_best = 1e300
+            k_best = -1
             occluded_set = pixel_set[y, x]
             for j in range(starts[p], starts[p + 1]):
                 k = ks[j]
@@ -384,11 +408,14 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts
                 ii = integrals[s]
                 total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
                 c = scale * total / ((yb - ya) * (xb - xa) * counts[s]) + pens[j]
-                if c < best:
-                    best = c
-                    best_k = k
-            out[y, x] = best
-            out_k[y, x] = best_k
+                if c < c_best:
+                    c_best = c
+                    k_best = k
+            c32 = np.float32(c_best)
+            out[y, x] = c32
+            if c32 < best[y, x]:
+                best[y, x] = c32
+                best_k[y, x] = k_best
 
 
 def _compact_penalty(penalty: np.ndarray):
@@ -474,19 +501,16 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)
-    which = np.empty((len(candidates), H, W), np.int16)
-    k_tmp = np.empty((H, W), np.int64)
+    least = np.full((H, W), np.inf, np.float32)
+    window_index = np.full((H, W), -1, np.int64)
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, all_sets, out=integrals)
         _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, starts, ks, pens,
-                           float(intensity_scale), costs[i], k_tmp)
-        which[i] = k_tmp
+                           float(intensity_scale), costs[i], least, window_index)
         if progress is not None:
             progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
-    k = np.argmin(costs, axis=0)
-    window_index = np.take_along_axis(which, k[None], 0)[0].astype(np.int64)
     return disparity, best, window_index, cost_ambiguity(costs, ambiguity_delta)
 
 
