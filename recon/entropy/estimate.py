@@ -446,14 +446,11 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                 "all": np.ones(labels.shape, bool)}[opts.visible_sets]
     if opts.joint:
         windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
-        penalty = _penalty(all_entropy, opts.lambda_entropy)
-        if opts.flat_windows == "largest":
-            penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
-        matched, cost, k, ambiguity = joint_line_search(
-            gray, candidates, windows=windows, penalty=penalty,
+        matched, cost, k, ambiguity = joint_line_search(  # penalty: a temporary, freed in there
+            gray, candidates, windows=windows,
+            penalty=_search_penalty(all_entropy, noise_limited, opts, len(sizes)),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
             ambiguity_delta=hole_delta, progress=reporter.within)
-        del penalty
         shape_map = k // len(sizes)
         size_map = np.asarray(sizes)[k % len(sizes)]
         entropy = np.take_along_axis(all_entropy, k[..., None], 2)[..., 0]
@@ -496,13 +493,17 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         confidence=confidence)
 
 
-def _penalty(all_entropy: np.ndarray, lambda_entropy: float) -> np.ndarray:
-    """``(H, W, K)`` float32 ``-lambda E`` (``inf``: window not offered), a few rows at a time
-    (the float64 product of the whole volume was the largest temporary of the run)."""
+def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
+                    n_sizes: int) -> np.ndarray:
+    """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
+    offered), made a few rows at a time (a float64 temporary of the whole volume was once the
+    largest allocation of the run), with ``flat_windows="largest"`` applied."""
     out = np.empty(all_entropy.shape, np.float32)
     for y in range(0, all_entropy.shape[0], 64):
         e = all_entropy[y:y + 64]
-        out[y:y + 64] = np.where(np.isfinite(e), -lambda_entropy * e, np.inf)
+        out[y:y + 64] = np.where(np.isfinite(e), -opts.lambda_entropy * e, np.inf)
+    if opts.flat_windows == "largest":
+        out = _largest_windows_only(out, noise_limited, n_sizes)
     return out
 
 

@@ -430,15 +430,31 @@ def _row_order(H: int) -> np.ndarray:
     return np.concatenate([np.arange(t, H, T) for t in range(T)]).astype(np.int64)
 
 
+@numba.njit(cache=True)
+def _compact_penalty_kernel(flat, starts, ks, pens):
+    n = 0
+    for p in range(flat.shape[0]):
+        starts[p] = n
+        for k in range(flat.shape[1]):
+            v = flat[p, k]
+            if np.isfinite(v):
+                ks[n] = k
+                pens[n] = v
+                n += 1
+    starts[flat.shape[0]] = n
+
+
 def _compact_penalty(penalty: np.ndarray):
-    """``(starts, ks, pens)``: the finite entries of ``(H, W, K)`` ``penalty`` per pixel, row-major."""
+    """``(starts, ks, pens)``: the finite entries of ``(H, W, K)`` ``penalty`` per pixel, row-major
+    (windows ascending); ``ks`` int32, ``pens`` float32 (the kernel adds them in float64, exactly)."""
     H, W, K = penalty.shape
-    flat = penalty.reshape(H * W, K)
-    allowed = np.isfinite(flat)
-    starts = np.zeros(H * W + 1, np.int64)
-    np.cumsum(allowed.sum(1), out=starts[1:])
-    pix, ks = np.nonzero(allowed)  # row-major: pixels in order, windows ascending
-    return starts, ks.astype(np.int64), flat[pix, ks].astype(np.float64)
+    flat = np.ascontiguousarray(penalty, dtype=np.float32).reshape(H * W, K)
+    n = int(np.count_nonzero(np.isfinite(flat)))
+    starts = np.empty(H * W + 1, np.int64)
+    ks = np.empty(n, np.int32)
+    pens = np.empty(n, np.float32)
+    _compact_penalty_kernel(flat, starts, ks, pens)
+    return starts, ks, pens
 
 
 def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
@@ -486,7 +502,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     windows
         ``K`` pairs ``(shape, size)``.
     penalty
-        ``(H, W, K)`` float32.
+        ``(H, W, K)`` float32 (compacted to the finite entries first; pass a temporary to let the
+        volume go before the search).
     use_shape_set
         ``(H, W)`` bool: match over the window shape's visible set (occluded pixels) instead of all
         views.
@@ -507,7 +524,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
     shapes = np.array([s for s, _ in windows], np.int64)
     gray = np.ascontiguousarray(gray, dtype=np.float32)
-    starts, ks, pens = _compact_penalty(np.asarray(penalty, dtype=np.float32))
+    starts, ks, pens = _compact_penalty(penalty)
+    del penalty  # the (H, W, K) volume is freed here when the caller passed a temporary
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
