@@ -88,7 +88,10 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
     # One output row at a time: every view's row is interpolated (bilinear is separable: first
     # between the two source rows, then along x with one fraction for the whole row, since the
     # shift is the same for every x) and its absolute difference added to a row accumulator per
-    # block, which is written once. Clamping at the image edges as in the reference.
+    # block, which is written once. Clamping at the image edges as in the reference. float32
+    # arithmetic throughout (8 SIMD lanes; a float64 weight made the rows float64: 29 -> 22 ms per
+    # candidate on 81 views of 512x512); the weights depend only on the shift, not on where the
+    # image starts, so a tile computes the same values.
     H = gray.shape[2]
     W = gray.shape[3]
     u0 = gray.shape[0] // 2
@@ -111,13 +114,15 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
                 y0 = H - 2
             if y0 < 0:
                 y0 = 0
-            fy = sy - y0
+            fy = np.float32(sy - y0)  # exact in float64 (whatever the image origin), then rounded
+            gy = np.float32(1.0) - fy
             y1 = min(y0 + 1, H - 1)
             for x in range(W):
-                rv[x] = (1.0 - fy) * img[y0, x] + fy * img[y1, x]
+                rv[x] = gy * img[y0, x] + fy * img[y1, x]
             base = -vdv[k] * disparity
             fl = np.floor(base)
             fx = base - fl
+            gx = np.float32(1.0) - fx
             o = int(fl)
             row = acc[b]
             for x in range(W):
@@ -127,7 +132,7 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
                 elif xs >= W - 1:
                     s = rv[W - 1]
                 else:
-                    s = (1.0 - fx) * rv[xs] + fx * rv[xs + 1]
+                    s = gx * rv[xs] + fx * rv[xs + 1]
                 row[x] += abs(centre[x] - s)
         for bb in range(n_blocks):
             for x in range(W):
