@@ -223,10 +223,11 @@ class _Reporter:
     search takes): a candidate of the full line search costs :data:`MATCH_CANDIDATE_WEIGHT` of them
     (81 views and up to 77 windows against 9 views and 11), and the fixed steps a measured share
     (2-core machine, 512x512, backgammon: initial 2.5 s for 52 candidates, matching 10 s for 121,
-    regions 0.2 s, windows 1.5 s, TV 1 s). The fraction never goes back.
+    regions 0.2 s, windows 1.5 s, TV 1 s; the TV refinement compiled since: ~0.25 s with the
+    confidence map). The fraction never goes back.
     """
 
-    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 20.0}
+    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 5.0}
 
     def __init__(self, report, n_initial: int, n_matching: int) -> None:
         self.report = report
