@@ -236,7 +236,7 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
 
 def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     from recon.entropy import make_options
-    from recon.entropy.noise import filter_reach_px
+    from recon.entropy.noise import filter_reach_px, noise_gate_reach_px
 
     opts = make_options(**{k: v for k, v in options.items() if v is not None})
     lo, hi = opts.disparity_range
@@ -248,8 +248,14 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     # which windows a pixel may use depends on depth jumps and layers within a window of it, and the
     # side windows' centroid correction fits over one more window
     window_tests = 2 * (max(opts.window_sizes) // 2) + 1
-    # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat
-    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood) + shift + 1
+    # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat;
+    # with noise_gate="texture" both tests are window-scale texture measures
+    if opts.noise_gate == "texture":
+        radius = max(opts.window_sizes) // 2
+        filtered = (filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood, radius_px=radius)
+                    + noise_gate_reach_px(opts.noise_filter or 1.5, radius_px=radius) + shift + 1)
+    else:
+        filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood) + shift + 1
     return filtered + initial + layers + matching + window_tests + opts.smooth_neighbourhood // 2
 
 
