@@ -1,9 +1,7 @@
 """Noise-limited matching: the views low-pass filtered where they carry no texture above the noise.
 
-Where a view is flat in the sense of Eq. 12 (fewer than half of the 5x5 neighbours differ from the
-pixel by more than ``smooth_tolerance`` noise sigmas), whatever texture it has is weaker than the
-camera noise, and the matching cost there is dominated by the noise, in two ways that have nothing to
-do with disparity:
+Where a view's texture is weaker than the camera noise, the matching cost there is dominated by
+the noise, in two ways that have nothing to do with disparity:
 
 - its level: the mean absolute difference of two noisy samples is ``~1.13 sigma`` whatever the
   candidate, so the faint texture's contribution (a fraction of a grey level) is buried, and
@@ -15,15 +13,19 @@ do with disparity:
   weaktexture-v1: every estimate of the wall off by about 0.17 px/view, the cost curve with bumps at
   every whole and half pixel of the outer views' shifts).
 
-The estimator calls a pixel *noise-limited* when it is flat and the initial nine-view search found
-no valley in its cost (a black hole of ``d0``): on a clean render (backgammon) flat pixels with a
-faint but real texture still match with small windows, and are left alone. A Gaussian filter of
-``sigma_px`` (1.5 px) on the views where the noise-limited pixels land (and the view is flat)
-removes both effects: the noise
-falls by the filter's gain ``1 / (2 sqrt(pi) sigma_px)`` (0.19), and the noise that remains is
-correlated over a few pixels, so a bilinear sample averages it hardly more at half pixels than at
-whole pixels. Textured pixels keep their unfiltered values (the filter would blur away the texture
-the matching uses there). The flat mask of each view is blended with a 1-px Gaussian so that the
+The estimator calls a pixel *noise-limited* (``noise_gate="texture"``, the default) when it lies in a
+window of the largest size in which nothing but noise varies: the filtered gradient energy around
+every pixel of that window is below a few times what the noise alone gives
+(:func:`texture_to_noise`, :func:`noise_limited_windows`). Eq. 12's 5x5 count is not used for this:
+on a wall under noise it flips from pixel to pixel, and it calls the inside of a brick, a specular
+patch or a thin textureless pole flat although their windows reach texture that matches well
+unfiltered (the first version, ``noise_gate="holes"``: Eq. 12-flat and no valley in the initial
+nine-view cost, caught those too). A Gaussian filter of ``sigma_px`` (1.5 px) on the views where
+the noise-limited pixels land (and the view is noise-limited by the same test) removes both
+effects: the noise falls by the filter's gain ``1 / (2 sqrt(pi) sigma_px)`` (0.19), and the noise
+that remains is correlated over a few pixels, so a bilinear sample averages it hardly more at half
+pixels than at whole pixels. Textured pixels keep their unfiltered values (the filter would blur
+away the texture the matching uses there). The mask of each view is blended with a 1-px Gaussian so that the
 filtered and unfiltered parts join without a seam.
 """
 
