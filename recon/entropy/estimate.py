@@ -331,6 +331,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        noise_sigma: float | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
+                       noise_limited: np.ndarray | None = None,
                        stop_after: str | None = None,
                        preset: str | None = None,
                        **overrides) -> EntropyResult:
@@ -355,8 +356,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         ``initial_ambiguity`` and ``flat``), the whole-image step :func:`fill_initial` is the
         caller's. ``initial=(d0, ambiguity0)``: an already filled initial estimate (skips the
         initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
-        layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
-        whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+        layer map's minimum, :func:`layer_origin`). ``noise_limited``: the ``(H, W)`` bool mask of
+        :func:`noise_limited_pixels` of the whole image (its window-scale test reaches 2-3 window
+        radii; default: computed here). ``stop_after="matching"``: return before the whole-image
+        refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
     preset
         A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
         ``overrides``; not together with ``options``.
@@ -416,7 +419,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
     # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
     # with the largest window.
-    noise_limited = noise_limited_pixels(raw_gray[u0, v0], flat, ambiguity0, noise=noise, options=opts)
+    if noise_limited is None:
+        noise_limited = noise_limited_pixels(raw_gray[u0, v0], flat, ambiguity0, noise=noise, options=opts)
+    elif noise_limited.shape != (H, W):
+        raise ValueError(f"noise_limited must be {H}x{W} like the views, got {noise_limited.shape[::-1]}")
     if opts.noise_filter > 0 and noise_limited.any():
         texture = opts.noise_gate == "texture"
         gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,

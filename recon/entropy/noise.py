@@ -52,13 +52,13 @@ MASK_SIGMA_PX = 1.0
 
 
 def filter_reach_px(sigma_px: float, *, size: int, radius_px: int | None = None) -> int:
-    """How far (pixels) a filtered value depends on the unfiltered view: the flat test's
-    neighbourhood (Eq. 12's ``size``, or with ``radius_px`` the reach of :func:`texture_to_noise`),
-    the mask's blur and the filter itself (0 when off)."""
+    """How far (pixels) a filtered value depends on the unfiltered view: the filter itself, and the
+    mask's blur of the flat test (Eq. 12's ``size``, or with ``radius_px`` the reach of
+    :func:`texture_to_noise`); 0 when off."""
     if sigma_px <= 0:
         return 0
     test = size // 2 + 1 if radius_px is None else texture_reach_px(sigma_px, radius_px=radius_px)
-    return int(np.ceil(TRUNCATE * sigma_px)) + int(np.ceil(TRUNCATE * MASK_SIGMA_PX)) + test
+    return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)) + test)
 
 
 def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
@@ -182,7 +182,7 @@ def texture_to_noise(image: np.ndarray, *, noise_sigma: float, sigma_px: float,
 
 def texture_reach_px(sigma_px: float, *, radius_px: int) -> int:
     """How far (pixels) :func:`texture_to_noise` at a pixel depends on the image."""
-    return int(np.ceil(TRUNCATE * sigma_px)) + 2 + int(radius_px)
+    return int(np.ceil(TRUNCATE * sigma_px)) + 1 + int(radius_px)  # filter + central difference + box
 
 
 def noise_limited_windows(mask: np.ndarray, *, radius_px: int) -> np.ndarray:
@@ -198,8 +198,3 @@ def noise_limited_windows(mask: np.ndarray, *, radius_px: int) -> np.ndarray:
     return cv2.morphologyEx(np.asarray(mask, bool).view(np.uint8), cv2.MORPH_OPEN, kernel,
                             borderType=cv2.BORDER_REPLICATE).view(bool)
 
-
-def noise_gate_reach_px(sigma_px: float, *, radius_px: int) -> int:
-    """How far (pixels) :func:`noise_limited_windows` of :func:`texture_to_noise` at a pixel
-    depends on the image."""
-    return texture_reach_px(sigma_px, radius_px=radius_px) + 2 * int(radius_px)
