@@ -75,7 +75,7 @@ def matching_entropy_reference(grey_q: np.ndarray, disp_q: np.ndarray, labels: n
 
 def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_occlusion,
                              alpha2_other, strips=True, side_radius=None, layers=None,
-                             layer_gap=None):
+                             layer_gap=None, max_size=None):
     """Arg-max of Eq. 1 per pixel (readable reference of :func:`select_windows`)."""
     H, W = grey_q.shape
     shape_map = np.zeros((H, W), np.int64)
@@ -91,6 +91,9 @@ def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_oc
                 for size in sizes:
                     side_ok = side_radius is not None and (size - 1) // 2 >= side_radius[y, x]
                     if not occl and shape != 0 and not side_ok:
+                        continue
+                    if (not occl and shape == 0 and max_size is not None and size != min(sizes)
+                            and size > max_size[y, x]):
                         continue
                     if not occl and layers is not None and layer_gap is not None and not (
                             shape == 0 and size == min(sizes)):
@@ -116,7 +119,8 @@ def _add(counts, k, s, xlogx):
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, layers, gap, shape_map, size_map, best_e, all_e):
+                   n_disp, xlogx, side_radius, layers, gap, max_size, shape_map, size_map, best_e,
+                   all_e):
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -168,6 +172,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                     py0, py1, px0, px1 = ya, yb, xa, xb
                     if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
                         continue  # side window not offered at this size (no layer jump within r)
+                    if s == 0 and not occl and k > 0 and sizes_n[k] > max_size[y, x]:
+                        continue  # the square's mean disparity is off the pixel's (a crease)
                     if mixed and not occl and not (s == 0 and k == 0):
                         continue  # the window reaches another layer (the smallest square stays)
                     logn = np.log(n)
@@ -194,7 +200,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
                    alpha2_other: float, strips: bool = True,
                    side_radius: np.ndarray | None = None, layers: np.ndarray | None = None,
-                   layer_gap: float | None = None, return_all: bool = False):
+                   layer_gap: float | None = None, max_size: np.ndarray | None = None,
+                   return_all: bool = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -220,6 +227,10 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
         ``(H, W)`` layer map and gap: if given, texture and smooth pixels are not offered windows
         that reach a pixel of another layer (``|M(q) - M(p)| > layer_gap``), except the smallest
         square, which is always offered.
+    max_size
+        ``(H, W)`` int: texture and smooth pixels are not offered squares larger than this (the
+        smallest square stays), e.g. :func:`recon.entropy.windows.curvature_size_cap`. ``None``: no
+        cap.
 
     Returns
     -------
@@ -250,6 +261,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    np.zeros((H, W), np.float32) if layers is None
                    else np.ascontiguousarray(layers, np.float32),
                    -1.0 if layer_gap is None or layers is None else float(layer_gap),
+                   np.full((H, W), max(sizes), np.int64) if max_size is None
+                   else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
                    shape_map, size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e

@@ -28,7 +28,7 @@ from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_
                                     line_search)
 from recon.entropy.windows import N_SHAPES
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
-from recon.entropy.windows import window_rect
+from recon.entropy.windows import curvature_size_cap, window_rect
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.errors import ReconError
@@ -94,6 +94,16 @@ class EntropyOptions:
     single_layer_windows: bool = _opt(
         True, "texture and smooth pixels are not offered windows that reach another layer of the "
               "layer map (a rich texture across a depth edge otherwise draws the window to it)")
+    crease_tolerance: float = _opt(
+        0.01, "texture and smooth pixels are not offered a square window whose mean layer value "
+             "differs from the smallest square's by more than this (px/view): on a ridge, pit, crease "
+             "or curved surface a square finds the mean disparity under it, not the pixel's (a "
+             "plane alone does not count; not at noise-limited pixels, whose layer value is a fill); "
+             "0: off (the paper)")
+    crease_noise: float = _opt(
+        1.5, "... raised to this many times the local noise of the initial disparity (robust, over "
+             "the largest window; recon.entropy.windows.curvature_size_cap): render noise makes the "
+             "layer means wander without a crease (0: the fixed tolerance alone)")
     visible_sets: str = _opt(
         "occluded", "which pixels match over their window shape's visible-viewpoint set (others use "
                     "all views): 'none', 'occluded' (the paper), 'occlusion' (occluded and "
@@ -159,7 +169,7 @@ PRESETS: dict[str, dict] = {
     "paper": {"occlusion_views": "nine", "strip_windows": False, "side_windows": "occlusion",
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
-              "noise_filter": 0.0, "flat_windows": "all"},
+              "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0},
 }
 
 
@@ -458,7 +468,12 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other,
         strips=opts.strip_windows, side_radius=side_radius,
         layers=region_info["layers"] if opts.single_layer_windows else None,
-        layer_gap=opts.layer_gap, return_all=True)
+        layer_gap=opts.layer_gap, return_all=True,
+        max_size=None if opts.crease_tolerance <= 0 else np.where(
+            noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
+            curvature_size_cap(region_info["layers"], sizes, tolerance=opts.crease_tolerance,
+                               measured=~noise_limited, initial=d0,
+                               noise_factor=opts.crease_noise)))
     lap("windows")
 
     candidates = disparity_candidates(rng[0], rng[1], opts.step)

@@ -112,3 +112,50 @@ def _set_blocks() -> np.ndarray:
 
 #: ``(N_SHAPES sets, 9 blocks)`` bool: which view blocks make up the visible set of each shape.
 SET_BLOCKS = _set_blocks()
+
+
+def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float,
+                       measured: np.ndarray | None = None, initial: np.ndarray | None = None,
+                       noise_factor: float = 0.0) -> np.ndarray:
+    """``(H, W)`` int64: the largest of ``sizes`` up to which every square window centred on the
+    pixel sees a mean layer value within ``tolerance`` (px/view) of the smallest square's mean.
+
+    Why: a square window matched with one disparity finds about the mean disparity of the surface
+    under it. On a plane that is the centre pixel's (the square is symmetric), so a slant alone does
+    not bias it; where the slope changes (a ridge, a pit, a crease, a curved surface) the mean moves
+    off the pixel's value by ~ slope change x radius / 4. The layer map (median of ``d0``) shows that
+    change; comparing with the smallest square's mean (not the pixel's own value) keeps ``d0``'s
+    per-pixel noise out. The smallest size is always allowed. ``measured`` (``(H, W)`` bool): a
+    square more than a quarter of which is unmeasured is not capped (``d0`` filled into a black hole
+    is an interpolation, not a measured surface: its bend says nothing about a crease, and a mean
+    over the measured part alone would be off the pixel on any slant).
+
+    ``noise_factor`` > 0 with ``initial`` (the ``d0`` the layers were made from): the tolerance is
+    raised to that many times the local noise of ``d0``, ``1.4826 x`` the median of
+    ``|d0 - median3(d0)|`` over the largest window (every third pixel: 25 samples; a median, so that
+    edges and creases do not count as noise). Where ``d0`` is noisy (render noise on a realistic
+    surface) its layer means wander without a crease, and capping there only makes the windows, and
+    the matching, noisier."""
+    from scipy import ndimage
+
+    sizes = tuple(sorted(int(s) for s in sizes))
+    m = np.asarray(layers, np.float64)
+    ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
+    unmeasured = (np.zeros(m.shape) if measured is None
+                  else (~np.asarray(measured, bool)).astype(np.float64))
+    tol = np.full(m.shape, float(tolerance))
+    if noise_factor > 0 and initial is not None:
+        d0 = np.asarray(initial, np.float32)
+        wander = np.abs(d0 - ndimage.median_filter(d0, 3, mode="nearest"))
+        footprint = np.zeros((sizes[-1], sizes[-1]), bool)
+        footprint[::3, ::3] = True
+        local = 1.4826 * ndimage.median_filter(wander, footprint=footprint, mode="nearest")
+        tol = np.maximum(tol, noise_factor * local)
+    cap = np.full(m.shape, sizes[0], np.int64)
+    allowed = np.ones(m.shape, bool)
+    for size in sizes[1:]:
+        dev = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref)
+        blind = ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25
+        allowed &= (dev <= tol) | blind
+        cap[allowed] = size
+    return cap
