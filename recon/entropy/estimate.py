@@ -22,7 +22,8 @@ import numpy as np
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import initial_disparity, range_from_initial
-from recon.entropy.noise import filter_flat_views, warp_mask_to_views
+from recon.entropy.noise import (filter_flat_views, noise_limited_windows, texture_to_noise,
+                                 warp_mask_to_views)
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
@@ -134,15 +135,22 @@ class EntropyOptions:
         0.2, "... or this times the noise sigma in grey levels, whichever is larger")
     tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
     noise_filter: float = _opt(
-        0.0, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
-             "pixels (Eq. 12-flat, no valley in the initial cost) land and the view is flat: there "
-             "the noise, not the texture, shapes the cost curve (0: off, the paper and the default; "
-             "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
-             "docs/entropy-method.md)")
+        1.5, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
+             "pixels (see noise_gate) land and the view is noise-limited too: there the noise, not "
+             "the texture, shapes the cost curve (0: off, the paper; see docs/entropy-method.md)")
     flat_windows: str = _opt(
-        "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
+        "largest", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
                    "to choose by) or 'all' (the same as the other pixels, the paper)")
+    noise_gate: str = _opt(
+        "texture", "which pixels are noise-limited: 'texture' (the filtered "
+                   "gradient energy over the largest window below noise_texture_ratio times the "
+                   "noise's: nothing but noise in the window) or 'holes' (the first version: "
+                   "Eq. 12-flat and no valley in the initial cost; also catches specular surfaces "
+                   "and thin textureless structures next to texture)")
+    noise_texture_ratio: float = _opt(
+        4.0, "for noise_gate='texture': a window is noise-limited when its filtered gradient energy "
+             "is below this many times that of the noise alone (1 = pure noise)")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -222,6 +230,8 @@ class EntropyResult:
 SIDE_WINDOW_SCOPES = ("occlusion", "edges", "everywhere")
 #: Values of :attr:`EntropyOptions.flat_windows`.
 FLAT_WINDOW_SCOPES = ("largest", "all")
+#: Values of :attr:`EntropyOptions.noise_gate`.
+NOISE_GATES = ("texture", "holes")
 #: Values of :attr:`EntropyOptions.visible_sets`.
 VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
 
@@ -316,6 +326,10 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"visible_sets must be one of {VISIBLE_SET_SCOPES}, got {opts.visible_sets!r}")
     if opts.flat_windows not in FLAT_WINDOW_SCOPES:
         raise ValueError(f"flat_windows must be one of {FLAT_WINDOW_SCOPES}, got {opts.flat_windows!r}")
+    if opts.noise_gate not in NOISE_GATES:
+        raise ValueError(f"noise_gate must be one of {NOISE_GATES}, got {opts.noise_gate!r}")
+    if not opts.noise_texture_ratio > 0:
+        raise ValueError(f"noise_texture_ratio must be > 0 (1 = pure noise), got {opts.noise_texture_ratio}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
     rng = opts.disparity_range
@@ -328,6 +342,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        noise_sigma: float | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
+                       noise_limited: np.ndarray | None = None,
                        stop_after: str | None = None,
                        preset: str | None = None,
                        **overrides) -> EntropyResult:
@@ -352,8 +367,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         ``initial_ambiguity`` and ``flat``), the whole-image step :func:`fill_initial` is the
         caller's. ``initial=(d0, ambiguity0)``: an already filled initial estimate (skips the
         initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
-        layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
-        whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+        layer map's minimum, :func:`layer_origin`). ``noise_limited``: the ``(H, W)`` bool mask of
+        :func:`noise_limited_pixels` of the whole image (its window-scale test reaches 2-3 window
+        radii; default: computed here). ``stop_after="matching"``: return before the whole-image
+        refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
     preset
         A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
         ``overrides``; not together with ``options``.
@@ -411,13 +428,19 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         d0, ambiguity0 = (np.asarray(a) for a in initial)
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
-    # Noise-limited pixels (docs/entropy-method.md): flat, and no valley in the initial cost. Matched
-    # on views filtered where they land, with the largest window.
-    noise_limited = flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
+    # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
+    # with the largest window.
+    if noise_limited is None:
+        noise_limited = noise_limited_pixels(raw_gray[u0, v0], flat, ambiguity0, noise=noise, options=opts)
+    elif noise_limited.shape != (H, W):
+        raise ValueError(f"noise_limited must be {H}x{W} like the views, got {noise_limited.shape[::-1]}")
     if opts.noise_filter > 0 and noise_limited.any():
+        texture = opts.noise_gate == "texture"
         gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
                                  size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
-                                 where=warp_mask_to_views(noise_limited, d0, (U, V)))
+                                 where=warp_mask_to_views(noise_limited, d0, (U, V)),
+                                 texture_ratio=opts.noise_texture_ratio if texture else None,
+                                 radius_px=max(opts.window_sizes) // 2)
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -539,6 +562,24 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -
     has_square = np.take_along_axis(square, largest[..., None], 2)[..., 0]
     bar |= (flat & has_square)[..., None] & (np.arange(K) >= n_sizes)[None, None, :]
     return np.where(bar, np.inf, penalty).astype(np.float32)
+
+
+def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,
+                         noise: float, options: EntropyOptions) -> np.ndarray:
+    """``(H, W)`` bool: the pixels whose matching the noise, not the texture, decides
+    (``options.noise_gate``): ``"texture"``: inside a window of the largest size whose every pixel
+    has nothing but noise around it (:func:`recon.entropy.noise.texture_to_noise` below
+    ``noise_texture_ratio``, with the ``noise_filter`` sigma, 1.5 px when the filter is off;
+    :func:`recon.entropy.noise.noise_limited_windows`); Eq. 12's per-pixel count is not used: on a
+    wall under noise it flips from pixel to pixel. ``"holes"`` (the first version): Eq. 12-flat
+    with no valley in the initial nine-view cost."""
+    if options.noise_gate == "holes":
+        return flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
+    sigma_px = options.noise_filter if options.noise_filter > 0 else 1.5
+    ratio = texture_to_noise(centre, noise_sigma=noise, sigma_px=sigma_px,
+                             radius_px=max(options.window_sizes) // 2)
+    return noise_limited_windows(ratio < options.noise_texture_ratio,
+                                 radius_px=max(options.window_sizes) // 2)
 
 
 def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:
