@@ -88,7 +88,7 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     parser.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
-                             "entropy finds it from its initial estimate and baseline searches -4 4)")
+                             "entropy finds it by a coarse search over -8 8 and its initial estimate; baseline searches -4 4)")
     parser.add_argument("--step", type=positive_float, default=None,
                         help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
     base = parser.add_argument_group("baseline method")

@@ -21,7 +21,7 @@ import numpy as np
 
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
-from recon.entropy.initial import initial_disparity, range_from_initial
+from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
 from recon.entropy.noise import (filter_flat_views, noise_limited_windows, texture_to_noise,
                                  warp_mask_to_views)
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
@@ -51,7 +51,12 @@ class EntropyOptions:
         None, "(min, max) disparity to search; default: the light field's, else found from the "
               "initial estimate")
     initial_range: tuple[float, float] = _opt(
-        (-4.0, 4.0), "range the initial nine-view search covers when no range is known")
+        (-8.0, 8.0), "range the initial nine-view search covers when no range is known (with "
+                     "discover_range: the range the coarse search covers)")
+    discover_range: bool = _opt(
+        True, "when no range is known, find it first by a nine-view search on views downsampled "
+              "up to 4x (initial.discover_range), then search only that range at full resolution "
+              "(else: the whole initial_range at full resolution)")
     initial_step: float = _opt(0.05, "candidate spacing of the initial nine-view search")
     initial_window: int = _opt(5, "window side of the initial nine-view search")
     initial_shiftable: bool = _opt(
@@ -409,8 +414,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     initial_rng = known if known is not None else opts.initial_range
     if known is not None:  # search a little beyond a known range: edges of the range are refined
         initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
+    elif opts.discover_range and initial is None:
+        initial_rng = unknown_range(gray, options=opts, noise_sigma=noise)
     n_initial = len(disparity_candidates(initial_rng[0], initial_rng[1], opts.initial_step))
-    guess = known if known is not None else opts.initial_range
+    guess = known if known is not None else initial_rng
     reporter = _Reporter(progress, n_initial,
                          len(disparity_candidates(guess[0], guess[1], opts.step)))
     reporter.step("initial", "initial disparity (nine views)")
@@ -422,7 +429,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
             ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within)
         if stop_after == "initial":
             lap("initial")
-            return _partial(d0, flat, ambiguity0, noise, timings, opts, known)
+            return _partial(d0, flat, ambiguity0, noise, timings, opts, known or initial_rng)
         d0, holes0 = fill_initial(d0, ambiguity0, flat, options=opts)
     else:
         d0, ambiguity0 = (np.asarray(a) for a in initial)
@@ -446,7 +453,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         rng = (float(known[0]), float(known[1]))
     else:
         rng = range_from_initial(d0, percentile=opts.range_percentile, margin=opts.range_margin,
-                                 limits=opts.initial_range)
+                                 limits=initial_rng, grid_shape=(U, V),
+                                 sure=sure_pixels(ambiguity0, step=opts.initial_step,
+                                                  width=opts.initial_hole_width))
 
     reporter.step("regions", "region types")
     labels, region_info = region_labels(
@@ -544,6 +553,20 @@ def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: En
     if opts.flat_windows == "largest":
         out = _largest_windows_only(out, noise_limited, n_sizes)
     return out
+
+
+def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: float
+                  ) -> tuple[float, float]:
+    """The range the initial search covers when nobody gave one: :func:`initial.discover_range`
+    over ``options.initial_range`` with the estimator's own window, step, percentiles and hole
+    tolerance (``noise_sigma`` of the centre view in ``[0, 1]`` grey units)."""
+    hole_delta = max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
+    return discover_range(gray, search_range=options.initial_range, step=options.initial_step,
+                          window=options.initial_window, percentile=options.range_percentile,
+                          margin=options.range_margin, shiftable=options.initial_shiftable,
+                          strips=options.strip_windows,
+                          ambiguity_delta=hole_delta / options.intensity_scale,
+                          sure_width=options.initial_hole_width)
 
 
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:

@@ -168,7 +168,15 @@ def _entropy_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
 
     opts = make_options(**{k: v for k, v in options.items() if v is not None})
     out = dict(options)
-    out["disparity_range"] = tuple(opts.disparity_range or lf.disparity_range or opts.initial_range)
+    known = opts.disparity_range or lf.disparity_range
+    if known is None and opts.discover_range:  # the whole image's coarse search, as untiled
+        from recon.entropy.estimate import unknown_range
+        from recon.entropy.regions import noise_sigma
+
+        gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
+        U, V = lf.grid_shape
+        known = unknown_range(gray, options=opts, noise_sigma=noise_sigma(gray[U // 2, V // 2]))
+    out["disparity_range"] = tuple(known or opts.initial_range)
     return out
 
 
