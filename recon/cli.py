@@ -88,9 +88,9 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     parser.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
-                             "entropy finds it from its initial estimate and baseline searches -4 4)")
+                             "entropy finds it by a coarse search over -8 8 and its initial estimate; baseline searches -4 4)")
     parser.add_argument("--step", type=positive_float, default=None,
-                        help="spacing of candidate disparities, refined to sub-step by a parabola (default 0.02)")
+                        help="spacing of candidate disparities, refined to sub-step by a parabola (default: baseline 0.02, entropy 0.04)")
     base = parser.add_argument_group("baseline method")
     base.add_argument("--window", type=positive_int, default=None, help="square window side in pixels (default 7)")
     _add_entropy_options(parser.add_argument_group(

@@ -191,3 +191,22 @@ def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin()
     crop = centroid_correction(np.ascontiguousarray(d[5:, 7:], dtype=np.float32), rects[5:, 7:], **kwargs)
     # away from the crop's edge (15-px windows reach 7 px) a crop is bit-identical to the whole
     np.testing.assert_array_equal(crop[7:, 7:], fast[12:, 14:])
+
+
+def test_tv_refine_fast_agrees_with_reference():
+    from recon.entropy.refine import tv_refine_reference
+
+    rng = np.random.default_rng(7)
+    f = (0.5 + 0.1 * rng.standard_normal((23, 31))).astype(np.float32)
+    mask = rng.random(f.shape) < 0.7
+    holes = np.zeros(f.shape, bool)
+    holes[5:9, 10:16] = True  # a hole: data term dropped, started from the harmonic fill
+    for kwargs in ({}, {"holes": holes}):
+        fast = tv_refine(f, mask, gamma=0.2, iterations=120, **kwargs)
+        reference = tv_refine_reference(f, mask, gamma=0.2, iterations=120, **kwargs)
+        np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-7)
+        assert np.abs(fast - f).max() > 0.01  # it did smooth something
+    # the smallest image the kernel takes
+    np.testing.assert_allclose(tv_refine(f[:2, :2], mask[:2, :2] | True, gamma=0.2, iterations=10),
+                               tv_refine_reference(f[:2, :2], mask[:2, :2] | True, gamma=0.2,
+                                                   iterations=10), rtol=0, atol=1e-7)

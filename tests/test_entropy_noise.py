@@ -11,7 +11,9 @@ import pytest
 from recon.entropy import DEFAULTS, estimate_disparity, make_options
 from recon.entropy.confidence import confidence_map
 from recon.entropy.estimate import PRESETS, _largest_windows_only
-from recon.entropy.noise import filter_flat_views, filter_gain, filter_reach_px
+from recon.entropy.estimate import noise_limited_pixels
+from recon.entropy.noise import (filter_flat_views, filter_gain, filter_reach_px, gradient_noise_energy,
+                                 texture_reach_px, texture_to_noise)
 from recon.lf.lightfield import LightField
 from recon.synthetic import noise_texture
 
@@ -70,25 +72,93 @@ def test_flat_pixels_get_only_the_largest_offered_windows():
     assert np.flatnonzero(np.isfinite(out[1, 1])).tolist() == [5, 8, 11]  # every shape, largest size
 
 
-def test_noise_filter_removes_the_interpolation_bias_on_a_faint_wall():
-    """A wall whose texture (0.7 grey levels) is weaker than the noise (1.5 levels in every view):
-    unfiltered, the least cost sits where the views' sub-pixel shifts average the noise most."""
-    rng = np.random.default_rng(5)
-    n, d = 72, -1.75
+def test_gradient_noise_energy_matches_filtered_white_noise():
+    rng = np.random.default_rng(11)
+    noise = rng.normal(0, 1, (400, 400)).astype(np.float32)
+    ratio = texture_to_noise(noise, noise_sigma=1.0, sigma_px=1.5, radius_px=7)[20:-20, 20:-20]
+    assert abs(float(ratio.mean()) - 1.0) < 0.03  # the analytic energy is white noise's
+    assert gradient_noise_energy(3.0) < gradient_noise_energy(1.5) < gradient_noise_energy(0.8)
+
+
+def test_texture_to_noise_tells_a_faint_wall_from_texture_beside_a_flat_patch():
+    """Texture below the noise reads ~1 at the window scale; a flat pixel whose window reaches an
+    edge (the inside of a brick, a textureless pole before texture) reads far above it."""
+    rng = np.random.default_rng(12)
+    sigma = 1.5 / 255
+    faint = cv2.GaussianBlur(rng.standard_normal((80, 80)).astype(np.float32), (0, 0), 1.0)
+    image = 0.5 + faint * (0.7 / 255) / faint.std() + rng.normal(0, sigma, (80, 80)).astype(np.float32)
+    image[:, 60:] += 0.1 * (np.arange(20)[None, :] % 6 < 3)  # stripes of 25 grey levels
+    ratio = texture_to_noise(image, noise_sigma=sigma, sigma_px=1.5, radius_px=7)
+    assert np.percentile(ratio[10:-10, 10:40], 95) < DEFAULTS.noise_texture_ratio  # ~2.3 here
+    assert ratio[10:-10, 55:59].min() > 50  # flat itself, but its window reaches the stripes
+    with pytest.raises(ValueError, match="sigma_px must be > 0"):
+        texture_to_noise(image, noise_sigma=sigma, sigma_px=0.0, radius_px=7)
+
+
+def test_texture_gate_is_local_within_its_reach():
+    rng = np.random.default_rng(13)
+    image = np.full((60, 60), 0.5, np.float32) + rng.normal(0, 0.01, (60, 60)).astype(np.float32)
+    image[20:40, 30:50] = noise_texture((20, 20), seed=4)
+    whole = texture_to_noise(image, noise_sigma=0.01, sigma_px=1.5, radius_px=7)
+    crop = texture_to_noise(np.ascontiguousarray(image[5:55, 5:55]), noise_sigma=0.01, sigma_px=1.5,
+                            radius_px=7)
+    r = texture_reach_px(1.5, radius_px=7)
+    np.testing.assert_allclose(crop[r:-r, r:-r], whole[5 + r:55 - r, 5 + r:55 - r], rtol=1e-5)
+    views = _views(image)
+    opts = {"sigma_px": 1.5, "noise_sigma": 0.01, "size": 5, "tolerance": 2.0, "texture_ratio": 4.0,
+            "radius_px": 7}
+    filtered = filter_flat_views(views, **opts)
+    assert not np.array_equal(filtered[:, :, 5:15, 5:15], views[:, :, 5:15, 5:15])  # noise: filtered
+    np.testing.assert_array_equal(filtered[:, :, 28:32, 38:42], views[:, :, 28:32, 38:42])  # texture: not
+    crop_f = filter_flat_views(np.ascontiguousarray(views[:, :, 5:55, 5:55]), **opts)
+    rf = filter_reach_px(1.5, size=5, radius_px=7)
+    np.testing.assert_allclose(crop_f[:, :, rf:-rf, rf:-rf], filtered[:, :, 5 + rf:55 - rf, 5 + rf:55 - rf],
+                               atol=1e-6)
+
+
+def test_noise_limited_pixels_by_gate():
+    rng = np.random.default_rng(14)
+    image = np.full((50, 50), 0.5, np.float32) + rng.normal(0, 0.01, (50, 50)).astype(np.float32)
+    image[:, 35:] = noise_texture((50, 15), seed=5)
+    flat = np.ones((50, 50), bool)
+    hole = np.full((50, 50), 100)  # no valley anywhere in the initial cost
+    texture = noise_limited_pixels(image, flat, hole, noise=0.01, options=DEFAULTS)
+    assert texture[:, :20].all() and not texture[:, 30:].any()  # noise only / window reaches texture
+    holes = noise_limited_pixels(image, flat, hole, noise=0.01,
+                                 options=dataclasses.replace(DEFAULTS, noise_gate="holes"))
+    assert holes.all()  # the first version: every flat hole, the texture's neighbours too
+    with pytest.raises(ValueError, match="noise_gate must be one of"):
+        estimate_disparity(LightField(views=_views(image)), noise_gate="flat")
+
+
+def _faint_wall(n: int, d: float, seed: int) -> LightField:
+    # A plane at disparity d whose texture (0.7 grey levels) is weaker than the render noise (1.5
+    # levels, its own in every view).
+    rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.standard_normal((n + 40, n + 40)).astype(np.float32), (0, 0), 1.0)
     texture = 0.5 + texture * (0.7 / 255) / texture.std()
     views = np.empty((9, 9, n, n), np.float32)
     for u in range(9):
         for v in range(9):
-            m = np.float32([[1, 0, 20 - (v - 4) * d], [0, 1, 20 - (u - 4) * d]])
-            views[u, v] = cv2.warpAffine(texture, m, (n, n), flags=cv2.INTER_CUBIC)
+            # view (u, v) at q shows the texture at q + (v - 4, u - 4) d + 20 (docs/conventions.md)
+            m = np.float32([[1, 0, 20 + (v - 4) * d], [0, 1, 20 + (u - 4) * d]])
+            views[u, v] = cv2.warpAffine(texture, m, (n, n), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     views += rng.normal(0, 1.5 / 255, views.shape).astype(np.float32)
-    lf = LightField(views=np.clip(views, 0, 1), disparity_range=(-2.5, 0.5))
+    return LightField(views=np.clip(views, 0, 1), disparity_range=(d - 0.75, d + 1.25))
+
+
+def test_the_default_matches_a_faint_wall_under_noise():
+    """A wall whose texture is weaker than the noise: unfiltered, the least cost sits where the
+    views' sub-pixel shifts average the noise most. The default (texture-gated pre-filter, largest
+    window) gets it; the old defaults (no filter, every window) did not."""
+    d = -1.75
+    lf = _faint_wall(72, d, seed=5)
     inner = (slice(15, -15), slice(15, -15))
-    new = np.abs(estimate_disparity(lf, noise_filter=1.5, flat_windows="largest").disparity[inner] - d)
-    old = np.abs(estimate_disparity(lf).disparity[inner] - d)  # the defaults: off
+    new = np.abs(estimate_disparity(lf).disparity[inner] - d)
+    old = np.abs(estimate_disparity(lf, noise_filter=0.0, flat_windows="all").disparity[inner] - d)
     assert np.median(new) < 0.05
     assert np.mean(new > 0.07) < 0.6 * np.mean(old > 0.07)
+    assert np.mean(new > 0.07) < 0.25
 
 
 def test_paper_preset_and_unknown_preset():
@@ -156,3 +226,17 @@ def test_reconstruct_command_takes_the_paper_preset(tmp_path, capsys):
                  "--preset", "paper"]) != 0
     assert "--preset belongs to the entropy method" in capsys.readouterr().err
 
+
+
+def test_a_flat_spot_smaller_than_the_largest_window_is_left_alone():
+    """A noisy flat patch of 9x9 px in a textured plane (a weak spot on a slant, the inside of a
+    brick, a thin textureless pole before texture) is not noise-limited at the window scale: the
+    default gives the unfiltered, all-window result there, bit for bit."""
+    rng = np.random.default_rng(15)
+    tex = noise_texture((48, 48), seed=6)
+    tex[20:29, 20:29] = 0.5
+    lf = LightField(views=_views(tex, 5) + rng.normal(0, 1.5 / 255, (5, 5, 48, 48)).astype(np.float32),
+                    disparity_range=(-0.5, 0.5))
+    new = estimate_disparity(lf).disparity
+    old = estimate_disparity(lf, noise_filter=0.0, flat_windows="all").disparity
+    np.testing.assert_array_equal(new, old)

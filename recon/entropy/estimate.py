@@ -22,8 +22,9 @@ import numpy as np
 from recon.entropy.aperture import informative_strips
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
-from recon.entropy.initial import initial_disparity, range_from_initial
-from recon.entropy.noise import filter_flat_views, warp_mask_to_views
+from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
+from recon.entropy.noise import (filter_flat_views, noise_limited_windows, texture_to_noise,
+                                 warp_mask_to_views)
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
@@ -51,7 +52,12 @@ class EntropyOptions:
         None, "(min, max) disparity to search; default: the light field's, else found from the "
               "initial estimate")
     initial_range: tuple[float, float] = _opt(
-        (-4.0, 4.0), "range the initial nine-view search covers when no range is known")
+        (-8.0, 8.0), "range the initial nine-view search covers when no range is known (with "
+                     "discover_range: the range the coarse search covers)")
+    discover_range: bool = _opt(
+        True, "when no range is known, find it first by a nine-view search on views downsampled "
+              "up to 4x (initial.discover_range), then search only that range at full resolution "
+              "(else: the whole initial_range at full resolution)")
     initial_step: float = _opt(0.05, "candidate spacing of the initial nine-view search")
     initial_window: int = _opt(5, "window side of the initial nine-view search")
     initial_shiftable: bool = _opt(
@@ -61,7 +67,9 @@ class EntropyOptions:
         0.5, "the search range found from the initial estimate spans its percentiles "
              "[p, 100 - p] ...")
     range_margin: float = _opt(0.25, "... widened by this margin on each side")
-    step: float = _opt(0.02, "candidate spacing of the line search (refined by a parabola)")
+    step: float = _opt(
+        0.04, "candidate spacing of the line search (refined by a parabola); 0.04 scores as well as "
+              "0.02 or better on the bench scenes at half the time (docs/entropy-method.md)")
     layer_gap: float = _opt(
         0.25, "layers (median-filtered initial disparity) closer than this count as one (Eq. 9)")
     occlusion_views: str = _opt(
@@ -135,11 +143,9 @@ class EntropyOptions:
         0.2, "... or this times the noise sigma in grey levels, whichever is larger")
     tv_iterations: int = _opt(300, "primal-dual iterations of the TV refinement")
     noise_filter: float = _opt(
-        0.0, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
-             "pixels (Eq. 12-flat, no valley in the initial cost) land and the view is flat: there "
-             "the noise, not the texture, shapes the cost curve (0: off, the paper and the default; "
-             "1.5 with flat_windows='largest' fixes weak texture but hurts specular surfaces, see "
-             "docs/entropy-method.md)")
+        1.5, "Gaussian sigma (px) applied, before the line search, to the views where noise-limited "
+             "pixels (see noise_gate) land and the view is noise-limited too: there the noise, not "
+             "the texture, shapes the cost curve (0: off, the paper; see docs/entropy-method.md)")
     strip_aperture: float = _opt(
         1.5, "a strip window is offered (see strip_aperture_scope) only where the centre view "
              "varies along it: the mean absolute difference of neighbouring pixels along the strip, "
@@ -165,9 +171,18 @@ class EntropyOptions:
              "exp(-|grad d| / this) (px/view per pixel): a steep fill is a ramp between rims that "
              "disagree (0: off)")
     flat_windows: str = _opt(
-        "all", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
+        "largest", "windows offered to noise-limited pixels: 'largest' (those of the largest size "
                    "offered, the square where it is: the least noisy cost where there is no texture "
                    "to choose by) or 'all' (the same as the other pixels, the paper)")
+    noise_gate: str = _opt(
+        "texture", "which pixels are noise-limited: 'texture' (the filtered "
+                   "gradient energy over the largest window below noise_texture_ratio times the "
+                   "noise's: nothing but noise in the window) or 'holes' (the first version: "
+                   "Eq. 12-flat and no valley in the initial cost; also catches specular surfaces "
+                   "and thin textureless structures next to texture)")
+    noise_texture_ratio: float = _opt(
+        4.0, "for noise_gate='texture': a window is noise-limited when its filtered gradient energy "
+             "is below this many times that of the noise alone (1 = pure noise)")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -249,6 +264,8 @@ SIDE_WINDOW_SCOPES = ("occlusion", "edges", "everywhere")
 FLAT_WINDOW_SCOPES = ("largest", "all")
 #: Values of :attr:`EntropyOptions.strip_aperture_scope`.
 STRIP_APERTURE_SCOPES = ("initial", "all")
+#: Values of :attr:`EntropyOptions.noise_gate`.
+NOISE_GATES = ("texture", "holes")
 #: Values of :attr:`EntropyOptions.visible_sets`.
 VISIBLE_SET_SCOPES = ("none", "occluded", "occlusion", "all")
 
@@ -260,10 +277,11 @@ class _Reporter:
     search takes): a candidate of the full line search costs :data:`MATCH_CANDIDATE_WEIGHT` of them
     (81 views and up to 77 windows against 9 views and 11), and the fixed steps a measured share
     (2-core machine, 512x512, backgammon: initial 2.5 s for 52 candidates, matching 10 s for 121,
-    regions 0.2 s, windows 1.5 s, TV 1 s). The fraction never goes back.
+    regions 0.2 s, windows 1.5 s, TV 1 s; the TV refinement compiled since: ~0.25 s with the
+    confidence map). The fraction never goes back.
     """
 
-    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 20.0}
+    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 5.0}
 
     def __init__(self, report, n_initial: int, n_matching: int) -> None:
         self.report = report
@@ -352,6 +370,10 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"hole_support must be in [0, 1] (0: off), got {opts.hole_support}")
     if not (np.isfinite(opts.strip_aperture) and opts.strip_aperture >= 0):
         raise ValueError(f"strip_aperture must be a finite factor >= 0 (0: off), got {opts.strip_aperture}")
+    if opts.noise_gate not in NOISE_GATES:
+        raise ValueError(f"noise_gate must be one of {NOISE_GATES}, got {opts.noise_gate!r}")
+    if not opts.noise_texture_ratio > 0:
+        raise ValueError(f"noise_texture_ratio must be > 0 (1 = pure noise), got {opts.noise_texture_ratio}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
     rng = opts.disparity_range
@@ -364,6 +386,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                        noise_sigma: float | None = None,
                        initial: tuple[np.ndarray, np.ndarray] | None = None,
                        disparity_origin: float | None = None,
+                       noise_limited: np.ndarray | None = None,
                        stop_after: str | None = None,
                        preset: str | None = None,
                        **overrides) -> EntropyResult:
@@ -388,8 +411,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         ``initial_ambiguity`` and ``flat``), the whole-image step :func:`fill_initial` is the
         caller's. ``initial=(d0, ambiguity0)``: an already filled initial estimate (skips the
         initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
-        layer map's minimum, :func:`layer_origin`). ``stop_after="matching"``: return before the
-        whole-image refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+        layer map's minimum, :func:`layer_origin`). ``noise_limited``: the ``(H, W)`` bool mask of
+        :func:`noise_limited_pixels` of the whole image (its window-scale test reaches 2-3 window
+        radii; default: computed here). ``stop_after="matching"``: return before the whole-image
+        refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
     preset
         A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
         ``overrides``; not together with ``options``.
@@ -428,8 +453,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     initial_rng = known if known is not None else opts.initial_range
     if known is not None:  # search a little beyond a known range: edges of the range are refined
         initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
+    elif opts.discover_range and initial is None:
+        initial_rng = unknown_range(gray, options=opts, noise_sigma=noise)
     n_initial = len(disparity_candidates(initial_rng[0], initial_rng[1], opts.initial_step))
-    guess = known if known is not None else opts.initial_range
+    guess = known if known is not None else initial_rng
     reporter = _Reporter(progress, n_initial,
                          len(disparity_candidates(guess[0], guess[1], opts.step)))
     reporter.step("initial", "initial disparity (nine views)")
@@ -444,25 +471,33 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
             strip_ok=strip_ok0)
         if stop_after == "initial":
             lap("initial")
-            return _partial(d0, flat, ambiguity0, noise, timings, opts, known)
+            return _partial(d0, flat, ambiguity0, noise, timings, opts, known or initial_rng)
         d0, holes0 = fill_initial(d0, ambiguity0, flat, options=opts)
     else:
         d0, ambiguity0 = (np.asarray(a) for a in initial)
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
-    # Noise-limited pixels (docs/entropy-method.md): flat, and no valley in the initial cost. Matched
-    # on views filtered where they land, with the largest window.
-    noise_limited = flat & (ambiguity0 * opts.initial_step > opts.initial_hole_width)
+    # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
+    # with the largest window.
+    if noise_limited is None:
+        noise_limited = noise_limited_pixels(raw_gray[u0, v0], flat, ambiguity0, noise=noise, options=opts)
+    elif noise_limited.shape != (H, W):
+        raise ValueError(f"noise_limited must be {H}x{W} like the views, got {noise_limited.shape[::-1]}")
     if opts.noise_filter > 0 and noise_limited.any():
+        texture = opts.noise_gate == "texture"
         gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
                                  size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
-                                 where=warp_mask_to_views(noise_limited, d0, (U, V)))
+                                 where=warp_mask_to_views(noise_limited, d0, (U, V)),
+                                 texture_ratio=opts.noise_texture_ratio if texture else None,
+                                 radius_px=max(opts.window_sizes) // 2)
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
     else:
         rng = range_from_initial(d0, percentile=opts.range_percentile, margin=opts.range_margin,
-                                 limits=opts.initial_range)
+                                 limits=initial_rng, grid_shape=(U, V),
+                                 sure=sure_pixels(ambiguity0, step=opts.initial_step,
+                                                  width=opts.initial_hole_width))
 
     reporter.step("regions", "region types")
     labels, region_info = region_labels(
@@ -501,14 +536,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                 "all": np.ones(labels.shape, bool)}[opts.visible_sets]
     if opts.joint:
         windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
-        penalty = np.where(np.isfinite(all_entropy), -opts.lambda_entropy * all_entropy, np.inf)
-        if opts.flat_windows == "largest":
-            penalty = _largest_windows_only(penalty, noise_limited, len(sizes))
-        if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
-            penalty = _gate_strips(penalty, raw_gray[u0, v0], sizes=sizes, noise=noise,
-                                   factor=opts.strip_aperture, length=opts.strip_aperture_length)
-        matched, cost, k, ambiguity = joint_line_search(
-            gray, candidates, windows=windows, penalty=penalty.astype(np.float32),
+        matched, cost, k, ambiguity = joint_line_search(  # penalty: a temporary, freed in there
+            gray, candidates, windows=windows,
+            penalty=_gate_strips_if(_search_penalty(all_entropy, noise_limited, opts, len(sizes)),
+                                    raw_gray[u0, v0], sizes=sizes, noise=noise, opts=opts),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
             ambiguity_delta=hole_delta, progress=reporter.within)
         shape_map = k // len(sizes)
@@ -554,6 +585,34 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         confidence=confidence)
 
 
+def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
+                    n_sizes: int) -> np.ndarray:
+    """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
+    offered), made a few rows at a time (a float64 temporary of the whole volume was once the
+    largest allocation of the run), with ``flat_windows="largest"`` applied."""
+    out = np.empty(all_entropy.shape, np.float32)
+    for y in range(0, all_entropy.shape[0], 64):
+        e = all_entropy[y:y + 64]
+        out[y:y + 64] = np.where(np.isfinite(e), -opts.lambda_entropy * e, np.inf)
+    if opts.flat_windows == "largest":
+        out = _largest_windows_only(out, noise_limited, n_sizes)
+    return out
+
+
+def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: float
+                  ) -> tuple[float, float]:
+    """The range the initial search covers when nobody gave one: :func:`initial.discover_range`
+    over ``options.initial_range`` with the estimator's own window, step, percentiles and hole
+    tolerance (``noise_sigma`` of the centre view in ``[0, 1]`` grey units)."""
+    hole_delta = max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
+    return discover_range(gray, search_range=options.initial_range, step=options.initial_step,
+                          window=options.initial_window, percentile=options.range_percentile,
+                          margin=options.range_margin, shiftable=options.initial_shiftable,
+                          strips=options.strip_windows,
+                          ambiguity_delta=hole_delta / options.intensity_scale,
+                          sure_width=options.initial_hole_width)
+
+
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
     """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
     size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
@@ -585,6 +644,15 @@ def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
                               floor=STRIP_FLOOR, length=opts.strip_aperture_length)
 
 
+def _gate_strips_if(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                    opts: EntropyOptions) -> np.ndarray:
+    """:func:`_gate_strips` when ``opts.strip_aperture_scope`` is ``"all"``, else ``penalty`` itself."""
+    if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
+        return _gate_strips(penalty, centre, sizes=sizes, noise=noise, factor=opts.strip_aperture,
+                            length=opts.strip_aperture_length)
+    return penalty
+
+
 def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
                  factor: float, length: int) -> np.ndarray:
     """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
@@ -601,6 +669,24 @@ def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, .
     none_left = ~np.isfinite(out).any(axis=2)
     out[none_left] = penalty[none_left]
     return out.astype(np.float32)
+
+
+def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,
+                         noise: float, options: EntropyOptions) -> np.ndarray:
+    """``(H, W)`` bool: the pixels whose matching the noise, not the texture, decides
+    (``options.noise_gate``): ``"texture"``: inside a window of the largest size whose every pixel
+    has nothing but noise around it (:func:`recon.entropy.noise.texture_to_noise` below
+    ``noise_texture_ratio``, with the ``noise_filter`` sigma, 1.5 px when the filter is off;
+    :func:`recon.entropy.noise.noise_limited_windows`); Eq. 12's per-pixel count is not used: on a
+    wall under noise it flips from pixel to pixel. ``"holes"`` (the first version): Eq. 12-flat
+    with no valley in the initial nine-view cost."""
+    if options.noise_gate == "holes":
+        return flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
+    sigma_px = options.noise_filter if options.noise_filter > 0 else 1.5
+    ratio = texture_to_noise(centre, noise_sigma=noise, sigma_px=sigma_px,
+                             radius_px=max(options.window_sizes) // 2)
+    return noise_limited_windows(ratio < options.noise_texture_ratio,
+                                 radius_px=max(options.window_sizes) // 2)
 
 
 def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:

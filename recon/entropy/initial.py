@@ -73,11 +73,87 @@ def initial_disparity(gray: np.ndarray, *, disparity_range: tuple[float, float],
 
 
 def range_from_initial(d0: np.ndarray, *, percentile: float, margin: float,
-                       limits: tuple[float, float]) -> tuple[float, float]:
+                       limits: tuple[float, float], grid_shape: tuple[int, int] | None = None,
+                       sure: np.ndarray | None = None) -> tuple[float, float]:
     """Search range for the full matching: robust extent of ``d0`` widened by ``margin``.
 
     ``[P(percentile) - margin, P(100 - percentile) + margin]`` of the initial disparity, clipped to
-    ``limits`` (the range the initial search covered).
+    ``limits`` (the range the initial search covered). With ``grid_shape`` ``(U, V)`` the
+    percentiles leave out the border that the farthest views, shifted by up to ``limits``, sample
+    outside the image (:func:`interior`): edge pixels repeated there match at odd disparities.
+    With ``sure`` (``(H, W)`` bool) only those pixels count, when they are at least a tenth of the
+    image: a textureless structure matches at any disparity (:func:`sure_pixels`).
     """
+    if sure is not None and np.count_nonzero(sure) >= 0.1 * sure.size:
+        d0 = np.where(sure, d0, np.nan)
+    d0 = interior(d0, limits=limits, grid_shape=grid_shape) if grid_shape is not None else d0[np.isfinite(d0)]
     lo, hi = np.percentile(d0, [percentile, 100.0 - percentile])
     return float(max(lo - margin, limits[0])), float(min(hi + margin, limits[1]))
+
+
+def interior(d: np.ndarray, *, limits: tuple[float, float], grid_shape: tuple[int, int]) -> np.ndarray:
+    """The finite values of ``(H, W)`` ``d`` away from the border that views up to
+    ``max(|limits|) * (grid radius)`` pixels away sample outside the image (all of ``d`` if that
+    border would leave less than a quarter of each side)."""
+    reach = int(np.ceil(max(abs(limits[0]), abs(limits[1])) * (max(grid_shape) // 2)))
+    H, W = d.shape
+    if H - 2 * reach >= H // 4 and W - 2 * reach >= W // 4 and reach > 0:
+        d = d[reach:H - reach, reach:W - reach]
+    return d[np.isfinite(d)]
+
+
+def downsample_views(gray: np.ndarray, factor: int) -> np.ndarray:
+    """``(U, V, H // factor, W // factor)`` float32: every view box-averaged over ``factor`` x
+    ``factor`` blocks (the last rows/columns that do not fill a block are left out). A disparity of
+    ``d`` pixels per view step in ``gray`` is ``d / factor`` in the result."""
+    U, V, H, W = gray.shape
+    h, w = H // factor, W // factor
+    blocks = gray[:, :, :h * factor, :w * factor].reshape(U, V, h, factor, w, factor)
+    return blocks.mean(axis=(3, 5), dtype=np.float32)
+
+
+def coarse_factor(shape: tuple[int, int], *, min_side_px: int = 96, max_factor: int = 4) -> int:
+    """Downsampling factor of :func:`discover_range`: the largest up to ``max_factor`` that leaves
+    the short side of the image at least ``min_side_px`` (1: too small to downsample)."""
+    return int(max(1, min(max_factor, min(shape) // min_side_px)))
+
+
+def sure_pixels(ambiguity: np.ndarray, *, step: float, width: float) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose cost valley (``ambiguity`` candidates of ``step`` within the
+    tolerance of the least cost, :func:`recon.entropy.matching.cost_ambiguity`) is at most ``width``
+    wide: the search told disparities apart there."""
+    return ambiguity * step <= width
+
+
+def discover_range(gray: np.ndarray, *, search_range: tuple[float, float], step: float,
+                   window: int, percentile: float, margin: float, shiftable: bool = True,
+                   strips: bool = True, ambiguity_delta: float = 0.5 / 255,
+                   sure_width: float = 0.6) -> tuple[float, float]:
+    """The disparity range of a light field whose range nobody gave, from a coarse nine-view search.
+
+    The views are box-downsampled by :func:`coarse_factor` ``f`` (``f`` x ``f`` fewer pixels, and
+    ``search_range / f`` to cover), searched with :func:`initial_disparity` at ``step`` coarse pixels
+    (``f * step`` full-resolution), and the robust extent ``[P(percentile), P(100 - percentile)]``
+    of the result over its sure pixels (cost valley at most ``sure_width`` full-resolution pixels
+    wide at ``ambiguity_delta``, :func:`sure_pixels`: a thin textureless pole matches anywhere) away
+    from the border (:func:`interior`), scaled back by ``f``, is widened by ``margin`` plus two coarse steps and clipped
+    to ``search_range``. The full-resolution initial search then covers only that range: on a lab
+    capture (1198 x 906, a scene at 3.6-4.1 px/view) it is about 30 candidates instead of 320 for
+    ``search_range = (-8, 8)``, at the cost of about 20 full-resolution candidates.
+
+    ``gray``: ``(U, V, H, W)`` float32 in ``[0, 1]``. Returns ``(d_min, d_max)`` in pixels per view
+    step of ``gray``.
+    """
+    f = coarse_factor(gray.shape[2:])
+    coarse = downsample_views(gray, f) if f > 1 else gray
+    limits = (search_range[0] / f, search_range[1] / f)
+    d, _, ambiguity = initial_disparity(coarse, disparity_range=limits, step=step, window=window,
+                                        shiftable=shiftable, strips=strips,
+                                        ambiguity_delta=ambiguity_delta)
+    sure = sure_pixels(ambiguity, step=f * step, width=sure_width)
+    if not np.isfinite(d).any():
+        return float(search_range[0]), float(search_range[1])
+    lo, hi = range_from_initial(d, percentile=percentile, margin=0.0, limits=limits,
+                                grid_shape=gray.shape[:2], sure=sure)
+    widen = margin + 2 * f * step
+    return float(max(lo * f - widen, search_range[0])), float(min(hi * f + widen, search_range[1]))

@@ -1,9 +1,7 @@
 """Noise-limited matching: the views low-pass filtered where they carry no texture above the noise.
 
-Where a view is flat in the sense of Eq. 12 (fewer than half of the 5x5 neighbours differ from the
-pixel by more than ``smooth_tolerance`` noise sigmas), whatever texture it has is weaker than the
-camera noise, and the matching cost there is dominated by the noise, in two ways that have nothing to
-do with disparity:
+Where a view's texture is weaker than the camera noise, the matching cost there is dominated by
+the noise, in two ways that have nothing to do with disparity:
 
 - its level: the mean absolute difference of two noisy samples is ``~1.13 sigma`` whatever the
   candidate, so the faint texture's contribution (a fraction of a grey level) is buried, and
@@ -15,15 +13,19 @@ do with disparity:
   weaktexture-v1: every estimate of the wall off by about 0.17 px/view, the cost curve with bumps at
   every whole and half pixel of the outer views' shifts).
 
-The estimator calls a pixel *noise-limited* when it is flat and the initial nine-view search found
-no valley in its cost (a black hole of ``d0``): on a clean render (backgammon) flat pixels with a
-faint but real texture still match with small windows, and are left alone. A Gaussian filter of
-``sigma_px`` (1.5 px) on the views where the noise-limited pixels land (and the view is flat)
-removes both effects: the noise
-falls by the filter's gain ``1 / (2 sqrt(pi) sigma_px)`` (0.19), and the noise that remains is
-correlated over a few pixels, so a bilinear sample averages it hardly more at half pixels than at
-whole pixels. Textured pixels keep their unfiltered values (the filter would blur away the texture
-the matching uses there). The flat mask of each view is blended with a 1-px Gaussian so that the
+The estimator calls a pixel *noise-limited* (``noise_gate="texture"``, the default) when it lies in a
+window of the largest size in which nothing but noise varies: the filtered gradient energy around
+every pixel of that window is below a few times what the noise alone gives
+(:func:`texture_to_noise`, :func:`noise_limited_windows`). Eq. 12's 5x5 count is not used for this:
+on a wall under noise it flips from pixel to pixel, and it calls the inside of a brick, a specular
+patch or a thin textureless pole flat although their windows reach texture that matches well
+unfiltered (the first version, ``noise_gate="holes"``: Eq. 12-flat and no valley in the initial
+nine-view cost, caught those too). A Gaussian filter of ``sigma_px`` (1.5 px) on the views where
+the noise-limited pixels land (and the view is noise-limited by the same test) removes both
+effects: the noise falls by the filter's gain ``1 / (2 sqrt(pi) sigma_px)`` (0.19), and the noise
+that remains is correlated over a few pixels, so a bilinear sample averages it hardly more at half
+pixels than at whole pixels. Textured pixels keep their unfiltered values (the filter would blur
+away the texture the matching uses there). The mask of each view is blended with a 1-px Gaussian so that the
 filtered and unfiltered parts join without a seam.
 """
 
@@ -49,12 +51,14 @@ TRUNCATE = 4.0
 MASK_SIGMA_PX = 1.0
 
 
-def filter_reach_px(sigma_px: float, *, size: int) -> int:
-    """How far (pixels) a filtered value depends on the unfiltered view: the flat test's
-    neighbourhood, the mask's blur and the filter itself (0 when off)."""
+def filter_reach_px(sigma_px: float, *, size: int, radius_px: int | None = None) -> int:
+    """How far (pixels) a filtered value depends on the unfiltered view: the filter itself, and the
+    mask's blur of the flat test (Eq. 12's ``size``, or with ``radius_px`` the reach of
+    :func:`texture_to_noise`); 0 when off."""
     if sigma_px <= 0:
         return 0
-    return int(np.ceil(TRUNCATE * sigma_px)) + int(np.ceil(TRUNCATE * MASK_SIGMA_PX)) + size // 2 + 1
+    test = size // 2 + 1 if radius_px is None else texture_reach_px(sigma_px, radius_px=radius_px)
+    return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)) + test)
 
 
 def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
@@ -83,8 +87,10 @@ def _gaussian(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
 
 def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, size: int,
-                      tolerance: float, where: np.ndarray | None = None) -> np.ndarray:
-    """``(U, V, H, W)`` float32 views with their Eq. 12-flat parts Gaussian filtered.
+                      tolerance: float, where: np.ndarray | None = None,
+                      texture_ratio: float | None = None, radius_px: int = 7) -> np.ndarray:
+    """``(U, V, H, W)`` float32 views with their flat parts Gaussian filtered: Eq. 12-flat, or with
+    ``texture_ratio``, noise-limited at the window scale (:func:`texture_to_noise` below it).
 
     Parameters
     ----------
@@ -99,6 +105,10 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
     where
         ``(U, V, H, W)`` bool, optional: filter only there (and where the view is flat), e.g. where
         the noise-limited pixels of the centre view land (:func:`warp_mask_to_views`).
+    texture_ratio, radius_px
+        When given, a view is flat where :func:`texture_to_noise` (filter ``sigma_px``, window
+        radius ``radius_px``) is below ``texture_ratio`` (``size`` and ``tolerance`` unused); else
+        where Eq. 12 calls it flat.
     """
     if sigma_px <= 0:
         return gray
@@ -110,7 +120,11 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
             if where is not None and not where[u, v].any():
                 out[u, v] = view
                 continue
-            flat, _ = flat_pixels(view, size=size, tolerance=tolerance, sigma=noise_sigma)
+            if texture_ratio is None:
+                flat, _ = flat_pixels(view, size=size, tolerance=tolerance, sigma=noise_sigma)
+            else:
+                flat = texture_to_noise(view, noise_sigma=noise_sigma, sigma_px=sigma_px,
+                                        radius_px=radius_px) < texture_ratio
             if where is not None:
                 flat &= where[u, v]
             if not flat.any():
@@ -120,3 +134,67 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
             smooth = _gaussian(view, sigma_px)
             out[u, v] = view + weight * (smooth - view)
     return out
+
+
+def _gradient_kernels(sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    # The Gaussian of sigma_px (cut at TRUNCATE sigmas) followed by the central difference
+    # (f[x+1] - f[x-1]) / 2, as 1-D kernels: derivative along the axis, smoothing across it.
+    radius = int(np.ceil(TRUNCATE * sigma_px))
+    g = cv2.getGaussianKernel(2 * radius + 1, sigma_px).ravel()
+    dg = np.convolve(g, [0.5, 0.0, -0.5])
+    return dg, np.pad(g, 1)
+
+
+def gradient_noise_energy(sigma_px: float) -> float:
+    """Expected squared gradient magnitude (``gx^2 + gy^2``, central differences) of white noise of
+    unit sigma after a Gaussian filter of ``sigma_px``: the sum of the squared weights of the two
+    derivative kernels."""
+    dg, g = _gradient_kernels(sigma_px)
+    return float(2.0 * np.sum(dg ** 2) * np.sum(g ** 2))
+
+
+def texture_to_noise(image: np.ndarray, *, noise_sigma: float, sigma_px: float,
+                     radius_px: int) -> np.ndarray:
+    """``(H, W)`` float32: the squared gradient magnitude of ``image`` after a Gaussian filter of
+    ``sigma_px``, averaged over the ``(2 radius_px + 1)^2`` square around each pixel, in units of
+    the same quantity for white noise of ``noise_sigma`` (:func:`gradient_noise_energy`).
+
+    About 1 where the window holds nothing but noise (a plain wall under render noise, whatever its
+    texture below the noise), ``1 + (texture / noise)^2`` in the filter's band where it holds faint
+    texture, and tens to thousands where it holds an edge, a mortar line, a reflection or the
+    border of a thin structure. A window-scale measure: unlike Eq. 12's 5x5 count it does not flip
+    from pixel to pixel on a noisy wall, and a flat pixel next to texture (the inside of a brick,
+    a textureless pole before a textured background) is not noise-limited at the window scale.
+    ``noise_sigma`` and ``image`` in the same grey units; ``sigma_px > 0``.
+    """
+    if not sigma_px > 0:
+        raise ValueError(f"sigma_px must be > 0 pixels, got {sigma_px}")
+    dg, g = _gradient_kernels(sigma_px)
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    gx = cv2.sepFilter2D(img, cv2.CV_32F, dg[::-1].copy(), g, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.sepFilter2D(img, cv2.CV_32F, g, dg[::-1].copy(), borderType=cv2.BORDER_REPLICATE)
+    side = 2 * int(radius_px) + 1
+    energy = cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (side, side), normalize=True,
+                           borderType=cv2.BORDER_REPLICATE)
+    noise = max(float(noise_sigma), 1e-12) ** 2 * gradient_noise_energy(sigma_px)
+    return (energy / np.float32(noise)).astype(np.float32)
+
+
+def texture_reach_px(sigma_px: float, *, radius_px: int) -> int:
+    """How far (pixels) :func:`texture_to_noise` at a pixel depends on the image."""
+    return int(np.ceil(TRUNCATE * sigma_px)) + 1 + int(radius_px)  # filter + central difference + box
+
+
+def noise_limited_windows(mask: np.ndarray, *, radius_px: int) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of ``mask`` that lie in a ``(2 radius_px + 1)^2`` square wholly
+    inside ``mask`` (a morphological opening; outside the image, the edge pixels repeated).
+
+    A patch of noise-limited texture smaller than the largest window (a weak spot on a textured
+    slant) is left out: its pixels' windows, and their neighbours' windows, reach texture that
+    matches well unfiltered, and filtering the views there only mixes filtered and unfiltered
+    values in those windows (blender-dev slanted-v1: 0.2 points of BadPix lost without it)."""
+    side = 2 * int(radius_px) + 1
+    kernel = np.ones((side, side), np.uint8)
+    return cv2.morphologyEx(np.asarray(mask, bool).view(np.uint8), cv2.MORPH_OPEN, kernel,
+                            borderType=cv2.BORDER_REPLICATE).view(bool)
+

@@ -86,9 +86,10 @@ def tv_energy(mu: np.ndarray, data: np.ndarray, mask: np.ndarray, gamma: float) 
     return float(np.sum(((mu - data) ** 2)[mask]) + gamma * np.sum(np.sqrt(gy ** 2 + gx ** 2)))
 
 
-def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
+def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
               iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
-    """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
+    """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value (readable numpy
+    reference of :func:`tv_refine`, the compiled twin).
 
     Parameters
     ----------
@@ -134,6 +135,94 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
         new = np.where(mask, (v + 2 * tau * weight * f) / (1 + 2 * tau * weight), f)
         bar = 2 * new - mu
         mu = new
+    return mu.astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px):
+    # The iterations of tv_refine_reference, the same float64 operations in the same order (so the
+    # same values), two sweeps per iteration: dual ascent and projection, then the primal step with
+    # the divergence. Needs H, W >= 2. One thread: 600 parallel regions with a barrier each ran
+    # 10x slower on the shared machine whenever the other core was busy (3 s instead of 0.3 s).
+    H, W = f.shape
+    tau = 1.0 / np.sqrt(8.0)
+    sigma = tau
+    for _ in range(iterations):
+        for y in range(H):
+            for x in range(W):
+                gy = bar[y + 1, x] - bar[y, x] if y < H - 1 else 0.0
+                gx = bar[y, x + 1] - bar[y, x] if x < W - 1 else 0.0
+                qy = py[y, x] + sigma * gy
+                qx = px[y, x] + sigma * gx
+                norm = max(1.0, np.sqrt(qy ** 2 + qx ** 2) / gamma)
+                py[y, x] = qy / norm
+                px[y, x] = qx / norm
+        for y in range(H):
+            for x in range(W):
+                if y == 0:
+                    dy = py[0, x]
+                elif y < H - 1:
+                    dy = py[y, x] - py[y - 1, x]
+                else:
+                    dy = -py[H - 2, x]
+                if x == 0:
+                    dx = px[y, 0]
+                elif x < W - 1:
+                    dx = px[y, x] - px[y, x - 1]
+                else:
+                    dx = -px[y, W - 2]
+                if mask[y, x]:
+                    v = mu[y, x] + tau * (dy + dx)
+                    w = 2 * tau * weight[y, x]
+                    new = (v + w * f[y, x]) / (1 + w)
+                else:
+                    new = f[y, x]
+                bar[y, x] = 2 * new - mu[y, x]
+                mu[y, x] = new
+
+
+def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
+              iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
+    """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
+
+    Compiled twin of :func:`tv_refine_reference` (same parameters and result; Chambolle-Pock in
+    two sweeps per iteration instead of 300 rounds of whole-array numpy operations).
+
+    Parameters
+    ----------
+    disparity
+        ``(H, W)`` disparity ``d*`` from the matching, pixels per view step.
+    mask
+        ``(H, W)`` bool, the smooth region.
+    gamma
+        TV weight (the paper's 0.2).
+    iterations
+        Primal-dual iterations.
+    holes
+        ``(H, W)`` bool, optional: pixels (inside or outside ``mask``) whose data term is dropped,
+        filled from their surroundings; started from :func:`harmonic_fill`.
+
+    Returns
+    -------
+    ``(H, W)`` float32 refined disparity ``mu``.
+    """
+    if min(np.shape(disparity)) < 2:
+        return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes)
+    mask = np.asarray(mask, bool)
+    weight = np.ones(mask.shape)
+    if holes is not None and np.any(holes):
+        holes = np.asarray(holes, bool)
+        disparity = harmonic_fill(disparity, holes)
+        mask = mask | holes
+        weight[holes] = 0.0
+    f = np.ascontiguousarray(disparity, dtype=np.float64)
+    if gamma <= 0 or not mask.any() or iterations <= 0:
+        return disparity.astype(np.float32)
+    mu = f.copy()
+    bar = f.copy()
+    py = np.zeros_like(f)
+    px = np.zeros_like(f)
+    _tv_kernel(f, np.ascontiguousarray(mask), weight, float(gamma), int(iterations), mu, bar, py, px)
     return mu.astype(np.float32)
 
 

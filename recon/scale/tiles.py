@@ -168,7 +168,15 @@ def _entropy_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
 
     opts = make_options(**{k: v for k, v in options.items() if v is not None})
     out = dict(options)
-    out["disparity_range"] = tuple(opts.disparity_range or lf.disparity_range or opts.initial_range)
+    known = opts.disparity_range or lf.disparity_range
+    if known is None and opts.discover_range:  # the whole image's coarse search, as untiled
+        from recon.entropy.estimate import unknown_range
+        from recon.entropy.regions import noise_sigma
+
+        gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
+        U, V = lf.grid_shape
+        known = unknown_range(gray, options=opts, noise_sigma=noise_sigma(gray[U // 2, V // 2]))
+    out["disparity_range"] = tuple(known or opts.initial_range)
     return out
 
 
@@ -201,9 +209,10 @@ def _entropy_matching_task(crop: LightField, maps: list[np.ndarray], options: di
     limit_threads(threads)
     options = dict(options)  # a retried task gets the same dict again
     shared = options.pop("_shared")
-    d0, ambiguity0 = maps
+    d0, ambiguity0, noise_limited = maps
     r = estimate_disparity(crop, options=_entropy_options(options), stop_after="matching",
-                           initial=(d0, ambiguity0.astype(np.int32)), **shared)
+                           initial=(d0, ambiguity0.astype(np.int32)), noise_limited=noise_limited > 0.5,
+                           **shared)
     return np.stack([r.matched_disparity, r.labels, r.info["ambiguity"]]).astype(np.float32)
 
 
@@ -213,11 +222,11 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
     1. every tile: raw initial estimate (nine views), its ambiguity, flat mask, with the whole
        centre view's noise sigma;
     2. whole image: black holes of ``d0`` filled (``fill_initial``), the layer map's minimum (the
-       disparity histogram's bin origin);
+       disparity histogram's bin origin), the noise-limited pixels (``noise_limited_pixels``);
     3. every tile: regions, windows, line search, centroid correction;
     4. whole image: TV refinement with hole filling (``refine_global``).
     """
-    from recon.entropy.estimate import fill_initial, layer_origin, refine_global
+    from recon.entropy.estimate import fill_initial, layer_origin, noise_limited_pixels, refine_global
     from recon.entropy.regions import noise_sigma
 
     opts = _entropy_options(options)
@@ -227,7 +236,10 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
     d0_raw, ambiguity0, flat = first[0], first[1].astype(np.int32), first[2] > 0.5
     d0, _ = fill_initial(d0_raw, ambiguity0, flat, options=opts)
     origin = layer_origin(d0, ambiguity0, flat, options=opts)
-    second = map_tiles(_entropy_matching_task, maps=(d0, ambiguity0.astype(np.float32)),
+    centre = np.asarray(lf.gray(), np.float32)[lf.grid_shape[0] // 2, lf.grid_shape[1] // 2]
+    limited = noise_limited_pixels(centre, flat, ambiguity0, noise=sigma, options=opts)
+    second = map_tiles(_entropy_matching_task, maps=(d0, ambiguity0.astype(np.float32),
+                                                     limited.astype(np.float32)),
                        options={**common, "_shared": {"noise_sigma": sigma, "disparity_origin": origin}})
     matched, labels, ambiguity = second[0], second[1].astype(np.uint8), second[2].astype(np.int32)
     refined, _ = refine_global(matched, labels, flat, ambiguity, options=opts)
@@ -251,8 +263,10 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     # which windows a pixel may use depends on depth jumps and layers within a window of it, and the
     # side windows' centroid correction fits over one more window
     window_tests = 2 * (max(opts.window_sizes) // 2) + 1
-    # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat
-    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood) + shift + 1
+    # views filtered where noise-limited pixels (a whole-image mask, given) land (a forward warp with
+    # d0) and the view is flat (Eq. 12, or with noise_gate="texture" the window-scale test)
+    radius = max(opts.window_sizes) // 2 if opts.noise_gate == "texture" else None
+    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood, radius_px=radius) + shift + 1
     return filtered + initial + layers + matching + window_tests + opts.smooth_neighbourhood // 2
 
 
