@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from recon.entropy.labels import OCCLUDED, OCCLUDING
+from recon.entropy.matching import row_order
 from recon.entropy.windows import N_SHAPES, window_rect
 
 
@@ -119,12 +120,15 @@ def _add(counts, k, s, xlogx):
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, layers, gap, max_size, shape_map, size_map, best_e,
-                   all_e):
+                   n_disp, xlogx, side_radius, layers, gap, max_size, order, shape_map, size_map,
+                   best_e, all_e):
+    # Rows in ``order`` (matching.row_order: dealt round-robin to the threads; pixels near depth
+    # edges try 11 shapes, elsewhere 1).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
-    for y in numba.prange(H):
+    for jr in numba.prange(H):
+        y = order[jr]
         hg = np.zeros(n_grey, np.int64)
         hd = np.zeros(n_disp, np.int64)
         hm = np.zeros(n_grey, np.int64)
@@ -263,7 +267,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    -1.0 if layer_gap is None or layers is None else float(layer_gap),
                    np.full((H, W), max(sizes), np.int64) if max_size is None
                    else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
-                   shape_map, size_map, best_e, all_e)
+                   row_order(H), shape_map, size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e
     return shape_map, size_map, best_e.astype(np.float32)

@@ -619,16 +619,21 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -
     size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
     smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
     picks whichever window's noise dips lowest, most often the smallest and noisiest."""
-    H, W, K = penalty.shape
-    by_size = np.isfinite(penalty).reshape(H, W, K // n_sizes, n_sizes)
-    offered = by_size.any(axis=2)
-    largest = n_sizes - 1 - np.argmax(offered[..., ::-1], axis=2)
+    ys, xs = np.nonzero(flat)  # only those pixels change (none on most textured scenes)
+    if ys.size == 0:
+        return penalty
+    sub = penalty[ys, xs]
+    N, K = sub.shape
+    by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
+    offered = by_size.any(axis=1)
+    largest = n_sizes - 1 - np.argmax(offered[:, ::-1], axis=1)
     size_of = np.arange(K) % n_sizes
-    bar = flat[..., None] & (size_of[None, None, :] != largest[..., None])
-    square = by_size[..., 0, :]
-    has_square = np.take_along_axis(square, largest[..., None], 2)[..., 0]
-    bar |= (flat & has_square)[..., None] & (np.arange(K) >= n_sizes)[None, None, :]
-    return np.where(bar, np.inf, penalty).astype(np.float32)
+    bar = size_of[None, :] != largest[:, None]
+    has_square = by_size[np.arange(N), 0, largest]
+    bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
+    out = penalty.astype(np.float32, copy=True)
+    out[ys, xs] = np.where(bar, np.inf, sub)
+    return out
 
 
 #: Least variation along a strip that counts as texture: Eq. 12's floor, half an 8-bit grey level.

@@ -406,7 +406,7 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts
     # (a compact list: far from edges only the squares are allowed). out = this candidate's
     # objective; best/best_k = the least objective over the candidates so far and its window (the
     # first candidate on ties, as np.argmin over the curve picks). Rows in the given order
-    # (:func:`_row_order`).
+    # (:func:`row_order`).
     H = out.shape[0]
     W = out.shape[1]
     for jr in numba.prange(H):
@@ -436,7 +436,7 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts
                 best_k[y, x] = k_best
 
 
-def _row_order(H: int) -> np.ndarray:
+def row_order(H: int) -> np.ndarray:
     """Rows dealt round-robin to the threads: ``prange`` hands each thread one contiguous share
     of the loop, and the joint kernel's work per row varies with the windows offered (near depth
     edges 77 per pixel, elsewhere 7); on backgammon the top half of the rows held 67 % of it, so
@@ -548,7 +548,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)
     least = np.full((H, W), np.inf, np.float32)
-    order = _row_order(H)
+    order = row_order(H)
     window_index = np.full((H, W), -1, np.int64)
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
