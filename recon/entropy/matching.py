@@ -318,41 +318,111 @@ class WindowCost:
         return out
 
 
+def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rects: np.ndarray,
+                              counts: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32: each pixel's least mean absolute difference over its allowed windows
+    (reference of the kernel behind :func:`min_window_line_search`).
+
+    ``integrals`` ``(S, H + 1, W + 1)`` int64 from :func:`set_integrals`; window ``k`` is the
+    rectangle ``rects[k]`` (``y0, y1, x0, x1`` offsets, clipped to the image) matched over table
+    ``window_set[k]`` with ``counts[k]`` views; ``allowed`` ``(H, W, K)`` or ``(1, 1, K)`` bool.
+    A NaN cost never wins; a pixel with no finite cost gets 1e300 (inf in float32)."""
+    S, H1, W1 = integrals.shape
+    H, W = H1 - 1, W1 - 1
+    y, x = np.arange(H)[:, None], np.arange(W)[None, :]
+    best = np.full((H, W), 1e300)
+    for k in range(len(rects)):
+        ya = np.maximum(y + rects[k, 0], 0)
+        yb = np.minimum(y + rects[k, 1], H - 1) + 1
+        xa = np.maximum(x + rects[k, 2], 0)
+        xb = np.minimum(x + rects[k, 3], W - 1) + 1
+        ii = integrals[window_set[k]]
+        total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
+        c = total / ((yb - ya) * (xb - xa) * counts[k])
+        ok = np.broadcast_to(allowed[..., k], (H, W))
+        best = np.where(ok & (c < best), c, best)
+    return best.astype(np.float32)
+
+
 @numba.njit(cache=True, parallel=True)
 def _min_window_cost_kernel(integrals, window_set, rects, counts, allowed, out):
-    # allowed: (H, W, K) bool, or (1, 1, K) for every pixel alike.
+    # allowed: (H, W, K) bool, or (1, 1, K) for every pixel alike. Each pixel's least cost over its
+    # allowed windows (NaN costs never win; 1e300 if none is finite). Within a row, window by
+    # window along x, so that each summed-area table is read along its rows (not all K tables at
+    # every pixel); the least of the same values, so the same map in any order.
     H = out.shape[0]
     W = out.shape[1]
     per_pixel = allowed.shape[0] > 1
     for y in numba.prange(H):
-        for x in range(W):
-            best = 1e300
-            for k in range(rects.shape[0]):
+        best = np.full(W, 1e300)
+        for k in range(rects.shape[0]):
+            ya = max(y + rects[k, 0], 0)
+            yb = min(y + rects[k, 1], H - 1) + 1
+            ii = integrals[window_set[k]]
+            top = ii[ya]
+            bottom = ii[yb]
+            ck = counts[k]
+            for x in range(W):
                 if not (allowed[y, x, k] if per_pixel else allowed[0, 0, k]):
                     continue
-                ya = max(y + rects[k, 0], 0)
-                yb = min(y + rects[k, 1], H - 1) + 1
                 xa = max(x + rects[k, 2], 0)
                 xb = min(x + rects[k, 3], W - 1) + 1
-                ii = integrals[window_set[k]]
-                total = (ii[yb, xb] - ii[ya, xb] - ii[yb, xa] + ii[ya, xa]) * FIXED_INV
-                c = total / ((yb - ya) * (xb - xa) * counts[k])
-                if c < best:
-                    best = c
-            out[y, x] = best
+                total = (bottom[xb] - top[xb] - bottom[xa] + top[xa]) * FIXED_INV
+                c = total / ((yb - ya) * (xb - xa) * ck)
+                if c < best[x]:
+                    best[x] = c
+        for x in range(W):
+            out[y, x] = best[x]
 
 
-def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
+def cost_ambiguity_reference(costs: np.ndarray, delta: float) -> np.ndarray:
     """``(H, W)`` int32: how many of the ``D`` candidates of a ``(D, H, W)`` cost volume come
     within ``delta`` of the pixel's least cost. A few (a narrow valley) where the matching tells
     disparities apart; many (a plateau) where it has no information, e.g. inside a textureless
-    patch, where the window matches itself at every small shift."""
+    patch, where the window matches itself at every small shift. Reference of :func:`cost_ambiguity`."""
     D, H = costs.shape[:2]
     out = np.empty(costs.shape[1:], np.int32)
     for y in range(0, H, 32):  # a few rows at a time: no (D, H, W) boolean temporary
         c = costs[:, y:y + 32]
         best = c.min(axis=0)
         out[y:y + 32] = np.count_nonzero(c <= best[None] + np.float32(delta), axis=0)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _cost_ambiguity_kernel(costs, delta, out):
+    # Twin of cost_ambiguity_reference: the float32 least cost of each pixel (NaN if any cost is
+    # NaN, as ndarray.min), then how many costs are <= least + delta (float32 sum).
+    D, H, W = costs.shape
+    for y in numba.prange(H):
+        best = np.empty(W, np.float32)
+        for x in range(W):
+            best[x] = costs[0, y, x]
+        for d in range(1, D):
+            for x in range(W):
+                c = costs[d, y, x]
+                if c != c or c < best[x]:
+                    if best[x] == best[x]:
+                        best[x] = c
+        for x in range(W):
+            best[x] = best[x] + delta
+            out[y, x] = 0
+        for d in range(D):
+            for x in range(W):
+                if costs[d, y, x] <= best[x]:
+                    out[y, x] += 1
+
+
+def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
+    """``(H, W)`` int32: how many of the ``D`` candidates of a ``(D, H, W)`` cost volume come
+    within ``delta`` of the pixel's least cost. A few (a narrow valley) where the matching tells
+    disparities apart; many (a plateau) where it has no information, e.g. inside a textureless
+    patch, where the window matches itself at every small shift. Compiled twin of
+    :func:`cost_ambiguity_reference` (same map)."""
+    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3:
+        return cost_ambiguity_reference(costs, delta)
+    out = np.empty(costs.shape[1:], np.int32)
+    _cost_ambiguity_kernel(costs, np.float32(delta), out)
     return out
 
 
@@ -593,8 +663,9 @@ def line_search(gray: np.ndarray, candidates: np.ndarray, *, shape_map: np.ndarr
     return disparity, best
 
 
-def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel arg-min of a ``(D, H, W)`` cost volume refined by a parabola; ``(H, W)`` float32."""
+def subpixel_argmin_reference(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel arg-min of a ``(D, H, W)`` cost volume refined by a parabola; ``(H, W)`` float32
+    (reference of :func:`subpixel_argmin`)."""
     D = costs.shape[0]
     k = np.argmin(costs, axis=0)
     c0 = np.take_along_axis(costs, k[None], 0)[0].astype(np.float64)
@@ -608,3 +679,62 @@ def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarr
     step = candidates[1] - candidates[0] if D > 1 else 0.0
     disparity = candidates[k] + offset * step
     return disparity.astype(np.float32), c0.astype(np.float32)
+
+
+@numba.njit(cache=True, parallel=True)
+def _subpixel_argmin_kernel(costs, candidates, step, disparity, best_out):
+    # Twin of subpixel_argmin_reference, rows in parallel, candidates outer within a row so the
+    # volume is read contiguously. Arg-min as np.argmin: the first minimum, the first NaN if any.
+    D, H, W = costs.shape
+    for y in numba.prange(H):
+        kk = np.zeros(W, np.int64)
+        best = np.empty(W, np.float32)
+        nan = np.zeros(W, np.bool_)
+        for x in range(W):
+            best[x] = costs[0, y, x]
+            nan[x] = costs[0, y, x] != costs[0, y, x]
+        for d in range(1, D):
+            for x in range(W):
+                c = costs[d, y, x]
+                if nan[x]:
+                    continue
+                if c != c:
+                    nan[x] = True
+                    kk[x] = d
+                    best[x] = c
+                elif c < best[x]:
+                    best[x] = c
+                    kk[x] = d
+        for x in range(W):
+            k = kk[x]
+            c0 = np.float64(costs[k, y, x])
+            cm = np.float64(costs[max(k - 1, 0), y, x])
+            cp = np.float64(costs[min(k + 1, D - 1), y, x])
+            denom = cm - 2 * c0 + cp
+            offset = 0.0
+            if k > 0 and k < D - 1 and denom > 0:
+                offset = 0.5 * (cm - cp) / denom
+            if offset < -0.5:
+                offset = -0.5
+            elif offset > 0.5:
+                offset = 0.5
+            disparity[y, x] = np.float32(np.float64(candidates[k]) + offset * step)
+            best_out[y, x] = np.float32(c0)
+
+
+def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel arg-min of a ``(D, H, W)`` cost volume refined by a parabola: ``(disparity, cost
+    at the arg-min)``, ``(H, W)`` float32 each. The arg-min is the first least candidate (the first
+    NaN if any, as ``np.argmin``); the parabola through it and its two neighbours moves it by at
+    most half a step (not at the ends of the range, nor where the curve is not convex there).
+    Compiled twin of :func:`subpixel_argmin_reference` (the same float64 arithmetic, same maps)."""
+    costs = np.asarray(costs)
+    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3:
+        return subpixel_argmin_reference(costs, candidates)
+    D, H, W = costs.shape
+    candidates = np.asarray(candidates)
+    step = float(candidates[1] - candidates[0]) if D > 1 else 0.0
+    disparity = np.empty((H, W), np.float32)
+    best = np.empty((H, W), np.float32)
+    _subpixel_argmin_kernel(costs, np.ascontiguousarray(candidates, np.float64), step, disparity, best)
+    return disparity, best
