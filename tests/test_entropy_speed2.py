@@ -68,3 +68,20 @@ def test_min_window_cost_kernel_is_bit_identical_to_reference():
         ref = min_window_cost_reference(integrals, window_set, rects, counts, allowed)
         np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))
     assert np.isinf(ref[~allowed.any(axis=2)]).all()  # no window allowed: 1e300, inf in float32
+
+
+def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
+    import numba
+    from recon.entropy.matching import set_integrals, set_integrals_reference
+    rng = np.random.default_rng(2)
+    threads = numba.get_num_threads()
+    try:
+        for H in (1, 2, 3, 17):
+            blocks = rng.random((9, H, 13)).astype(np.float32)
+            for sets in (np.arange(11), np.array([0, 4, 9])):
+                ref = set_integrals_reference(blocks, sets)
+                for n in sorted({1, threads}):
+                    numba.set_num_threads(n)
+                    np.testing.assert_array_equal(set_integrals(blocks, sets), ref)
+    finally:
+        numba.set_num_threads(threads)

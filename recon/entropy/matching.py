@@ -233,38 +233,62 @@ FIXED_INV = 1.0 / FIXED_POINT
 
 
 @numba.njit(cache=True, parallel=True)
-def _set_integrals_kernel(blocks_ad, set_blocks, out):
+def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
     # out[s] = summed-area table of round(FIXED_POINT * sum of blocks_ad over the blocks of set s),
     # int64, zero first row/column; set_blocks[s] lists those blocks ascending (-1 padded) and
-    # they are added in that order. Rows in parallel: each block value is read once for all sets
-    # and each row's running sums are written; then each set's rows are accumulated downwards.
+    # they are added in that order (float64, from 0.0). The rows are cut into n_bands bands (one
+    # per thread); within a band, row by row and set by set, the set's row is added up along x
+    # (vectorisable), rounded, summed along x and onto the row above while it is in cache; then the
+    # bands below the first get the total of the bands above them added (integers: the same table
+    # whatever the banding).
     S = set_blocks.shape[0]
     B, H, W = blocks_ad.shape
-    for y in numba.prange(H):
-        acc = np.zeros(S, np.int64)
-        vals = np.empty(B, np.float64)
-        for s in range(S):
-            out[s, y + 1, 0] = 0
-        for x in range(W):
-            for b in range(B):
-                vals[b] = blocks_ad[b, y, x]
+    for s in range(S):
+        for x in range(W + 1):
+            out[s, 0, x] = 0
+    for band in numba.prange(n_bands):
+        y0 = band * H // n_bands
+        y1 = (band + 1) * H // n_bands
+        v = np.empty(W, np.float64)
+        for y in range(y0, y1):
             for s in range(S):
-                v = 0.0
+                for x in range(W):
+                    v[x] = 0.0
                 for t in range(set_blocks.shape[1]):
                     b = set_blocks[s, t]
                     if b < 0:
                         break
-                    v += vals[b]
-                acc[s] += np.int64(np.floor(v * FIXED_POINT + 0.5))
-                out[s, y + 1, x + 1] = acc[s]
-    for s in numba.prange(S):
-        for x in range(W + 1):
-            out[s, 0, x] = 0
-        for y in range(1, H + 1):
-            prev = out[s, y - 1]
-            cur = out[s, y]
-            for x in range(W + 1):
-                cur[x] += prev[x]
+                    row_b = blocks_ad[b, y]
+                    for x in range(W):
+                        v[x] += row_b[x]
+                cur = out[s, y + 1]
+                cur[0] = 0
+                acc = np.int64(0)
+                if y > y0:
+                    prev = out[s, y]
+                    for x in range(W):
+                        acc += np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+                        cur[x + 1] = acc + prev[x + 1]
+                else:
+                    for x in range(W):
+                        acc += np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+                        cur[x + 1] = acc
+    if n_bands > 1:
+        carry = np.zeros((n_bands, S, W + 1), np.int64)  # total of the bands above each band
+        for band in range(1, n_bands):
+            last = band * H // n_bands  # table row of the last image row of the band above
+            for s in range(S):
+                for x in range(W + 1):
+                    carry[band, s, x] = carry[band - 1, s, x] + out[s, last, x]
+        for band in numba.prange(1, n_bands):
+            y0 = band * H // n_bands
+            y1 = (band + 1) * H // n_bands
+            for s in range(S):
+                c = carry[band, s]
+                for y in range(y0 + 1, y1 + 1):
+                    row = out[s, y]
+                    for x in range(W + 1):
+                        row[x] += c[x]
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -276,6 +300,20 @@ def _set_block_lists(sets: np.ndarray) -> np.ndarray:
     return table
 
 
+def set_integrals_reference(blocks_ad: np.ndarray, sets: np.ndarray) -> np.ndarray:
+    """Reference of :func:`set_integrals`: each set's image (its blocks added in ascending order,
+    float64), rounded to ``1 / FIXED_POINT`` and summed into an int64 table."""
+    _, H, W = blocks_ad.shape
+    out = np.zeros((len(sets), H + 1, W + 1), np.int64)
+    for i, members in enumerate(_set_block_lists(np.asarray(sets))):
+        v = np.zeros((H, W), np.float64)
+        for b in members[members >= 0]:
+            v += blocks_ad[b]
+        fixed = np.floor(v * FIXED_POINT + 0.5).astype(np.int64)
+        out[i, 1:, 1:] = np.cumsum(np.cumsum(fixed, axis=0), axis=1)
+    return out
+
+
 def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
                   out: np.ndarray | None = None) -> np.ndarray:
     """``(S, H + 1, W + 1)`` int64 summed-area tables of the view-set images ``sets`` (0..8), in
@@ -283,7 +321,8 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
     _, H, W = blocks_ad.shape
     if out is None:
         out = np.empty((len(sets), H + 1, W + 1), np.int64)
-    _set_integrals_kernel(blocks_ad, _set_block_lists(np.asarray(sets)), out)
+    n_bands = max(1, min(numba.get_num_threads(), H))
+    _set_integrals_kernel(blocks_ad, _set_block_lists(np.asarray(sets)), n_bands, out)
     return out
 
 
