@@ -35,8 +35,8 @@ outside). ``lfrig export`` leaves out pixels below ``recon.export.MIN_CONFIDENCE
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
+from recon.entropy.median import median_filter_nearest
 from recon.entropy.refine import harmonic_fill
 
 
@@ -75,8 +75,8 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     width = np.maximum(np.asarray(ambiguity, np.float64) - 1, 0) * step
     valley = np.exp(-width / valley_px)
     agree = np.exp(-np.abs(refined - matched) / change_px)
-    median = ndimage.median_filter(np.where(finite, refined, np.nanmedian(refined) if finite.any() else 0.0),
-                                   size=5, mode="nearest")
+    median = median_filter_nearest(np.where(finite, refined, np.nanmedian(refined) if finite.any() else 0.0),
+                                   size=5)
     neighbours = np.exp(-np.abs(refined - median) / change_px)
     lo, hi = disparity_range
     on_end = (np.abs(matched - lo) < 0.5 * step) | (np.abs(matched - hi) < 0.5 * step)

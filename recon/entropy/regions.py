@@ -32,6 +32,7 @@ from scipy import ndimage
 
 from recon.entropy.initial import initial_view_mask
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
+from recon.entropy.median import median_filter_nearest
 
 
 def layer_map(d0: np.ndarray, *, median_size: int, keep: np.ndarray | None = None) -> np.ndarray:
@@ -42,13 +43,13 @@ def layer_map(d0: np.ndarray, *, median_size: int, keep: np.ndarray | None = Non
     if median_size <= 1:
         return d0.astype(np.float32)
     d0 = d0.astype(np.float32)
-    smooth = ndimage.median_filter(d0, size=median_size, mode="nearest")
+    smooth = median_filter_nearest(d0, size=median_size)
     if keep is None:
         return smooth
     # Only a pixel that lies on a line of like values (a row or a column of three) is kept: a
     # one-pixel slit survives, an isolated outlier does not.
-    row = ndimage.median_filter(d0, size=(1, 3), mode="nearest")
-    col = ndimage.median_filter(d0, size=(3, 1), mode="nearest")
+    row = median_filter_nearest(d0, size=(1, 3))
+    col = median_filter_nearest(d0, size=(3, 1))
     tol = 0.1
     on_line = (np.abs(d0 - row) <= tol) | (np.abs(d0 - col) <= tol)
     return np.where(keep & on_line, d0, smooth)

@@ -138,6 +138,8 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     the matching, noisier."""
     from scipy import ndimage
 
+    from recon.entropy.median import median_filter_nearest
+
     sizes = tuple(sorted(int(s) for s in sizes))
     m = np.asarray(layers, np.float64)
     ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
@@ -146,10 +148,10 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     tol = np.full(m.shape, float(tolerance))
     if noise_factor > 0 and initial is not None:
         d0 = np.asarray(initial, np.float32)
-        wander = np.abs(d0 - ndimage.median_filter(d0, 3, mode="nearest"))
+        wander = np.abs(d0 - median_filter_nearest(d0, size=3))
         footprint = np.zeros((sizes[-1], sizes[-1]), bool)
         footprint[::3, ::3] = True
-        local = 1.4826 * ndimage.median_filter(wander, footprint=footprint, mode="nearest")
+        local = 1.4826 * median_filter_nearest(wander, footprint=footprint)
         tol = np.maximum(tol, noise_factor * local)
     cap = np.full(m.shape, sizes[0], np.int64)
     allowed = np.ones(m.shape, bool)
