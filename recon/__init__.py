@@ -6,3 +6,9 @@ import os
 # too old, and numba then warns and falls back). Prefer OpenMP, then numba's own work queue; a user's
 # explicit NUMBA_THREADING_LAYER(_PRIORITY) still wins. numba reads this when it is first imported.
 os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
+# OpenMP threads that wait for work sleep instead of spinning (libgomp's default spins first): on a
+# shared machine a spinning thread holds a core the other thread of the same parallel region needs,
+# and every region then waits for a time slice. Backgammon, 2 threads, load 2-3: the estimate took
+# 12.6 s with spinning and 5.7 s without (docs/entropy-method.md, "Threads that sleep"). Read by
+# libgomp when numba first loads it; a user's explicit OMP_WAIT_POLICY still wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
