@@ -79,27 +79,32 @@ def range_from_initial(d0: np.ndarray, *, percentile: float, margin: float,
 
     ``[P(percentile) - margin, P(100 - percentile) + margin]`` of the initial disparity, clipped to
     ``limits`` (the range the initial search covered). With ``grid_shape`` ``(U, V)`` the
-    percentiles leave out the border that the farthest views, shifted by up to ``limits``, sample
-    outside the image (:func:`interior`): edge pixels repeated there match at odd disparities.
+    percentiles leave out the pixels whose own disparity makes the farthest views sample outside
+    the image (:func:`interior`): edge pixels repeated there match at odd disparities.
     With ``sure`` (``(H, W)`` bool) only those pixels count, when they are at least a tenth of the
     image: a textureless structure matches at any disparity (:func:`sure_pixels`).
     """
     if sure is not None and np.count_nonzero(sure) >= 0.1 * sure.size:
         d0 = np.where(sure, d0, np.nan)
-    d0 = interior(d0, limits=limits, grid_shape=grid_shape) if grid_shape is not None else d0[np.isfinite(d0)]
+    d0 = interior(d0, grid_shape=grid_shape) if grid_shape is not None else d0[np.isfinite(d0)]
     lo, hi = np.percentile(d0, [percentile, 100.0 - percentile])
     return float(max(lo - margin, limits[0])), float(min(hi + margin, limits[1]))
 
 
-def interior(d: np.ndarray, *, limits: tuple[float, float], grid_shape: tuple[int, int]) -> np.ndarray:
-    """The finite values of ``(H, W)`` ``d`` away from the border that views up to
-    ``max(|limits|) * (grid radius)`` pixels away sample outside the image (all of ``d`` if that
-    border would leave less than a quarter of each side)."""
-    reach = int(np.ceil(max(abs(limits[0]), abs(limits[1])) * (max(grid_shape) // 2)))
+def interior(d: np.ndarray, *, grid_shape: tuple[int, int]) -> np.ndarray:
+    """The finite values of ``(H, W)`` ``d`` whose pixel every view sees inside the image: at a
+    disparity ``d`` the farthest views (``grid radius`` steps away) sample ``radius * |d|`` pixels
+    off, and a pixel whose samples leave the image matched against repeated edge pixels (all finite
+    values if that leaves fewer than a tenth of them)."""
     H, W = d.shape
-    if H - 2 * reach >= H // 4 and W - 2 * reach >= W // 4 and reach > 0:
-        d = d[reach:H - reach, reach:W - reach]
-    return d[np.isfinite(d)]
+    radius = max(grid_shape) // 2
+    yy, xx = np.mgrid[0:H, 0:W]
+    reach = radius * np.abs(d)
+    with np.errstate(invalid="ignore"):
+        inside = ((yy >= reach) & (yy <= H - 1 - reach) & (xx >= reach) & (xx <= W - 1 - reach))
+    finite = np.isfinite(d)
+    keep = inside & finite
+    return d[keep] if np.count_nonzero(keep) >= 0.1 * np.count_nonzero(finite) else d[finite]
 
 
 def downsample_views(gray: np.ndarray, factor: int) -> np.ndarray:

@@ -86,6 +86,19 @@ def tv_energy(mu: np.ndarray, data: np.ndarray, mask: np.ndarray, gamma: float) 
     return float(np.sum(((mu - data) ** 2)[mask]) + gamma * np.sum(np.sqrt(gy ** 2 + gx ** 2)))
 
 
+def _tv_problem(disparity: np.ndarray, mask: np.ndarray, holes: np.ndarray | None):
+    """Eq. 13's inputs with black holes: ``(start, mask, data weight)``; holes join the mask with
+    weight 0 and start from :func:`harmonic_fill`."""
+    mask = np.asarray(mask, bool)
+    weight = np.ones(mask.shape)
+    if holes is not None and np.any(holes):
+        holes = np.asarray(holes, bool)
+        disparity = harmonic_fill(disparity, holes)
+        mask = mask | holes
+        weight[holes] = 0.0
+    return disparity, mask, weight
+
+
 def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
               iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value (readable numpy
@@ -109,13 +122,7 @@ def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float
     -------
     ``(H, W)`` float32 refined disparity ``mu``.
     """
-    mask = np.asarray(mask, bool)
-    weight = np.ones(mask.shape)
-    if holes is not None and np.any(holes):
-        holes = np.asarray(holes, bool)
-        disparity = harmonic_fill(disparity, holes)
-        mask = mask | holes
-        weight[holes] = 0.0
+    disparity, mask, weight = _tv_problem(disparity, mask, holes)
     f = disparity.astype(np.float64)
     if gamma <= 0 or not mask.any() or iterations <= 0:
         return disparity.astype(np.float32)
@@ -185,36 +192,12 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
               iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
 
-    Compiled twin of :func:`tv_refine_reference` (same parameters and result; Chambolle-Pock in
+    Compiled twin of :func:`tv_refine_reference`: the same parameters and result (Chambolle-Pock in
     two sweeps per iteration instead of 300 rounds of whole-array numpy operations).
-
-    Parameters
-    ----------
-    disparity
-        ``(H, W)`` disparity ``d*`` from the matching, pixels per view step.
-    mask
-        ``(H, W)`` bool, the smooth region.
-    gamma
-        TV weight (the paper's 0.2).
-    iterations
-        Primal-dual iterations.
-    holes
-        ``(H, W)`` bool, optional: pixels (inside or outside ``mask``) whose data term is dropped,
-        filled from their surroundings; started from :func:`harmonic_fill`.
-
-    Returns
-    -------
-    ``(H, W)`` float32 refined disparity ``mu``.
     """
     if min(np.shape(disparity)) < 2:
         return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes)
-    mask = np.asarray(mask, bool)
-    weight = np.ones(mask.shape)
-    if holes is not None and np.any(holes):
-        holes = np.asarray(holes, bool)
-        disparity = harmonic_fill(disparity, holes)
-        mask = mask | holes
-        weight[holes] = 0.0
+    disparity, mask, weight = _tv_problem(disparity, mask, holes)
     f = np.ascontiguousarray(disparity, dtype=np.float64)
     if gamma <= 0 or not mask.any() or iterations <= 0:
         return disparity.astype(np.float32)
