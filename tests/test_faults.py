@@ -182,6 +182,21 @@ def visible_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts))
 
 
+def restore_and_check(previous: Path, out: Path):
+    """``(reset, check)`` for :func:`sweep`: ``reset()`` puts a copy of the complete ``previous``
+    folder at ``out``; ``check(where)`` asserts that every visible file under ``out`` is whole."""
+
+    def reset():
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(previous, out)
+
+    def check(where):
+        for file in visible_files(out):
+            file_is_complete(file)
+
+    return reset, check
+
+
 def check_capture_folder(folder: Path, where: str) -> None:
     """A capture after a fault: its files are whole, its journal undamaged; complete only if it is."""
     for file in visible_files(folder):
@@ -242,15 +257,13 @@ def test_reconstruct_survives_a_kill_or_full_disk_at_every_write(tmp_path, runne
     args = ["reconstruct", FIXTURES / "tiny_capture", "-o", out, "--method", "baseline", "--window", "5", "--quiet",
             "--ply", out / "model.ply"]
 
-    def reset():  # a complete previous result (other options) is in the folder when the fault comes
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.copytree(previous, out)
+    # a complete previous result (other options) is in the folder when the fault comes
+    reset, every_file_complete = restore_and_check(previous, out)
 
     def check(where):
         from recon.result import read_result
 
-        for file in visible_files(out):
-            file_is_complete(file)
+        every_file_complete(where)
         if (out / "result.json").exists():
             record = json.loads((out / "result.json").read_text())
             read_result(out)
@@ -277,13 +290,7 @@ def test_export_survives_a_kill_or_full_disk_at_every_write(tmp_path, runner):
                  "--depth", previous / "depth.pfm", "--depth", previous / "depth.npy",
                  "--report", previous / "report"]) == 0
 
-    def reset():
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.copytree(previous, out)
-
-    def check(where):
-        for file in visible_files(out):
-            file_is_complete(file)
+    reset, check = restore_and_check(previous, out)
 
     def compare():
         return sorted((p.relative_to(out).as_posix(), hashlib.sha256(p.read_bytes()).hexdigest())
@@ -345,13 +352,7 @@ def test_calibrate_survives_a_kill_or_full_disk_at_every_write(tmp_path, runner)
     _stage(0.4).save(previous / "stage.json")
     shutil.copy(board, previous / "cam.residuals.png")
 
-    def reset():
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.copytree(previous, out)
-
-    def check(where):
-        for file in visible_files(out):
-            file_is_complete(file)
+    reset, check = restore_and_check(previous, out)
 
     def compare():
         return sorted((p.name, hashlib.sha256(p.read_bytes()).hexdigest()) for p in visible_files(out)
