@@ -105,6 +105,17 @@ def check_capture(path: Path, spec: GridSpec) -> None:
     assert json.loads(lines[-1])["kind"] == "complete"
 
 
+def ctrl_c_twice_at(view: int):
+    """A camera trigger hook that presses Ctrl-C twice (two SIGINTs) at trigger number ``view``."""
+
+    def on_trigger(n):
+        if n == view:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    return on_trigger
+
+
 def test_full_81_view_session_on_virtual_clock(rig, tmp_path):
     clock, controller, url = rig
     spec = GridSpec(centre_mm=CENTRE)
@@ -196,12 +207,7 @@ def test_second_sigint_sends_feed_hold_and_reset(rig, tmp_path):
     clock, controller, url = rig
     spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
 
-    def on_trigger(n):
-        if n == 3:
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)
-
-    camera = PositionCamera(controller, on_trigger=on_trigger)
+    camera = PositionCamera(controller, on_trigger=ctrl_c_twice_at(3))
     with open_stage(url, clock) as stage:
         before = len(controller.rx_log)
         with pytest.raises(CaptureInterrupted, match="second Ctrl-C"):
@@ -305,12 +311,7 @@ def test_third_sigint_while_stopping_does_not_abort_the_stop(rig, tmp_path, caps
     clock, controller, url = rig
     spec = GridSpec(rows=3, cols=4, centre_mm=CENTRE)
 
-    def on_trigger(n):
-        if n == 3:
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)
-
-    camera = PositionCamera(controller, on_trigger=on_trigger)
+    camera = PositionCamera(controller, on_trigger=ctrl_c_twice_at(3))
     with open_stage(url, clock) as stage:
         original_stop = stage.stop
 
