@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lf.imageio import (fault_point, read_images, remove_stale_temporaries, write_bytes_atomic, write_error,
+from recon.lf.imageio import (fault_point, read_bytes, read_images, remove_stale_temporaries, write_bytes_atomic, write_error,
                              write_png)
 from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
@@ -62,12 +62,8 @@ def _journal_lines(manifest: Path) -> tuple[list[tuple[int, str]], int]:
     """The lines of a journal with their line numbers, and the byte offset where the last complete
     line ends. A torn tail (a crash or a full disk mid-append: bytes without a final newline, or a
     last line that is not JSON, e.g. the zeros a crash can leave) is left out of both."""
-    try:
-        data = manifest.read_bytes()
-    except FileNotFoundError:
-        raise CaptureLayoutError(f"{manifest}: no such file; {manifest.parent} is not an lfrig capture") from None
-    except OSError as error:
-        raise CaptureLayoutError(f"{manifest}: cannot read ({error.strerror})") from None
+    data = read_bytes(manifest, error=CaptureLayoutError,
+                      missing=f"no such file; {manifest.parent} is not an lfrig capture")
     end = data.rfind(b"\n") + 1  # bytes after the last newline are a torn append
     raw = data[:end].split(b"\n")[:-1] if end else []
     if raw:

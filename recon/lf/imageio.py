@@ -76,6 +76,18 @@ _quiet_depth = 0
 _quiet_saved = [0]
 
 
+def read_bytes(path: str | os.PathLike, *, error: type[LightFieldFormatError] = LightFieldFormatError,
+               missing: str = "no such file") -> bytes:
+    """The whole file, or ``error`` naming ``path``: ``"{path}: {missing}"`` when it does not exist,
+    ``"{path}: cannot read (reason)"`` when the system refuses."""
+    try:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise error(f"{path}: {missing}") from None
+    except OSError as err:
+        raise error(f"{path}: cannot read ({err.strerror})") from None
+
+
 def read_image(path: Path) -> np.ndarray:
     """Read one image as ``(H, W)`` or ``(H, W, 3)`` RGB in its stored dtype (alpha is dropped).
 
@@ -85,12 +97,7 @@ def read_image(path: Path) -> np.ndarray:
         Naming the file: missing, unreadable, a damaged PNG (checked by :func:`png_problem` before
         decoding), or not an image OpenCV can decode.
     """
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except FileNotFoundError:
-        raise LightFieldFormatError(f"{path}: no such file") from None
-    except OSError as error:
-        raise LightFieldFormatError(f"{path}: cannot read ({error.strerror})") from None
+    data = np.frombuffer(read_bytes(path), dtype=np.uint8)
     if data[:8].tobytes() == PNG_SIGNATURE:
         problem = png_problem(data.tobytes())
         if problem:

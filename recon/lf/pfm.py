@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import LightFieldFormatError
+from recon.lf.imageio import read_bytes
 
 
 def read_pfm(path: str | os.PathLike) -> np.ndarray:
@@ -30,12 +31,7 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
         When the file is missing, the header is not PFM, or the data is shorter than the header says.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise LightFieldFormatError(f"{path}: no such file") from None
-    except OSError as error:
-        raise LightFieldFormatError(f"{path}: cannot read ({error.strerror})") from None
+    data = read_bytes(path)
     # The header is three whitespace-separated tokens lines; tolerate comments-free variants that put
     # width and height on separate lines by tokenising the first bytes.
     tokens: list[bytes] = []
