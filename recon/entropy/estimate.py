@@ -448,7 +448,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                   tolerance=opts.smooth_tolerance, sigma=noise_sigma)
     noise = flat_info["noise_sigma"]
     raw_gray = gray
-    hole_delta = max(opts.hole_delta, opts.hole_delta_noise * noise * opts.intensity_scale)
+    hole_delta = hole_tolerance(opts, noise)
     known = opts.disparity_range or lf.disparity_range
     initial_rng = known if known is not None else opts.initial_range
     if known is not None:  # search a little beyond a known range: edges of the range are refined
@@ -599,12 +599,19 @@ def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: En
     return out
 
 
+def hole_tolerance(options: EntropyOptions, noise_sigma: float) -> float:
+    """How far above a cost curve's least value a candidate still counts as part of its valley, in
+    the cost's units (``intensity_scale``): ``hole_delta``, or ``hole_delta_noise`` times the
+    noise sigma (``[0, 1]`` grey units) if that is larger."""
+    return max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
+
+
 def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: float
                   ) -> tuple[float, float]:
     """The range the initial search covers when nobody gave one: :func:`initial.discover_range`
     over ``options.initial_range`` with the estimator's own window, step, percentiles and hole
     tolerance (``noise_sigma`` of the centre view in ``[0, 1]`` grey units)."""
-    hole_delta = max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
+    hole_delta = hole_tolerance(options, noise_sigma)
     return discover_range(gray, search_range=options.initial_range, step=options.initial_step,
                           window=options.initial_window, percentile=options.range_percentile,
                           margin=options.range_margin, shiftable=options.initial_shiftable,
