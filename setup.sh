@@ -97,4 +97,10 @@ fi
 # --- the locked environment ----------------------------------------------------------------------
 export UV_PYTHON_DOWNLOADS=never
 "$UV" sync --frozen $SYNC_EXTRAS --python "$PYTHON" --quiet || die "uv sync failed (see above)"
+# uv installs no bytecode, and Python only writes it on import when PYTHONDONTWRITEBYTECODE is
+# unset: without it every process compiles the ~500 modules numpy/numba/scipy import from source,
+# ~1 s of CPU before any work (backgammon, docs/entropy-method.md "Speed, session 4"). Compile
+# once here; compileall skips files whose bytecode is current (~0.4 s when nothing changed).
+.venv/bin/python -m compileall -qq "$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
+  >/dev/null || say "warning: some installed modules did not compile to bytecode (imports are slower, nothing else)"
 say "environment ready: .venv/bin/lfrig"
