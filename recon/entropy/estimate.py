@@ -588,12 +588,12 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
 def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
                     n_sizes: int) -> np.ndarray:
     """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
-    offered), made a few rows at a time (a float64 temporary of the whole volume was once the
-    largest allocation of the run), with ``flat_windows="largest"`` applied."""
-    out = np.empty(all_entropy.shape, np.float32)
-    for y in range(0, all_entropy.shape[0], 64):
-        e = all_entropy[y:y + 64]
-        out[y:y + 64] = np.where(np.isfinite(e), -opts.lambda_entropy * e, np.inf)
+    offered), with ``flat_windows="largest"`` applied. The float32 product of ``E`` and ``-lambda``
+    (what numpy makes of ``-lambda * E``) in one pass, without a float temporary of the volume (a
+    float64 one was once the run's largest allocation; a masked ``np.where`` by rows took 0.25 s)."""
+    with np.errstate(invalid="ignore"):  # lambda = 0 times -inf: NaN, set to inf below
+        out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
+    out[~np.isfinite(all_entropy)] = np.inf
     if opts.flat_windows == "largest":
         out = _largest_windows_only(out, noise_limited, n_sizes)
     return out

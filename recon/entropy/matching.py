@@ -555,31 +555,54 @@ def row_order(H: int) -> np.ndarray:
     return np.concatenate([np.arange(t, H, T) for t in range(T)]).astype(np.int64)
 
 
-@numba.njit(cache=True)
-def _compact_penalty_kernel(flat, starts, ks, pens):
-    n = 0
-    for p in range(flat.shape[0]):
-        starts[p] = n
-        for k in range(flat.shape[1]):
-            v = flat[p, k]
-            if np.isfinite(v):
-                ks[n] = k
-                pens[n] = v
-                n += 1
-    starts[flat.shape[0]] = n
+@numba.njit(cache=True, parallel=True)
+def _compact_penalty_kernel(penalty):
+    # Two row-parallel passes: count each row's finite entries, then (rows offset by the counts
+    # above) copy them out in row-major order, windows ascending: the same lists as one serial
+    # pass, on every core (a serial pass took 0.2 s of the run on backgammon).
+    H, W, K = penalty.shape
+    row_n = np.zeros(H + 1, np.int64)
+    for y in numba.prange(H):
+        n = 0
+        for x in range(W):
+            for k in range(K):
+                if np.isfinite(penalty[y, x, k]):
+                    n += 1
+        row_n[y + 1] = n
+    for y in range(H):
+        row_n[y + 1] += row_n[y]
+    starts = np.empty(H * W + 1, np.int64)
+    ks = np.empty(row_n[H], np.int32)
+    pens = np.empty(row_n[H], np.float32)
+    for y in numba.prange(H):
+        n = row_n[y]
+        for x in range(W):
+            starts[y * W + x] = n
+            for k in range(K):
+                v = penalty[y, x, k]
+                if np.isfinite(v):
+                    ks[n] = k
+                    pens[n] = v
+                    n += 1
+    starts[H * W] = row_n[H]
+    return starts, ks, pens
+
+
+def _compact_penalty_reference(penalty: np.ndarray):
+    """Readable twin of :func:`_compact_penalty` (the same three arrays)."""
+    H, W, K = penalty.shape
+    flat = np.asarray(penalty, np.float32).reshape(H * W, K)
+    finite = np.isfinite(flat)
+    starts = np.concatenate([[0], np.cumsum(finite.sum(axis=1))]).astype(np.int64)
+    p, k = np.nonzero(finite)  # row-major: pixels in order, windows ascending within a pixel
+    return starts, k.astype(np.int32), flat[p, k]
 
 
 def _compact_penalty(penalty: np.ndarray):
     """``(starts, ks, pens)``: the finite entries of ``(H, W, K)`` ``penalty`` per pixel, row-major
-    (windows ascending); ``ks`` int32, ``pens`` float32 (the kernel adds them in float64, exactly)."""
-    H, W, K = penalty.shape
-    flat = np.ascontiguousarray(penalty, dtype=np.float32).reshape(H * W, K)
-    n = int(np.count_nonzero(np.isfinite(flat)))
-    starts = np.empty(H * W + 1, np.int64)
-    ks = np.empty(n, np.int32)
-    pens = np.empty(n, np.float32)
-    _compact_penalty_kernel(flat, starts, ks, pens)
-    return starts, ks, pens
+    (windows ascending); ``ks`` int32, ``pens`` float32 (the kernel adds them in float64, exactly).
+    Pixel ``p = y * W + x`` has ``ks[starts[p]:starts[p + 1]]``."""
+    return _compact_penalty_kernel(np.ascontiguousarray(penalty, dtype=np.float32))
 
 
 def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
