@@ -53,3 +53,72 @@ def test_search_penalty_is_the_masked_float32_product():
         got = _search_penalty(entropy, nothing_flat, opts, 7)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
+
+
+def _joint_inputs(rng, H, W, sizes=(3, 5, 15)):
+    from recon.entropy.matching import set_view_counts
+    from recon.entropy.windows import N_SHAPES, window_rect
+    windows = [(s, z) for s in range(N_SHAPES) for z in sizes]
+    rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
+    shapes = np.array([s for s, _ in windows], np.int64)
+    penalty = rng.normal(0, 1, (H, W, len(windows))).astype(np.float32)
+    penalty = np.round(penalty * 4) / 4  # coarse: exact ties between windows happen
+    penalty[rng.random(penalty.shape) < 0.5] = np.inf
+    penalty[..., 0] = np.where(rng.random((H, W)) < 0.9, 0.0, np.inf)  # the square mostly offered
+    penalty[:, :, len(sizes):][:, W // 3] = np.inf  # a column offering squares only
+    penalty[H // 2] = np.inf  # a row offering one window only
+    penalty[H // 2, :, 1] = -0.25
+    occluded = rng.random((H, W)) < 0.3
+    occluded[:, -3:] = True  # a run of occluded pixels at the right edge
+    counts = set_view_counts((9, 9)).astype(np.float64)
+    return windows, rects, shapes, penalty, occluded, counts
+
+
+def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
+    from recon.entropy.matching import (_joint_cost_kernel, _joint_cost_pixelwise, block_abs_diff_fast,
+                                        row_order, set_integrals, window_major_penalty)
+    rng = np.random.default_rng(13)
+    for H, W in ((21, 33), (6, 9)):  # (6, 9): the 15-px windows wider than the image
+        gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8
+        windows, rects, shapes, penalty, occluded, counts = _joint_inputs(rng, H, W)
+        starts, ks, pens = _compact_penalty(penalty)
+        dense, spans = window_major_penalty(penalty, occluded, shapes)
+        order = row_order(H)
+        state = {}
+        for name in ("pixelwise", "window-major"):
+            least = np.full((H, W), np.inf, np.float32)
+            best_k = np.full((H, W), -1, np.int64)
+            outs = []
+            for d in (-0.7, 0.0, 0.35, 1.1):
+                blocks = block_abs_diff_fast(gray, d)
+                integrals = set_integrals(blocks, np.arange(11))
+                out = np.empty((H, W), np.float32)
+                if name == "pixelwise":
+                    _joint_cost_pixelwise(integrals, occluded, rects, shapes, counts, starts, ks, pens,
+                                          255.0, order, out, least, best_k)
+                else:
+                    _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, spans,
+                                       255.0, order, out, least, best_k)
+                outs.append(out)
+            state[name] = (np.stack(outs), least, best_k)
+        for a, b in zip(state["pixelwise"], state["window-major"]):
+            np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
+        assert (state["window-major"][2] >= 0).all()
+
+
+def test_window_major_penalty_layout():
+    from recon.entropy.matching import window_major_penalty
+    rng = np.random.default_rng(17)
+    H, W = 9, 14
+    _, _, shapes, penalty, occluded, _ = _joint_inputs(rng, H, W)
+    penalty[0, 0, 3] = np.nan  # not finite: not offered
+    dense, spans = window_major_penalty(penalty, occluded, shapes)
+    finite = np.isfinite(penalty)
+    np.testing.assert_array_equal(dense, np.where(finite, penalty, np.inf).transpose(2, 0, 1))
+    for k, shape in enumerate(shapes):
+        for y in range(H):
+            for pas in (0, 1):
+                who = finite[y, :, k] & ((occluded[y] & (shape != 0)) == bool(pas))
+                xs = np.nonzero(who)[0]
+                lo, hi = spans[k, y, pas]
+                assert (lo, hi) == ((xs[0], xs[-1] + 1) if xs.size else (W, 0))

@@ -509,13 +509,14 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
 
 
 @numba.njit(cache=True, parallel=True)
-def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
-                       order, out, best, best_k):
-    # Each pixel's allowed windows are ks[starts[p]:starts[p + 1]] with penalties pens[...]
-    # (a compact list: far from edges only the squares are allowed). out = this candidate's
-    # objective; best/best_k = the least objective over the candidates so far and its window (the
-    # first candidate on ties, as np.argmin over the curve picks). Rows in the given order
-    # (:func:`row_order`).
+def _joint_cost_pixelwise(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
+                          order, out, best, best_k):
+    # The readable twin of _joint_cost_kernel (the same maps bit for bit; the search used it until
+    # issue #14's fourth session): pixel by pixel, each pixel's allowed windows
+    # ks[starts[p]:starts[p + 1]] with penalties pens[...] (:func:`_compact_penalty`) in ascending
+    # order, the first least objective kept. out = this candidate's objective; best/best_k = the
+    # least objective over the candidates so far and its window (the first candidate on ties, as
+    # np.argmin over the curve picks). Rows in the given order (:func:`row_order`).
     H = out.shape[0]
     W = out.shape[1]
     for jr in numba.prange(H):
@@ -543,6 +544,128 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, starts
             if c32 < best[y, x]:
                 best[y, x] = c32
                 best_k[y, x] = k_best
+
+
+@numba.njit(cache=True, inline="always")
+def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
+                      c_best, k_best):
+    # _joint_cost_kernel at a pixel whose window the image's left or right edge clips.
+    xa = max(x + ra, 0)
+    xb = min(x + rb, W - 1) + 1
+    total = (iyb[xb] - iya[xb] - iyb[xa] + iya[xa]) * FIXED_INV
+    c = scale * total / ((yb - ya) * (xb - xa) * cnt) + pen[x]
+    if (every or occluded[x] == want) and c < c_best[x]:
+        c_best[x] = c
+        k_best[x] = k
+
+
+@numba.njit(cache=True, parallel=True)
+def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, spans, scale,
+                       order, out, best, best_k):
+    # Window-major twin of _joint_cost_pixelwise (the same float64 arithmetic for every pixel and
+    # window, windows in ascending order, strict <: the same maps bit for bit). For one row and
+    # one window the four corners of every pixel's window lie on two rows of one integral table,
+    # contiguous in x: away from the image's left and right edges the loop over x vectorises (the
+    # slices index from 0, so that numba's negative-index wrap does not turn loads into gathers).
+    # penalty (K, H, W): inf where the window is not offered; spans (K, H, 2, 2): per window and
+    # row the columns [lo, hi) of the pixels that offer it, matched over all views (0; every pixel
+    # for a square) or over the window's visible set (1: occluded pixels, shaped windows).
+    K, H, W = penalty.shape
+    for jr in numba.prange(H):
+        y = order[jr]
+        c_best = np.full(W, 1e300)
+        k_best = np.full(W, -1, np.int64)
+        occluded = pixel_set[y]
+        for k in range(K):
+            ya = max(y + rects[k, 0], 0)
+            yb = min(y + rects[k, 1], H - 1) + 1
+            ra = rects[k, 2]
+            rb = rects[k, 3]
+            pen = penalty[k, y]
+            for pas in range(2):
+                x0 = spans[k, y, pas, 0]
+                x1 = spans[k, y, pas, 1]
+                if x0 >= x1:
+                    continue
+                s = window_shape[k] if pas == 1 else 0
+                every = window_shape[k] == 0  # a square: the same set for every pixel
+                want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
+                ii = integrals[s]
+                iya = ii[ya]
+                iyb = ii[yb]
+                cnt = counts[s]
+                lo = min(max(x0, -ra), x1)  # [lo, hi): the window's columns inside the image
+                hi = max(min(x1, W - 1 - rb), lo)
+                for x in range(x0, lo):  # left edge: the window clipped
+                    _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
+                                      want, occluded, c_best, k_best)
+                if hi > lo:
+                    n = hi - lo
+                    b1 = iyb[lo + rb + 1:hi + rb + 1]
+                    a1 = iya[lo + rb + 1:hi + rb + 1]
+                    b0 = iyb[lo + ra:hi + ra]
+                    a0 = iya[lo + ra:hi + ra]
+                    pn = pen[lo:hi]
+                    oc = occluded[lo:hi]
+                    cb = c_best[lo:hi]
+                    kb = k_best[lo:hi]
+                    denom = (yb - ya) * (rb - ra + 1) * cnt
+                    for i in range(n):
+                        total = (b1[i] - a1[i] - b0[i] + a0[i]) * FIXED_INV
+                        c = scale * total / denom + pn[i]
+                        better = (every | (oc[i] == want)) & (c < cb[i])
+                        cb[i] = c if better else cb[i]
+                        kb[i] = k if better else kb[i]
+                for x in range(hi, x1):  # right edge
+                    _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
+                                      want, occluded, c_best, k_best)
+        for x in range(W):
+            c32 = np.float32(c_best[x])
+            out[y, x] = c32
+            if c32 < best[y, x]:
+                best[y, x] = c32
+                best_k[y, x] = k_best[x]
+
+
+@numba.njit(cache=True, parallel=True)
+def _window_major_kernel(penalty, pixel_set, window_shape, out, spans):
+    # Row by row (a row of the (H, W, K) volume stays in cache), each window's row written along x.
+    H, W, K = penalty.shape
+    for y in numba.prange(H):
+        for k in range(K):
+            lo0, hi0, lo1, hi1 = W, 0, W, 0
+            shaped = window_shape[k] != 0
+            for x in range(W):
+                v = penalty[y, x, k]
+                if np.isfinite(v):
+                    out[k, y, x] = v
+                    if shaped and pixel_set[y, x]:
+                        lo1 = min(lo1, x)
+                        hi1 = x + 1
+                    else:
+                        lo0 = min(lo0, x)
+                        hi0 = x + 1
+                else:
+                    out[k, y, x] = np.inf
+            spans[k, y, 0, 0] = lo0
+            spans[k, y, 0, 1] = hi0
+            spans[k, y, 1, 0] = lo1
+            spans[k, y, 1, 1] = hi1
+
+
+def window_major_penalty(penalty: np.ndarray, use_shape_set: np.ndarray, window_shape: np.ndarray):
+    """The joint search's layout of its ``(H, W, K)`` penalty: ``(K, H, W)`` float32 (``inf`` where
+    the entry is not finite: window not offered) and ``(K, H, 2, 2)`` int32 spans, per window and
+    row the columns ``[lo, hi)`` of the pixels that offer the window and are matched over all views
+    (``[..., 0, :]``; for a square window, shape 0, every pixel that offers it) or, shaped windows
+    at ``use_shape_set`` pixels, over the window's visible set (``[..., 1, :]``); empty: ``lo >= hi``."""
+    H, W, K = penalty.shape
+    out = np.empty((K, H, W), np.float32)
+    spans = np.empty((K, H, 2, 2), np.int32)
+    _window_major_kernel(np.ascontiguousarray(penalty, dtype=np.float32),
+                         np.ascontiguousarray(use_shape_set, dtype=np.bool_),
+                         np.ascontiguousarray(window_shape, dtype=np.int64), out, spans)
+    return out, spans
 
 
 def row_order(H: int) -> np.ndarray:
@@ -650,8 +773,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     windows
         ``K`` pairs ``(shape, size)``.
     penalty
-        ``(H, W, K)`` float32 (compacted to the finite entries first; pass a temporary to let the
-        volume go before the search).
+        ``(H, W, K)`` float32 (laid out window by window first, :func:`window_major_penalty`; pass
+        a temporary to let the volume go before the search).
     use_shape_set
         ``(H, W)`` bool: match over the window shape's visible set (occluded pixels) instead of all
         views.
@@ -672,9 +795,9 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
     shapes = np.array([s for s, _ in windows], np.int64)
     gray = np.ascontiguousarray(gray, dtype=np.float32)
-    starts, ks, pens = _compact_penalty(penalty)
-    del penalty  # the (H, W, K) volume is freed here when the caller passed a temporary
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
+    penalty, spans = window_major_penalty(penalty, pixel_set, shapes)  # the caller's (H, W, K)
+    # volume is freed here when it passed a temporary
     buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
@@ -685,7 +808,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     for i, d in enumerate(candidates):
         block_abs_diff_fast(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, all_sets, out=integrals)
-        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, starts, ks, pens,
+        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty, spans,
                            float(intensity_scale), order, costs[i], least, window_index)
         if progress is not None:
             progress((i + 1) / len(candidates))
