@@ -122,3 +122,40 @@ def test_window_major_penalty_layout():
                 xs = np.nonzero(who)[0]
                 lo, hi = spans[k, y, pas]
                 assert (lo, hi) == ((xs[0], xs[-1] + 1) if xs.size else (W, 0))
+
+
+def _block_abs_diff_float32(gray, disparity, view_mask=None):
+    """The compiled kernel's float32 arithmetic, written out with numpy (rows first, then x with
+    one fraction per view; samples left and right of the image clamped to its first/last)."""
+    from recon.entropy.matching import N_BLOCKS, _view_lists
+    U, V, H, W = gray.shape
+    vu, vv, vdu, vdv, vblock = _view_lists((U, V), view_mask)
+    d = np.float32(disparity)
+    out = np.zeros((N_BLOCKS, H, W), np.float32)
+    for y in range(H):
+        centre = gray[U // 2, V // 2, y]
+        for k in range(len(vu)):
+            img = gray[vu[k], vv[k]]
+            sy = min(max(float(y) - float(vdu[k] * d), 0.0), H - 1.0)
+            y0 = max(min(int(np.floor(sy)), H - 2), 0)
+            fy = np.float32(sy - y0)
+            rv = (np.float32(1) - fy) * img[y0] + fy * img[min(y0 + 1, H - 1)]
+            base = -vdv[k] * d
+            fl = np.floor(base)
+            fx = base - fl
+            xs = np.arange(W) + int(fl)
+            inner = (np.float32(1) - fx) * rv[np.clip(xs, 0, W - 1)] + fx * rv[np.clip(xs + 1, 0, W - 1)]
+            s = np.where(xs < 0, rv[0], np.where(xs >= W - 1, rv[W - 1], inner))
+            out[vblock[k], y] += np.abs(centre - s)
+    return out
+
+
+def test_block_abs_diff_fast_is_bit_identical_to_its_float32_arithmetic():
+    from recon.entropy.initial import initial_view_mask
+    from recon.entropy.matching import block_abs_diff_fast
+    rng = np.random.default_rng(19)
+    gray = rng.random((9, 9, 7, 23)).astype(np.float32)
+    for d in (-3.7, -0.52, 0.0, 0.37, 1.0, 2.96, 13.3):  # 13.3: every outer view clamped whole
+        for mask in (None, initial_view_mask((9, 9))):
+            fast = block_abs_diff_fast(gray, d, view_mask=mask)
+            np.testing.assert_array_equal(fast.view(np.uint32), _block_abs_diff_float32(gray, d, mask).view(np.uint32))

@@ -125,15 +125,23 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
             gx = np.float32(1.0) - fx
             o = int(fl)
             row = acc[b]
-            for x in range(W):
-                xs = x + o
-                if xs < 0:
-                    s = rv[0]
-                elif xs >= W - 1:
-                    s = rv[W - 1]
-                else:
-                    s = gx * rv[xs] + fx * rv[xs + 1]
-                row[x] += abs(centre[x] - s)
+            # x + o < 0: the first sample; x + o >= W - 1: the last; between, interpolated. The
+            # middle run indexes slices from 0 (numba's negative-index wrap of rv[x + o] made every
+            # load a gather and kept the loop scalar).
+            lo = min(max(-o, 0), W)
+            hi = min(max(W - 1 - o, lo), W)
+            for x in range(lo):
+                row[x] += abs(centre[x] - rv[0])
+            n = hi - lo
+            if n > 0:
+                r0 = rv[lo + o:hi + o]
+                r1 = rv[lo + o + 1:hi + o + 1]
+                c = centre[lo:hi]
+                a = row[lo:hi]
+                for i in range(n):
+                    a[i] += abs(c[i] - (gx * r0[i] + fx * r1[i]))
+            for x in range(hi, W):
+                row[x] += abs(centre[x] - rv[W - 1])
         for bb in range(n_blocks):
             for x in range(W):
                 out[bb, y, x] = acc[bb, x]
