@@ -409,15 +409,42 @@ def _min_window_cost_kernel(integrals, window_set, rects, counts, allowed, out):
             top = ii[ya]
             bottom = ii[yb]
             ck = counts[k]
+            if not per_pixel and not allowed[0, 0, k]:
+                continue
+            ra = rects[k, 2]
+            rb = rects[k, 3]
+            # [lo, hi): the window's columns inside the image; there the loop indexes slices from
+            # 0 and vectorises (numba's negative-index wrap of top[x + ra] made loads gathers)
+            lo = min(max(-ra, 0), W)
+            hi = min(max(W - 1 - rb, lo), W)
             for x in range(W):
-                if not (allowed[y, x, k] if per_pixel else allowed[0, 0, k]):
+                if lo <= x < hi:
                     continue
-                xa = max(x + rects[k, 2], 0)
-                xb = min(x + rects[k, 3], W - 1) + 1
+                if per_pixel and not allowed[y, x, k]:
+                    continue
+                xa = max(x + ra, 0)
+                xb = min(x + rb, W - 1) + 1
                 total = (bottom[xb] - top[xb] - bottom[xa] + top[xa]) * FIXED_INV
                 c = total / ((yb - ya) * (xb - xa) * ck)
                 if c < best[x]:
                     best[x] = c
+            n = hi - lo
+            if n > 0:
+                b1 = bottom[lo + rb + 1:hi + rb + 1]
+                t1 = top[lo + rb + 1:hi + rb + 1]
+                b0 = bottom[lo + ra:hi + ra]
+                t0 = top[lo + ra:hi + ra]
+                bs = best[lo:hi]
+                denom = (yb - ya) * (rb - ra + 1) * ck
+                if per_pixel:
+                    al = allowed[y, lo:hi, k]
+                    for i in range(n):
+                        c = (b1[i] - t1[i] - b0[i] + t0[i]) * FIXED_INV / denom
+                        bs[i] = c if al[i] and c < bs[i] else bs[i]
+                else:
+                    for i in range(n):
+                        c = (b1[i] - t1[i] - b0[i] + t0[i]) * FIXED_INV / denom
+                        bs[i] = c if c < bs[i] else bs[i]
         for x in range(W):
             out[y, x] = best[x]
 
