@@ -258,6 +258,7 @@ def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
         v = np.empty(W, np.float64)
+        fixed = np.empty(W, np.int64)
         for y in range(y0, y1):
             for s in range(S):
                 for x in range(W):
@@ -269,17 +270,19 @@ def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
                     row_b = blocks_ad[b, y]
                     for x in range(W):
                         v[x] += row_b[x]
+                for x in range(W):  # rounded apart from the running sum: this loop vectorises
+                    fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
                 cur = out[s, y + 1]
                 cur[0] = 0
                 acc = np.int64(0)
                 if y > y0:
                     prev = out[s, y]
                     for x in range(W):
-                        acc += np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+                        acc += fixed[x]
                         cur[x + 1] = acc + prev[x + 1]
                 else:
                     for x in range(W):
-                        acc += np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+                        acc += fixed[x]
                         cur[x + 1] = acc
     if n_bands > 1:
         carry = np.zeros((n_bands, S, W + 1), np.int64)  # total of the bands above each band
