@@ -68,6 +68,8 @@ def _joint_inputs(rng, H, W, sizes=(3, 5, 15)):
     penalty[:, :, len(sizes):][:, W // 3] = np.inf  # a column offering squares only
     penalty[H // 2] = np.inf  # a row offering one window only
     penalty[H // 2, :, 1] = -0.25
+    penalty[1, :, 1] = np.inf  # the 5x5 square offered at both ends of row 1 only: two runs if wide
+    penalty[1, [0, 1, 2, W - 3, W - 2], 1] = 0.5
     occluded = rng.random((H, W)) < 0.3
     occluded[:, -3:] = True  # a run of occluded pixels at the right edge
     counts = set_view_counts((9, 9)).astype(np.float64)
@@ -78,11 +80,13 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
     from recon.entropy.matching import (_joint_cost_kernel, _joint_cost_pixelwise, block_abs_diff_fast,
                                         row_order, set_integrals, window_major_penalty)
     rng = np.random.default_rng(13)
-    for H, W in ((21, 33), (6, 9)):  # (6, 9): the 15-px windows wider than the image
+    from recon.entropy.matching import RUN_GAP
+    # (6, 9): the 15-px windows wider than the image; the widest: rows with several runs
+    for H, W in ((21, 33), (6, 9), (7, RUN_GAP + 20)):
         gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8
         windows, rects, shapes, penalty, occluded, counts = _joint_inputs(rng, H, W)
         starts, ks, pens = _compact_penalty(penalty)
-        dense, spans = window_major_penalty(penalty, occluded, shapes)
+        dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
         order = row_order(H)
         state = {}
         for name in ("pixelwise", "window-major"):
@@ -97,8 +101,8 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
                     _joint_cost_pixelwise(integrals, occluded, rects, shapes, counts, starts, ks, pens,
                                           255.0, order, out, least, best_k)
                 else:
-                    _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, spans,
-                                       255.0, order, out, least, best_k)
+                    _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, run_start,
+                                       runs, 255.0, order, out, least, best_k)
                 outs.append(out)
             state[name] = (np.stack(outs), least, best_k)
         for a, b in zip(state["pixelwise"], state["window-major"]):
@@ -107,21 +111,29 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
 
 
 def test_window_major_penalty_layout():
-    from recon.entropy.matching import window_major_penalty
+    from recon.entropy.matching import RUN_GAP, window_major_penalty
     rng = np.random.default_rng(17)
-    H, W = 9, 14
+    H, W = 9, RUN_GAP + 10
     _, _, shapes, penalty, occluded, _ = _joint_inputs(rng, H, W)
     penalty[0, 0, 3] = np.nan  # not finite: not offered
-    dense, spans = window_major_penalty(penalty, occluded, shapes)
+    dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
     finite = np.isfinite(penalty)
     np.testing.assert_array_equal(dense, np.where(finite, penalty, np.inf).transpose(2, 0, 1))
+    assert run_start[0] == 0 and run_start[-1] == len(runs) and (np.diff(run_start) >= 0).all()
     for k, shape in enumerate(shapes):
         for y in range(H):
             for pas in (0, 1):
                 who = finite[y, :, k] & ((occluded[y] & (shape != 0)) == bool(pas))
-                xs = np.nonzero(who)[0]
-                lo, hi = spans[k, y, pas]
-                assert (lo, hi) == ((xs[0], xs[-1] + 1) if xs.size else (W, 0))
+                i = (k * H + y) * 2 + pas
+                mine = runs[run_start[i]:run_start[i + 1]]
+                covered = np.zeros(W, bool)
+                for lo, hi in mine:
+                    assert lo < hi and who[lo] and who[hi - 1]  # a run starts and ends on its pixels
+                    covered[lo:hi] = True
+                assert (covered >= who).all()  # every offering pixel in a run
+                assert (mine[1:, 0] - mine[:-1, 1] >= RUN_GAP).all()  # ascending, gaps kept apart
+                if (k, y, pas) == (1, 1, 0):
+                    np.testing.assert_array_equal(mine, [[0, 3], [W - 3, W - 1]])
 
 
 def _block_abs_diff_float32(gray, disparity, view_mask=None):
