@@ -673,14 +673,16 @@ RUN_GAP = 64
 
 
 @numba.njit(cache=True)
-def _offer_runs(penalty, pixel_set, y, k, pas, shaped, runs, n):
-    # Runs of row y's pixels that offer window k in pass pas (see _joint_cost_kernel), gaps below
-    # RUN_GAP closed; written to runs[n:] if runs has rows, else only counted. Returns n + count.
-    W = penalty.shape[1]
+def _offer_runs(dense, pixel_set, y, k, pas, shaped, runs, n):
+    # Runs of row y's pixels that offer window k in pass pas (see _joint_cost_kernel; dense is the
+    # (K, H, W) penalty, inf = not offered), gaps below RUN_GAP closed; written to runs[n:] if runs
+    # has rows, else only counted. Returns n + count.
+    W = dense.shape[2]
     lo = -1
     hi = -1
+    row = dense[k, y]
     for x in range(W):
-        if not np.isfinite(penalty[y, x, k]) or (shaped and pixel_set[y, x]) != (pas == 1):
+        if row[x] == np.inf or (shaped and pixel_set[y, x]) != (pas == 1):
             continue
         if lo >= 0 and x - hi >= RUN_GAP:
             if runs.shape[0] > 0:
@@ -713,7 +715,7 @@ def _window_major_kernel(penalty, pixel_set, window_shape, out):
                 out[k, y, x] = v if np.isfinite(v) else np.inf
             shaped = window_shape[k] != 0
             for pas in range(2):
-                count[(k * H + y) * 2 + pas + 1] = _offer_runs(penalty, pixel_set, y, k, pas, shaped,
+                count[(k * H + y) * 2 + pas + 1] = _offer_runs(out, pixel_set, y, k, pas, shaped,
                                                                none, 0)
     for i in range(K * H * 2):
         count[i + 1] += count[i]
@@ -722,7 +724,7 @@ def _window_major_kernel(penalty, pixel_set, window_shape, out):
         for k in range(K):
             shaped = window_shape[k] != 0
             for pas in range(2):
-                _offer_runs(penalty, pixel_set, y, k, pas, shaped, runs, count[(k * H + y) * 2 + pas])
+                _offer_runs(out, pixel_set, y, k, pas, shaped, runs, count[(k * H + y) * 2 + pas])
     return count, runs
 
 
