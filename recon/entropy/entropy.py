@@ -160,19 +160,23 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                     xa = max(x + rects[s, k, 2], 0)
                     xb = min(x + rects[s, k, 3], W - 1)
                     for yy in range(ya, yb + 1):
-                        inside_rows = py0 <= yy <= py1
-                        for xx in range(xa, xb + 1):
-                            if inside_rows and px0 <= xx <= px1:
-                                continue
-                            g = grey_q[yy, xx]
-                            sg = _add(hg, g, sg, xlogx)
-                            sd = _add(hd, disp_q[yy, xx], sd, xlogx)
-                            n += 1
-                            if occl and labels[yy, xx] == opposite:
-                                sm = _add(hm, g, sm, xlogx)
-                                m += 1
-                            if gap >= 0 and abs(layers[yy, xx] - layers[y, x]) > gap:
-                                mixed = True
+                        # the pixels new to this size, row by row left to right: in a row of the
+                        # previous window, those left of it and those right of it
+                        if py0 <= yy <= py1:
+                            runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
+                        else:
+                            runs = ((xa, xb + 1), (0, 0))
+                        for run in runs:
+                            for xx in range(run[0], run[1]):
+                                g = grey_q[yy, xx]
+                                sg = _add(hg, g, sg, xlogx)
+                                sd = _add(hd, disp_q[yy, xx], sd, xlogx)
+                                n += 1
+                                if occl and labels[yy, xx] == opposite:
+                                    sm = _add(hm, g, sm, xlogx)
+                                    m += 1
+                                if gap >= 0 and abs(layers[yy, xx] - layers[y, x]) > gap:
+                                    mixed = True
                     py0, py1, px0, px1 = ya, yb, xa, xb
                     if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
                         continue  # side window not offered at this size (no layer jump within r)
