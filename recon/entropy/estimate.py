@@ -190,7 +190,7 @@ class EntropyOptions:
              "half-pixel shifts; a mild filter correlates the noise so the pull goes, and keeps the "
              "texture (0: off, the paper; see docs/entropy-method.md)")
     weak_texture_ratio: float = _opt(
-        16.0, "weak_texture_filter applies where the filtered gradient energy over the largest window "
+        12.0, "weak_texture_filter applies where the filtered gradient energy over the largest window "
               "(as for noise_texture_ratio) is below this many times the noise's")
 
 
