@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon.entropy.aperture import informative_strips
+from recon.entropy.boundary import snap_boundaries
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
@@ -183,6 +184,21 @@ class EntropyOptions:
     noise_texture_ratio: float = _opt(
         4.0, "for noise_gate='texture': a window is noise-limited when its filtered gradient energy "
              "is below this many times that of the noise alone (1 = pure noise)")
+    boundary_snap: bool = _opt(
+        True, "after matching, test each pixel whose value lies more than boundary_jump above a "
+              "neighbour's by its own grey value: over the views that would see it at the "
+              "neighbour's (farther) value, does that value fit it clearly better than its own? "
+              "Then it takes it (a window fattens the near surface by a pixel; "
+              "recon/entropy/boundary.py)")
+    boundary_jump: float = _opt(
+        0.5, "... a pixel is tested when its matched value exceeds the least of its 3x3 "
+             "neighbourhood by more than this (px/view)")
+    boundary_support: int = _opt(
+        6, "... and that least value is shared (within 0.1 px/view) by at least this many pixels of "
+           "the 5x5 neighbourhood (a surface behind, not an outlier)")
+    boundary_confidence: float = _opt(
+        3.0, "... and the farther value wins by more than this many standard errors of noise "
+             "(sigma / sqrt(views)) of the mean absolute grey difference")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -201,7 +217,8 @@ PRESETS: dict[str, dict] = {
     "paper": {"occlusion_views": "nine", "strip_windows": False, "side_windows": "occlusion",
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
-              "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0},
+              "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0,
+              "boundary_snap": False},
 }
 
 
@@ -376,6 +393,10 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"noise_texture_ratio must be > 0 (1 = pure noise), got {opts.noise_texture_ratio}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
+    if not (opts.boundary_jump > 0 and opts.boundary_confidence >= 0 and 1 <= opts.boundary_support <= 25):
+        raise ValueError(f"boundary_jump must be > 0 px/view, boundary_confidence >= 0 and boundary_support "
+                         f"1..25 pixels; got {opts.boundary_jump}, {opts.boundary_confidence}, "
+                         f"{opts.boundary_support}")
     rng = opts.disparity_range
     if rng is not None and not rng[0] < rng[1]:
         raise ValueError(f"disparity_range must be (min, max) with min < max, got {rng}")
@@ -558,6 +579,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                 for z in range(max(sizes) + 1)] for sh in range(N_SHAPES)], np.int64)
         matched = centroid_correction(matched, rect_table[shape_map, size_map],
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
+    if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
+        matched, _ = snap_boundaries(raw_gray, matched, noise_sigma=noise, max_disparity=rng[1],
+                                     jump=opts.boundary_jump, support=opts.boundary_support,
+                                     confidence=opts.boundary_confidence)
     lap("matching")
 
     if stop_after == "matching":
