@@ -1,0 +1,99 @@
+"""The visibility-aware boundary test after matching (recon/entropy/boundary.py,
+docs/entropy-method.md "Boundaries"): background seen through slits, as in backgammon."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from recon.entropy import estimate_disparity, make_options
+from recon.entropy.boundary import (boundary_candidates, boundary_reach_px, near_offsets,
+                                    snap_boundaries, snap_boundaries_reference)
+from recon.entropy.scenes import Surface, natural_texture, render_surfaces
+
+FRONT, BACK = 0.5, -1.5
+
+
+def slits(n: int, *, noise: float, grid: tuple[int, int] = (9, 9)):
+    """A textured foreground (disparity 0.5) with 6-px horizontal slits every 16 px through which a
+    darker textured background (-1.5) is seen: backgammon's layout. ``(lf, truth)``."""
+    back = Surface(natural_texture((n, n), seed=1, contrast=0.3) * 0.6, BACK)
+    front = Surface(natural_texture((n, n), seed=2, contrast=0.35), FRONT,
+                    lambda y, x: np.mod(y, 16.0) >= 6.0)
+    lf, truth, _ = render_surfaces([back, front], noise=noise, seed=0, grid=grid)
+    return lf, truth
+
+
+def fattened(truth: np.ndarray) -> np.ndarray:
+    """The truth with the foreground grown by one pixel up and down (what windows do)."""
+    grown = ndimage.binary_dilation(truth > 0, structure=np.ones((3, 1), bool))
+    return np.where(grown, FRONT, BACK).astype(np.float32)
+
+
+def snap(lf, matched, *, noise, fast=True):
+    run = snap_boundaries if fast else snap_boundaries_reference
+    return run(lf.gray().astype(np.float32), matched, noise_sigma=max(noise, 0.5 / 255),
+               max_disparity=FRONT + 0.3, jump=0.5, support=6, confidence=3.0)
+
+
+@pytest.mark.parametrize("noise", [0.0, 3 / 255])
+def test_fattened_slit_rows_go_back_to_the_background(noise):
+    lf, truth = slits(64, noise=noise)
+    matched = fattened(truth)
+    out, changed = snap(lf, matched, noise=noise)
+    wrong = (matched == FRONT) & (truth < 0)
+    inner = np.zeros(truth.shape, bool)
+    inner[8:-8, 8:-8] = True  # the image edge repeats pixels: views there see no slit
+    assert wrong[inner].sum() > 150
+    assert (changed & wrong & inner).sum() >= 0.9 * (wrong & inner).sum()
+    assert not (changed & (truth > 0)).any()              # no foreground pixel is moved back
+    np.testing.assert_array_equal(out[changed], BACK)
+    np.testing.assert_array_equal(out[~changed], matched[~changed])
+
+
+def test_a_correct_map_is_left_alone_under_noise():
+    lf, truth = slits(64, noise=3 / 255)
+    _, changed = snap(lf, truth.astype(np.float32), noise=3 / 255)
+    assert not changed.any()
+
+
+def test_reference_and_compiled_twins_agree():
+    lf, truth = slits(40, noise=2 / 255, grid=(5, 5))
+    matched = fattened(truth)
+    matched[20, 10:14] = 0.2  # a few values off the two layers
+    fast, fast_changed = snap(lf, matched, noise=2 / 255)
+    ref, ref_changed = snap(lf, matched, noise=2 / 255, fast=False)
+    assert fast_changed.sum() > 20
+    np.testing.assert_array_equal(fast_changed, ref_changed)
+    np.testing.assert_array_equal(fast, ref)
+
+
+def test_candidates_need_a_supported_farther_neighbour():
+    m = np.zeros((20, 20), np.float32)
+    m[:, 10:] = 1.0            # an edge: the pixels at x = 10 are candidates, far value 0
+    m[5, 3] = -1.0             # an outlier: its neighbours are not candidates
+    ys, xs, far = boundary_candidates(m, jump=0.5, support=6)
+    assert set(xs.tolist()) == {10} and (far == 0).all() and len(ys) == 20
+    assert near_offsets()[0] == 0 and np.isclose(np.abs(near_offsets()).max(), 0.4)
+    assert boundary_reach_px((-1.5, 0.8), (9, 9)) >= 4 * 2.3
+
+
+def test_the_estimator_gives_slit_rows_back_to_the_background():
+    """Fails without boundary_snap: the line search alone puts the slits' rims on the foreground."""
+    lf, truth = slits(64, noise=2 / 255)
+    inner = (slice(8, -8), slice(8, -8))
+    counts = {}
+    for on in (False, True):
+        d = estimate_disparity(lf, boundary_snap=on).disparity
+        background = truth[inner] < 0
+        counts[on] = (background & (d[inner] > (FRONT + BACK) / 2)).sum()
+        assert not ((truth[inner] > 0) & (np.abs(d - truth)[inner] > 0.07)).any()
+    assert counts[False] > 100
+    assert counts[True] <= 0.7 * counts[False]
+
+
+def test_options_are_checked_and_the_paper_preset_has_no_snap():
+    assert make_options(preset="paper").boundary_snap is False
+    with pytest.raises(ValueError, match="boundary_support"):
+        estimate_disparity(slits(24, noise=0)[0], boundary_support=0)
