@@ -11,6 +11,7 @@ from recon.entropy import estimate_disparity, make_options
 from recon.entropy.boundary import (boundary_candidates, boundary_reach_px, near_offsets,
                                     snap_boundaries, snap_boundaries_reference)
 from recon.entropy.scenes import Surface, natural_texture, render_surfaces
+from recon.lf.lightfield import LightField
 
 FRONT, BACK = 0.5, -1.5
 
@@ -31,10 +32,31 @@ def fattened(truth: np.ndarray) -> np.ndarray:
     return np.where(grown, FRONT, BACK).astype(np.float32)
 
 
-def snap(lf, matched, *, noise, fast=True):
+def anti_aliased_slits(n: int, *, noise: float, k: int = 4):
+    """:func:`slits` rendered at ``k`` times the resolution and averaged over ``k x k`` blocks: the
+    slits' rims are mixed pixels. The slits span ``[-0.3, 6.3)`` (mod 16) rows, so each rim pixel
+    holds 20 % foreground and its centre sees the background. ``(lf, truth)``, truth at the pixel
+    centres."""
+    big = n * k
+
+    def front_mask(y, x):
+        return np.mod((y - (k - 1) / 2) / k + 0.3, 16.0) >= 6.6
+
+    back = Surface(natural_texture((big, big), seed=1, contrast=0.3) * 0.6, BACK * k)
+    front = Surface(natural_texture((big, big), seed=2, contrast=0.35), FRONT * k, front_mask)
+    fine, _, _ = render_surfaces([back, front], seed=0, quantise=False)
+    views = fine.views.reshape(9, 9, n, k, n, k).mean(axis=(3, 5))
+    views = views + np.random.default_rng(0).normal(0, noise, views.shape)
+    views = (np.round(np.clip(views, 0, 1) * 255) / 255).astype(np.float32)
+    rows = np.arange(n, dtype=np.float64)[:, None] * np.ones((1, n))
+    truth = np.where(np.mod(rows + 0.3, 16.0) >= 6.6, FRONT, BACK).astype(np.float32)
+    return LightField(views=views, disparity_range=(BACK - 0.3, FRONT + 0.3)), truth
+
+
+def snap(lf, matched, *, noise, fast=True, mix=0.3):
     run = snap_boundaries if fast else snap_boundaries_reference
     return run(lf.gray().astype(np.float32), matched, noise_sigma=max(noise, 0.5 / 255),
-               max_disparity=FRONT + 0.3, jump=0.5, support=6, confidence=3.0)
+               max_disparity=FRONT + 0.3, jump=0.5, support=6, confidence=3.0, mix=mix)
 
 
 @pytest.mark.parametrize("noise", [0.0, 3 / 255])
@@ -52,14 +74,34 @@ def test_fattened_slit_rows_go_back_to_the_background(noise):
     np.testing.assert_array_equal(out[~changed], matched[~changed])
 
 
+def test_anti_aliased_rims_go_back_by_the_mix_test():
+    """Rim pixels holding 20 % foreground match neither surface; the mix test gives them to the
+    background (their centres' surface), the view test alone leaves half of them."""
+    lf, truth = anti_aliased_slits(64, noise=2 / 255)
+    matched = fattened(truth)
+    wrong = np.zeros(truth.shape, bool)
+    wrong[8:-8, 8:-8] = ((matched == FRONT) & (truth < 0))[8:-8, 8:-8]
+    restored = {}
+    for mix in (0.0, 0.3):
+        _, changed = snap(lf, matched, noise=2 / 255, mix=mix)
+        assert not (changed & (truth > 0)).any()
+        restored[mix] = (changed & wrong).sum()
+    assert restored[0.3] >= 0.6 * wrong.sum()
+    assert restored[0.3] >= restored[0.0] + 0.15 * wrong.sum()
+
+
 def test_a_correct_map_is_left_alone_under_noise():
     lf, truth = slits(64, noise=3 / 255)
     _, changed = snap(lf, truth.astype(np.float32), noise=3 / 255)
     assert not changed.any()
 
 
-def test_reference_and_compiled_twins_agree():
-    lf, truth = slits(40, noise=2 / 255, grid=(5, 5))
+@pytest.mark.parametrize("anti_aliased", [False, True])
+def test_reference_and_compiled_twins_agree(anti_aliased):
+    if anti_aliased:  # exercises the mix test
+        lf, truth = anti_aliased_slits(32, noise=2 / 255)
+    else:
+        lf, truth = slits(40, noise=2 / 255, grid=(5, 5))
     matched = fattened(truth)
     matched[20, 10:14] = 0.2  # a few values off the two layers
     fast, fast_changed = snap(lf, matched, noise=2 / 255)

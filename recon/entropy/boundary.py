@@ -1,38 +1,43 @@
-"""Visibility-aware boundary decision after matching: the near-or-far test of each pixel beside a
-depth jump by its own grey value (``docs/entropy-method.md``, "Boundaries").
+"""Visibility-aware boundary decision after matching: is a pixel beside a depth jump on the near
+surface or on the one behind? (``docs/entropy-method.md``, "Boundaries").
 
 Why. A window matched with one disparity fattens the near surface: a background pixel one pixel from
 a foreground edge gets the foreground's disparity, because every window that reaches onto the
-foreground fits it (the foreground's texture dominates) and the only windows that stay on the
-background see it through fewer views. Eq. 5 weighs every pixel of a window alike, so the pixel's own
-evidence is drowned. Backgammon's slits: ~4 000 background pixels on the slits' rows and tips carry
-the foreground's disparity (84 % of its squared error).
+foreground fits it and the only windows that stay on the background see it through fewer views.
+Eq. 5 weighs every pixel of a window alike, so the pixel's own evidence is drowned. Backgammon's
+slits: ~4 000 background pixels on the slits' rims and tips carry the foreground's disparity (84 %
+of its squared error).
 
-The test, at each pixel ``p`` of the matched map ``m`` whose value lies more than ``jump`` above the
-least value of its 3x3 neighbourhood (``p`` carries a nearer value than a neighbour):
+Which pixels: those of the matched map ``m`` whose value lies more than ``jump`` above the least of
+their 3x3 neighbourhood. Their *far* hypothesis is that least value ``d_f``, kept only where at least
+``support`` pixels of the 5x5 neighbourhood are within :data:`SUPPORT_TOLERANCE` of it (a surface
+behind, not an outlier of the map). The views that would see the pixel at ``d_f`` are found by
+marching its ray through the occluder map (``m`` grey-eroded by 3x3, so that the one-pixel rim in
+question does not hide it): a view is lost where a pixel ``q = p + (du, dv) s`` (``q != p``) of the
+occluder map is nearer than ``d_f + s - LANDING_PX / max(|du|, |dv|)``.
 
-- the *far* hypothesis is that neighbour's value ``d_f`` (the 3x3 minimum), kept only where at least
-  ``support`` pixels of the 5x5 neighbourhood are within :data:`SUPPORT_TOLERANCE` of it (a surface
-  behind, not an outlier of the map);
-- the views that would see ``p`` at ``d_f`` are found by marching the ray of ``p`` through the
-  occluder map (``m`` grey-eroded by 3x3, so that the one-pixel rim whose side is in question does
-  not hide it): a view is lost where a pixel ``q = p + (du, dv) s`` (``q != p``) of the occluder map
-  is nearer than ``d_f + s - LANDING_PX / max(|du|, |dv|)`` (it lands on ``p``'s spot, or within
-  half a pixel before it);
-- over those views, the mean absolute grey difference of ``p``'s own centre value against the views
-  at ``d_f`` is compared with the same mean at the *near* hypothesis, the best of ``m(p) + k 0.1``,
-  ``|k 0.1| <= NEAR_WIDTH`` (the matched value may itself be off by a few tenths; the far value is a
-  measured neighbour and is not searched);
-- ``p`` takes ``d_f`` when the near mean exceeds the far mean by more than ``confidence`` standard
-  errors of noise (``confidence * sigma / sqrt(n)``, ``n`` views, ``sigma`` the centre view's noise),
-  and at least :data:`MIN_VIEWS` views see it. Otherwise ``p`` keeps its value.
+The pixel takes ``d_f`` (and keeps its value otherwise) when, with at least :data:`MIN_VIEWS` views
+seeing it there, either
 
-Only the near-to-far direction is tested: the window bias this corrects runs that way, and a pixel
-given the far value by mistake is not made safer by a test that its own noise can flip (tried:
-flipping to the near value as well made every dev scene worse).
+- *the view test*: over those views, the mean absolute difference between its own centre grey value
+  and the views at ``d_f`` is lower than at the best near value ``m(p) + k 0.1``
+  (``|k 0.1| <= NEAR_WIDTH``; the matched value may itself be off by a few tenths) by more than
+  ``confidence`` standard errors of noise (``confidence * sigma / sqrt(n)``), and the centre view
+  does not contradict it (:data:`CENTRE_FRACTION`: where the neighbours on both sides differ, the
+  pixel's grey value is nearer the far one's); or
+- *the mix test* (``mix > 0``): its grey value ``c`` holds less than ``mix`` of the near surface,
+  ``alpha = (c - B) / (F - B) < mix`` with ``B`` the far surface's grey value at the pixel (the
+  median of the views at ``d_f``: the very point behind, unmixed) and ``F`` the near neighbour's,
+  where the two differ by ``mix_contrast`` noise sigmas and each surface is even beside the pixel
+  (:data:`UNIFORMITY`). An anti-aliased rim pixel mixes both surfaces and matches neither; the truth
+  is the surface at its centre, which is the far one when ``alpha < 0.5``. The default 0.3 leaves a
+  margin: shading at a curved silhouette (occlusion-v1's post) also reads as mixing.
 
-:func:`snap_boundaries` (numba, the pixels in parallel) and :func:`snap_boundaries_reference`
-(readable loops, with ``scipy.ndimage.map_coordinates`` for the samples) give the same map.
+Only the near-to-far direction is tested: the window bias this corrects runs that way (flipping to
+the near value as well made every dev scene worse).
+
+:func:`snap_boundaries` (numba kernel over the tested pixels) and :func:`snap_boundaries_reference`
+(readable loops, ``scipy.ndimage.map_coordinates`` for the samples) give the same map.
 """
 
 from __future__ import annotations
@@ -99,9 +104,64 @@ def _check(gray: np.ndarray, matched: np.ndarray) -> None:
                          f"{matched.shape}; got views of shape {gray.shape}")
 
 
+#: The mix test needs each surface even beside the pixel: grey spread at most this fraction of the
+#: two surfaces' contrast (the near one between one and two pixels inside, the far one between the
+#: views' median and the centre view's far neighbour). Uneven texture reads as mixing by chance.
+UNIFORMITY = 0.5
+#: The view test's flip also needs the centre view not to contradict it: where the near and far
+#: neighbours differ by the mix contrast, the pixel's grey value must lie less than this fraction
+#: of the way from the far neighbour's to the near neighbour's.
+CENTRE_FRACTION = 0.5
+#: The 8 neighbours in the order :func:`rim_evidence` breaks ties (first least value wins).
+NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
+
+def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+                 far: np.ndarray, far_grey: np.ndarray, *, jump: float, min_contrast: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """What the centre view says about each tested pixel ``(ys, xs)`` (1-D arrays), with ``c`` its
+    grey value, ``F`` the grey value of the neighbour opposite its farthest 8-neighbour (the near
+    surface one pixel inside; it must itself be near, ``matched > far + jump``), ``N`` that farthest
+    neighbour's grey value and ``B = far_grey`` the far surface's grey value at the pixel (median
+    over the views that see it there):
+
+    - ``alpha = (c - B) / (F - B)``: the near surface's fraction in ``c`` (a mix of the two), where
+      ``|F - B| >= min_contrast`` and both surfaces are even (:data:`UNIFORMITY`); else ``inf``;
+    - ``centre = (c - N) / (F - N)``: the same from the centre view alone, where
+      ``|F - N| >= min_contrast``; else ``-inf`` (no objection).
+    """
+    m = np.asarray(matched, np.float32)
+    H, W = m.shape
+    grey = gray[gray.shape[0] // 2, gray.shape[1] // 2]
+    offsets = np.array(NEIGHBOURS, np.int64)
+    values = np.stack([m[np.clip(ys + dy, 0, H - 1), np.clip(xs + dx, 0, W - 1)]
+                       for dy, dx in offsets], axis=1)
+    away = offsets[np.argmin(values, axis=1)]
+
+    def at(k: int) -> tuple[np.ndarray, np.ndarray]:  # k pixels towards the far neighbour
+        return np.clip(ys + k * away[:, 0], 0, H - 1), np.clip(xs + k * away[:, 1], 0, W - 1)
+
+    iy, ix = ys - away[:, 0], xs - away[:, 1]
+    near_inside = ((iy >= 0) & (iy < H) & (ix >= 0) & (ix < W)
+                   & (m[at(-1)] > np.asarray(far, np.float32) + jump))
+    c = grey[ys, xs].astype(np.float64)
+    F = grey[at(-1)].astype(np.float64)
+    N = grey[at(1)].astype(np.float64)
+    B = np.asarray(far_grey, np.float64)
+    spread = np.maximum(np.abs(F - grey[at(-2)]), np.abs(N - B))
+    mixed = (near_inside & np.isfinite(B) & (np.abs(F - B) >= min_contrast)
+             & (spread <= UNIFORMITY * np.abs(F - B)))
+    seen = near_inside & (np.abs(F - N) >= min_contrast)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = np.where(mixed, (c - B) / np.where(mixed, F - B, 1.0), np.inf)
+        centre = np.where(seen, (c - N) / np.where(seen, F - N, 1.0), -np.inf)
+    return alpha, centre
+
+
 def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
                               max_disparity: float, jump: float, support: int,
-                              confidence: float) -> tuple[np.ndarray, np.ndarray]:
+                              confidence: float, mix: float = 0.0, mix_contrast: float = 12.0
+                              ) -> tuple[np.ndarray, np.ndarray]:
     """Readable twin of :func:`snap_boundaries` (module docstring); slow, for tests."""
     gray = np.asarray(gray, np.float32)
     m = np.asarray(matched, np.float32)
@@ -113,22 +173,37 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
     offsets = near_offsets()
     out = m.copy()
     changed = np.zeros((H, W), bool)
-    for y, x, df in zip(ys, xs, far.astype(np.float64)):
+    far_grey = np.full(ys.size, np.nan)
+    enough = np.zeros(ys.size, bool)
+    view_test = np.zeros(ys.size, bool)
+    for i, (y, x, df) in enumerate(zip(ys, xs, far.astype(np.float64))):
         centre = float(gray[u0, v0, y, x])
-        far_sum, near_sums, n = 0.0, np.zeros(offsets.size), 0
+        far_sum, near_sums, n, samples = 0.0, np.zeros(offsets.size), 0, []
         for u in range(U):
             for v in range(V):
                 du, dv = u - u0, v - v0
                 if (du, dv) == (0, 0) or _hidden_reference(occ, y, x, du, dv, df, max_disparity):
                     continue
                 n += 1
-                far_sum += abs(_sample(gray[u, v], y - du * df, x - dv * df) - centre)
+                samples.append(_sample(gray[u, v], y - du * df, x - dv * df))
+                far_sum += abs(samples[-1] - centre)
                 for j, off in enumerate(offsets):
                     d = float(m[y, x]) + off
                     near_sums[j] += abs(_sample(gray[u, v], y - du * d, x - dv * d) - centre)
-        if n >= MIN_VIEWS and (near_sums.min() - far_sum) / n > confidence * noise_sigma / math.sqrt(n):
-            out[y, x] = df
-            changed[y, x] = True
+        if samples:
+            far_grey[i] = np.median(samples)
+        enough[i] = n >= MIN_VIEWS
+        view_test[i] = (enough[i] and (near_sums.min() - far_sum) / n
+                        > confidence * noise_sigma / math.sqrt(n))
+    alpha, centre = rim_evidence(gray, m, ys, xs, far, far_grey, jump=jump,
+                                 min_contrast=mix_contrast * noise_sigma)
+    for i in range(ys.size):
+        flip = view_test[i] and centre[i] < CENTRE_FRACTION
+        if not flip and mix > 0 and enough[i] and alpha[i] < mix:
+            flip = True
+        if flip:
+            out[ys[i], xs[i]] = far[i]
+            changed[ys[i], xs[i]] = True
     return out, changed
 
 
@@ -190,7 +265,7 @@ def _hidden(occ, y, x, du, dv, d, max_disparity, landing_px):
 
 @numba.njit(cache=True)
 def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, min_views,
-                 threshold, out_far_mean, out_near_mean, out_views):
+                 threshold, out_far_mean, out_near_mean, out_views, out_far_median):
     U, V = gray.shape[0], gray.shape[1]
     u0 = U // 2
     v0 = V // 2
@@ -202,6 +277,7 @@ def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, 
         dm = np.float64(m[y, x])
         centre = np.float64(gray[u0, v0, y, x])
         seen = np.zeros((U, V), np.bool_)
+        samples = np.empty(U * V, np.float64)
         n = 0
         far_sum = 0.0
         near0 = 0.0
@@ -214,11 +290,14 @@ def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, 
                 if _hidden(occ, y, x, du, dv, df, max_disparity, landing_px):
                     continue
                 seen[u, v] = True
+                sample = _bilinear(gray[u, v], y - du * df, x - dv * df)
+                samples[n] = sample
                 n += 1
-                far_sum += abs(_bilinear(gray[u, v], y - du * df, x - dv * df) - centre)
+                far_sum += abs(sample - centre)
                 near0 += abs(_bilinear(gray[u, v], y - du * dm, x - dv * dm) - centre)
         out_views[i] = n
         out_far_mean[i] = far_sum / max(n, 1)
+        out_far_median[i] = np.median(samples[:n]) if n > 0 else np.nan
         best = near0
         # the other near offsets only where the far value already wins against m(p) itself
         if n >= min_views and (near0 - far_sum) / n > threshold / math.sqrt(n):
@@ -235,8 +314,8 @@ def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, 
 
 
 def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
-                    max_disparity: float, jump: float, support: int,
-                    confidence: float) -> tuple[np.ndarray, np.ndarray]:
+                    max_disparity: float, jump: float, support: int, confidence: float,
+                    mix: float = 0.0, mix_contrast: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
     """The matched map with the pixels beside a depth jump that their own grey value places on the
     surface behind given that surface's value (module docstring).
 
@@ -251,9 +330,9 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     max_disparity
         Upper end of the searched range: the farthest a ray is marched (a constant of the whole
         image, so that a tile decides as the whole image does).
-    jump, support, confidence
+    jump, support, confidence, mix, mix_contrast
         :class:`recon.entropy.EntropyOptions` ``boundary_jump``, ``boundary_support``,
-        ``boundary_confidence``.
+        ``boundary_confidence``, ``boundary_mix``, ``boundary_mix_contrast`` (``mix=0``: no mix test).
 
     Returns
     -------
@@ -268,12 +347,19 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     if ys.size == 0:
         return out, changed
     n = ys.size
-    far_mean, near_mean, views = np.empty(n), np.empty(n), np.empty(n, np.int64)
+    far_mean, near_mean, far_median = np.empty(n), np.empty(n), np.empty(n)
+    views = np.empty(n, np.int64)
     threshold = confidence * noise_sigma
     _snap_kernel(gray, m, occluder_map(m), ys.astype(np.int64), xs.astype(np.int64),
                  far.astype(np.float64), near_offsets(), float(max_disparity), LANDING_PX,
-                 MIN_VIEWS, threshold, far_mean, near_mean, views)
-    flip = (views >= MIN_VIEWS) & (near_mean - far_mean > threshold / np.sqrt(np.maximum(views, 1)))
+                 MIN_VIEWS, threshold, far_mean, near_mean, views, far_median)
+    enough = views >= MIN_VIEWS
+    flip = enough & (near_mean - far_mean > threshold / np.sqrt(np.maximum(views, 1)))
+    alpha, centre = rim_evidence(gray, m, ys, xs, far, far_median, jump=jump,
+                                 min_contrast=mix_contrast * noise_sigma)
+    flip &= centre < CENTRE_FRACTION
+    if mix > 0:
+        flip |= enough & (alpha < mix)
     out[ys[flip], xs[flip]] = far[flip]
     changed[ys[flip], xs[flip]] = True
     return out, changed

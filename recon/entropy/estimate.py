@@ -199,6 +199,14 @@ class EntropyOptions:
     boundary_confidence: float = _opt(
         3.0, "... and the farther value wins by more than this many standard errors of noise "
              "(sigma / sqrt(views)) of the mean absolute grey difference")
+    boundary_mix: float = _opt(
+        0.3, "... or the pixel's centre grey value holds less than this fraction of the near "
+             "surface's: alpha = (c - B) / (F - B), B = the far surface's grey value there (median "
+             "over the views that see it), F = the near neighbour's opposite; the truth is the "
+             "surface at the pixel centre, which an anti-aliased rim pixel with alpha < 0.5 shows "
+             "behind it (0.3, not 0.5: shading at a curved silhouette reads as mixing; 0: off)")
+    boundary_mix_contrast: float = _opt(
+        12.0, "... alpha is used only where |F - B| is at least this many noise sigmas")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -393,6 +401,9 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"noise_texture_ratio must be > 0 (1 = pure noise), got {opts.noise_texture_ratio}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
+    if not 0 <= opts.boundary_mix <= 1 or not opts.boundary_mix_contrast >= 0:
+        raise ValueError(f"boundary_mix must be a fraction in [0, 1] (0: off) and boundary_mix_contrast "
+                         f">= 0 noise sigmas; got {opts.boundary_mix}, {opts.boundary_mix_contrast}")
     if not (opts.boundary_jump > 0 and opts.boundary_confidence >= 0 and 1 <= opts.boundary_support <= 25):
         raise ValueError(f"boundary_jump must be > 0 px/view, boundary_confidence >= 0 and boundary_support "
                          f"1..25 pixels; got {opts.boundary_jump}, {opts.boundary_confidence}, "
@@ -582,7 +593,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
         matched, _ = snap_boundaries(raw_gray, matched, noise_sigma=noise, max_disparity=rng[1],
                                      jump=opts.boundary_jump, support=opts.boundary_support,
-                                     confidence=opts.boundary_confidence)
+                                     confidence=opts.boundary_confidence, mix=opts.boundary_mix,
+                                     mix_contrast=opts.boundary_mix_contrast)
     lap("matching")
 
     if stop_after == "matching":
