@@ -56,7 +56,7 @@ def anti_aliased_slits(n: int, *, noise: float, k: int = 4):
 def snap(lf, matched, *, noise, fast=True, mix=0.3):
     run = snap_boundaries if fast else snap_boundaries_reference
     return run(lf.gray().astype(np.float32), matched, noise_sigma=max(noise, 0.5 / 255),
-               max_disparity=FRONT + 0.3, jump=0.5, support=6, confidence=3.0, mix=mix)
+               disparity_range=(BACK - 0.3, FRONT + 0.3), jump=0.5, support=6, confidence=3.0, mix=mix)
 
 
 @pytest.mark.parametrize("noise", [0.0, 3 / 255])
@@ -76,7 +76,7 @@ def test_fattened_slit_rows_go_back_to_the_background(noise):
 
 def test_anti_aliased_rims_go_back_by_the_mix_test():
     """Rim pixels holding 20 % foreground match neither surface; the mix test gives them to the
-    background (their centres' surface), the view test alone leaves half of them."""
+    background (their centres' surface); the view test alone leaves most of them."""
     lf, truth = anti_aliased_slits(64, noise=2 / 255)
     matched = fattened(truth)
     wrong = np.zeros(truth.shape, bool)
@@ -86,13 +86,28 @@ def test_anti_aliased_rims_go_back_by_the_mix_test():
         _, changed = snap(lf, matched, noise=2 / 255, mix=mix)
         assert not (changed & (truth > 0)).any()
         restored[mix] = (changed & wrong).sum()
-    assert restored[0.3] >= 0.6 * wrong.sum()
+    assert restored[0.3] >= 0.5 * wrong.sum()
     assert restored[0.3] >= restored[0.0] + 0.15 * wrong.sum()
 
 
 def test_a_correct_map_is_left_alone_under_noise():
     lf, truth = slits(64, noise=3 / 255)
     _, changed = snap(lf, truth.astype(np.float32), noise=3 / 255)
+    assert not changed.any()
+
+
+@pytest.mark.parametrize("anti_aliased", [False, True])
+def test_hard_edged_bars_keep_their_rims():
+    """suite/bars, noise-free and hard-edged: the near value sampled at a rim pixel mixes in the
+    background beside it in most views, and the point hidden behind it can match its grey value by
+    chance. The views in line with the pixel (du or dv 0) must agree with the view test; without
+    that check 16 correct rim pixels were moved back."""
+    from recon.entropy.scenes import make_scene
+
+    scene = make_scene("bars", size=96)
+    _, changed = snap_boundaries(scene.lf.gray().astype(np.float32), scene.truth.astype(np.float32),
+                                 noise_sigma=0.5 / 255, disparity_range=scene.lf.disparity_range,
+                                 jump=0.5, support=6, confidence=3.0, mix=0.0)
     assert not changed.any()
 
 

@@ -66,14 +66,21 @@ def near_offsets() -> np.ndarray:
     return np.array(ks, np.float64) * NEAR_STEP
 
 
-def boundary_reach_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
-    """Pixels around a pixel that :func:`snap_boundaries` reads of the matched map (for a tile's
-    halo): the ray march over the whole disparity range plus the erosion and the 5x5 support."""
+def ray_reach_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
+    """How far (pixels, chessboard) a visibility ray of :func:`snap_boundaries` can run from its
+    pixel: the largest view offset times the range, widened by 1 px/view (a matched value may lie a
+    few tenths outside the range: the centroid correction moves it) and the landing margin."""
     U, V = grid_shape
     a = max(U // 2, V // 2, U - 1 - U // 2, V - 1 - V // 2)
     lo, hi = disparity_range
-    # (a matched value may lie a few tenths outside the range: the centroid correction moves it)
-    return int(math.ceil(a * (hi - lo + 1.0) + LANDING_PX + 1)) + 3
+    return int(math.ceil(a * (hi - lo + 1.0) + LANDING_PX + 1))
+
+
+def boundary_reach_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
+    """Pixels around a pixel that :func:`snap_boundaries` reads of the matched map (for a tile's
+    halo): its rays (:func:`ray_reach_px`) and their bound, plus the 3x3 erosion of the occluder map
+    and the 5x5 support."""
+    return ray_reach_px(disparity_range, grid_shape) + 3
 
 
 def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
@@ -159,7 +166,7 @@ def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.n
 
 
 def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
-                              max_disparity: float, jump: float, support: int,
+                              disparity_range: tuple[float, float], jump: float, support: int,
                               confidence: float, mix: float = 0.0, mix_contrast: float = 12.0
                               ) -> tuple[np.ndarray, np.ndarray]:
     """Readable twin of :func:`snap_boundaries` (module docstring); slow, for tests."""
@@ -169,6 +176,7 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
     U, V, H, W = gray.shape
     u0, v0 = U // 2, V // 2
     occ = occluder_map(m)
+    reach = ray_reach_px(disparity_range, (U, V))
     ys, xs, far = boundary_candidates(m, jump=jump, support=support)
     offsets = near_offsets()
     out = m.copy()
@@ -179,22 +187,31 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
     for i, (y, x, df) in enumerate(zip(ys, xs, far.astype(np.float64))):
         centre = float(gray[u0, v0, y, x])
         far_sum, near_sums, n, samples = 0.0, np.zeros(offsets.size), 0, []
+        far_line, near_line, n_line = 0.0, np.zeros(offsets.size), 0  # views in line: du or dv 0
         for u in range(U):
             for v in range(V):
                 du, dv = u - u0, v - v0
-                if (du, dv) == (0, 0) or _hidden_reference(occ, y, x, du, dv, df, max_disparity):
+                if (du, dv) == (0, 0) or _hidden_reference(
+                        occ, y, x, du, dv, df, disparity_range[1], reach):
                     continue
                 n += 1
                 samples.append(_sample(gray[u, v], y - du * df, x - dv * df))
                 far_sum += abs(samples[-1] - centre)
+                in_line = du == 0 or dv == 0
+                if in_line:
+                    n_line += 1
+                    far_line += abs(samples[-1] - centre)
                 for j, off in enumerate(offsets):
                     d = float(m[y, x]) + off
-                    near_sums[j] += abs(_sample(gray[u, v], y - du * d, x - dv * d) - centre)
+                    e = abs(_sample(gray[u, v], y - du * d, x - dv * d) - centre)
+                    near_sums[j] += e
+                    near_line[j] += e if in_line else 0.0
         if samples:
             far_grey[i] = np.median(samples)
         enough[i] = n >= MIN_VIEWS
         view_test[i] = (enough[i] and (near_sums.min() - far_sum) / n
-                        > confidence * noise_sigma / math.sqrt(n))
+                        > confidence * noise_sigma / math.sqrt(n)
+                        and (n_line == 0 or near_line.min() > far_line))
     alpha, centre = rim_evidence(gray, m, ys, xs, far, far_grey, jump=jump,
                                  min_contrast=mix_contrast * noise_sigma)
     for i in range(ys.size):
@@ -213,12 +230,14 @@ def _sample(image: np.ndarray, y: float, x: float) -> float:
 
 
 def _hidden_reference(occ: np.ndarray, y: int, x: int, du: int, dv: int, d: float,
-                      max_disparity: float) -> bool:
+                      nearest: float, reach: int) -> bool:
+    # Is the pixel at disparity d hidden in view (du, dv)? March q = p + (du, dv) s, s in steps of
+    # half a pixel, while an occluder could still be near enough (occ <= nearest) and within reach.
     H, W = occ.shape
     a = max(abs(du), abs(dv))
     ds, tol = 0.5 / a, LANDING_PX / a
     k = 1
-    while k * ds <= max_disparity - d + tol + ds:
+    while k * ds <= min(nearest - d + tol + ds, reach / a):
         s = k * ds
         qy, qx = int(np.floor(y + du * s + 0.5)), int(np.floor(x + dv * s + 0.5))
         if not (0 <= qy < H and 0 <= qx < W):
@@ -245,13 +264,14 @@ def _bilinear(image, y, x):
 
 
 @numba.njit(cache=True)
-def _hidden(occ, y, x, du, dv, d, max_disparity, landing_px):
+def _hidden(occ, y, x, du, dv, d, nearest, landing_px, reach):
     H, W = occ.shape
     a = max(abs(du), abs(dv))
     ds = 0.5 / a
     tol = landing_px / a
+    bound = min(nearest - d + tol + ds, reach / a)
     k = 1
-    while k * ds <= max_disparity - d + tol + ds:
+    while k * ds <= bound:
         s = k * ds
         qy = int(np.floor(y + du * s + 0.5))
         qx = int(np.floor(x + dv * s + 0.5))
@@ -263,17 +283,18 @@ def _hidden(occ, y, x, du, dv, d, max_disparity, landing_px):
     return False
 
 
-@numba.njit(cache=True)
-def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, min_views,
-                 threshold, out_far_mean, out_near_mean, out_views, out_far_median):
+@numba.njit(cache=True, parallel=True)
+def _snap_kernel(gray, m, occ, top, reach, ys, xs, far, offsets, landing_px, min_views,
+                 threshold, out_far_mean, out_near_mean, out_views, out_far_median, out_line):
     U, V = gray.shape[0], gray.shape[1]
     u0 = U // 2
     v0 = V // 2
     n_off = offsets.size
-    for i in range(ys.size):
+    for i in numba.prange(ys.size):
         y = ys[i]
         x = xs[i]
         df = far[i]
+        nearest = top[y, x]  # no occluder on any of its rays is nearer
         dm = np.float64(m[y, x])
         centre = np.float64(gray[u0, v0, y, x])
         seen = np.zeros((U, V), np.bool_)
@@ -281,40 +302,57 @@ def _snap_kernel(gray, m, occ, ys, xs, far, offsets, max_disparity, landing_px, 
         n = 0
         far_sum = 0.0
         near0 = 0.0
+        n_line = 0
+        far_line = 0.0
+        near_line0 = 0.0
         for u in range(U):
             for v in range(V):
                 du = u - u0
                 dv = v - v0
                 if du == 0 and dv == 0:
                     continue
-                if _hidden(occ, y, x, du, dv, df, max_disparity, landing_px):
+                if _hidden(occ, y, x, du, dv, df, nearest, landing_px, reach):
                     continue
                 seen[u, v] = True
                 sample = _bilinear(gray[u, v], y - du * df, x - dv * df)
                 samples[n] = sample
                 n += 1
                 far_sum += abs(sample - centre)
-                near0 += abs(_bilinear(gray[u, v], y - du * dm, x - dv * dm) - centre)
+                e = abs(_bilinear(gray[u, v], y - du * dm, x - dv * dm) - centre)
+                near0 += e
+                if du == 0 or dv == 0:
+                    n_line += 1
+                    far_line += abs(sample - centre)
+                    near_line0 += e
         out_views[i] = n
         out_far_mean[i] = far_sum / max(n, 1)
         out_far_median[i] = np.median(samples[:n]) if n > 0 else np.nan
         best = near0
+        best_line = near_line0
         # the other near offsets only where the far value already wins against m(p) itself
         if n >= min_views and (near0 - far_sum) / n > threshold / math.sqrt(n):
             for j in range(1, n_off):
                 d = dm + offsets[j]
                 s = 0.0
+                s_line = 0.0
                 for u in range(U):
                     for v in range(V):
                         if seen[u, v]:
-                            s += abs(_bilinear(gray[u, v], y - (u - u0) * d, x - (v - v0) * d) - centre)
+                            e = abs(_bilinear(gray[u, v], y - (u - u0) * d, x - (v - v0) * d) - centre)
+                            s += e
+                            if u == u0 or v == v0:
+                                s_line += e
                 if s < best:
                     best = s
+                if s_line < best_line:
+                    best_line = s_line
         out_near_mean[i] = best / max(n, 1)
+        out_line[i] = (best_line - far_line) / n_line if n_line > 0 else np.nan
 
 
 def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
-                    max_disparity: float, jump: float, support: int, confidence: float,
+                    disparity_range: tuple[float, float], jump: float, support: int,
+                    confidence: float,
                     mix: float = 0.0, mix_contrast: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
     """The matched map with the pixels beside a depth jump that their own grey value places on the
     surface behind given that surface's value (module docstring).
@@ -327,9 +365,10 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
         ``(H, W)`` matched disparity (px/view).
     noise_sigma
         The centre view's noise sigma, ``[0, 1]`` grey units.
-    max_disparity
-        Upper end of the searched range: the farthest a ray is marched (a constant of the whole
-        image, so that a tile decides as the whole image does).
+    disparity_range
+        The searched ``(min, max)``: a ray is marched until nothing within it can be nearer
+        (constants of the whole image, so that a tile decides as the whole image does;
+        :func:`boundary_reach_px`).
     jump, support, confidence, mix, mix_contrast
         :class:`recon.entropy.EntropyOptions` ``boundary_jump``, ``boundary_support``,
         ``boundary_confidence``, ``boundary_mix``, ``boundary_mix_contrast`` (``mix=0``: no mix test).
@@ -349,15 +388,22 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     n = ys.size
     far_mean, near_mean, far_median = np.empty(n), np.empty(n), np.empty(n)
     views = np.empty(n, np.int64)
+    line = np.empty(n)
     threshold = confidence * noise_sigma
-    _snap_kernel(gray, m, occluder_map(m), ys.astype(np.int64), xs.astype(np.int64),
-                 far.astype(np.float64), near_offsets(), float(max_disparity), LANDING_PX,
-                 MIN_VIEWS, threshold, far_mean, near_mean, views, far_median)
+    occ = occluder_map(m)
+    # the nearest occluder any ray of a pixel can meet: bounds its march (exact: nothing farther
+    # on the ray can hide it)
+    reach = ray_reach_px(disparity_range, gray.shape[:2])
+    top = np.minimum(ndimage.maximum_filter(occ, size=2 * reach + 1, mode="nearest"),
+                     np.float32(disparity_range[1]))
+    _snap_kernel(gray, m, occ, top, reach, ys.astype(np.int64), xs.astype(np.int64),
+                 far.astype(np.float64), near_offsets(), LANDING_PX,
+                 MIN_VIEWS, threshold, far_mean, near_mean, views, far_median, line)
     enough = views >= MIN_VIEWS
     flip = enough & (near_mean - far_mean > threshold / np.sqrt(np.maximum(views, 1)))
     alpha, centre = rim_evidence(gray, m, ys, xs, far, far_median, jump=jump,
                                  min_contrast=mix_contrast * noise_sigma)
-    flip &= centre < CENTRE_FRACTION
+    flip &= (centre < CENTRE_FRACTION) & ~(line <= 0)  # NaN: no view in line sees it
     if mix > 0:
         flip |= enough & (alpha < mix)
     out[ys[flip], xs[flip]] = far[flip]

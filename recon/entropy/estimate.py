@@ -591,7 +591,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         matched = centroid_correction(matched, rect_table[shape_map, size_map],
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
     if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
-        matched, _ = snap_boundaries(raw_gray, matched, noise_sigma=noise, max_disparity=rng[1],
+        matched, _ = snap_boundaries(raw_gray, matched, noise_sigma=noise, disparity_range=rng,
                                      jump=opts.boundary_jump, support=opts.boundary_support,
                                      confidence=opts.boundary_confidence, mix=opts.boundary_mix,
                                      mix_contrast=opts.boundary_mix_contrast)
