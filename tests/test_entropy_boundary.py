@@ -96,7 +96,6 @@ def test_a_correct_map_is_left_alone_under_noise():
     assert not changed.any()
 
 
-@pytest.mark.parametrize("anti_aliased", [False, True])
 def test_hard_edged_bars_keep_their_rims():
     """suite/bars, noise-free and hard-edged: the near value sampled at a rim pixel mixes in the
     background beside it in most views, and the point hidden behind it can match its grey value by
