@@ -153,3 +153,14 @@ def test_options_are_checked_and_the_paper_preset_has_no_snap():
     assert make_options(preset="paper").boundary_snap is False
     with pytest.raises(ValueError, match="boundary_support"):
         estimate_disparity(slits(24, noise=0)[0], boundary_support=0)
+
+
+def test_the_initial_disparity_can_be_snapped_too():
+    """boundary_snap_initial: d0's rims go back before the layers and labels are made from it."""
+    lf, truth = slits(64, noise=2 / 255)
+    inner = (slice(8, -8), slice(8, -8))
+    rims = {}
+    for on in (False, True):
+        d0 = estimate_disparity(lf, boundary_snap_initial=on, stop_after="matching").initial_disparity
+        rims[on] = ((truth[inner] < 0) & (d0[inner] > (FRONT + BACK) / 2)).sum()
+    assert rims[False] > 100 and rims[True] <= rims[False] - 20  # measured 176 -> 144

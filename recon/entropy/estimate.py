@@ -190,6 +190,10 @@ class EntropyOptions:
               "neighbour's (farther) value, does that value fit it clearly better than its own? "
               "Then it takes it (a window fattens the near surface by a pixel; "
               "recon/entropy/boundary.py)")
+    boundary_snap_initial: bool = _opt(
+        False, "the same test on the (hole-filled) initial disparity d0 before the layers and labels "
+               "are made from it (over the initial search range): better on the blender-dev scenes, "
+               "worse on backgammon's BadPix and some suite scenes (docs/entropy-method.md)")
     boundary_jump: float = _opt(
         0.5, "... a pixel is tested when its matched value exceeds the least of its 3x3 "
              "neighbourhood by more than this (px/view)")
@@ -509,6 +513,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         d0, ambiguity0 = (np.asarray(a) for a in initial)
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
+    if opts.boundary_snap_initial:  # docs/entropy-method.md, "Boundaries"
+        d0 = _snap(raw_gray, d0, noise, initial_rng, opts)
     # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
     # with the largest window.
     if noise_limited is None:
@@ -591,10 +597,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         matched = centroid_correction(matched, rect_table[shape_map, size_map],
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
     if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
-        matched, _ = snap_boundaries(raw_gray, matched, noise_sigma=noise, disparity_range=rng,
-                                     jump=opts.boundary_jump, support=opts.boundary_support,
-                                     confidence=opts.boundary_confidence, mix=opts.boundary_mix,
-                                     mix_contrast=opts.boundary_mix_contrast)
+        matched = _snap(raw_gray, matched, noise, rng, opts)
     lap("matching")
 
     if stop_after == "matching":
@@ -620,6 +623,15 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
         confidence=confidence)
+
+
+def _snap(gray: np.ndarray, disparity: np.ndarray, noise: float, rng: tuple[float, float],
+          opts: EntropyOptions) -> np.ndarray:
+    """:func:`recon.entropy.boundary.snap_boundaries` with the options' parameters."""
+    return snap_boundaries(gray, disparity, noise_sigma=noise, disparity_range=rng,
+                           jump=opts.boundary_jump, support=opts.boundary_support,
+                           confidence=opts.boundary_confidence, mix=opts.boundary_mix,
+                           mix_contrast=opts.boundary_mix_contrast)[0]
 
 
 def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,

@@ -271,6 +271,9 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     # the boundary test after matching reads the matched map along each pixel's rays
     # (recon.entropy.boundary.boundary_reach_px)
     boundary = boundary_reach_px((lo, hi), lf.grid_shape) if opts.boundary_snap else 0
+    # ... and, with boundary_snap_initial, the initial disparity's over the initial search's range
+    if opts.boundary_snap_initial:
+        boundary += boundary_reach_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape)
     return (filtered + initial + layers + matching + window_tests + boundary
             + opts.smooth_neighbourhood // 2)
 
