@@ -124,8 +124,8 @@ NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 
 
 
 def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.ndarray,
-                 far: np.ndarray, far_grey: np.ndarray, *, jump: float, min_contrast: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 far: np.ndarray, far_grey: np.ndarray, *, jump: float, min_contrast: float,
+                 extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """What the centre view says about each tested pixel ``(ys, xs)`` (1-D arrays), with ``c`` its
     grey value, ``F`` the grey value of the neighbour opposite its farthest 8-neighbour (the near
     surface one pixel inside; it must itself be near, ``matched > far + jump``), ``N`` that farthest
@@ -136,6 +136,10 @@ def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.n
       ``|F - B| >= min_contrast`` and both surfaces are even (:data:`UNIFORMITY`); else ``inf``;
     - ``centre = (c - N) / (F - N)``: the same from the centre view alone, where
       ``|F - N| >= min_contrast``; else ``-inf`` (no objection).
+
+    ``extrapolate``: ``F`` is the near surface's grey value carried on linearly to the pixel
+    (``2 F - F2``, ``F2`` two pixels inside): a silhouette whose shading changes towards the rim is
+    not read as a mix.
     """
     m = np.asarray(matched, np.float32)
     H, W = m.shape
@@ -153,6 +157,8 @@ def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.n
                    & (m[at(-1)] > np.asarray(far, np.float32) + jump))
     c = grey[ys, xs].astype(np.float64)
     F = grey[at(-1)].astype(np.float64)
+    if extrapolate:  # the near surface's grey carried on to the pixel (a shading gradient)
+        F = 2 * F - grey[at(-2)]
     N = grey[at(1)].astype(np.float64)
     B = np.asarray(far_grey, np.float64)
     spread = np.maximum(np.abs(F - grey[at(-2)]), np.abs(N - B))
@@ -167,8 +173,8 @@ def rim_evidence(gray: np.ndarray, matched: np.ndarray, ys: np.ndarray, xs: np.n
 
 def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
                               disparity_range: tuple[float, float], jump: float, support: int,
-                              confidence: float, mix: float = 0.0, mix_contrast: float = 12.0
-                              ) -> tuple[np.ndarray, np.ndarray]:
+                              confidence: float, mix: float = 0.0, mix_contrast: float = 12.0,
+                              mix_extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Readable twin of :func:`snap_boundaries` (module docstring); slow, for tests."""
     gray = np.asarray(gray, np.float32)
     m = np.asarray(matched, np.float32)
@@ -213,7 +219,8 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
                         > confidence * noise_sigma / math.sqrt(n)
                         and (n_line == 0 or near_line.min() > far_line))
     alpha, centre = rim_evidence(gray, m, ys, xs, far, far_grey, jump=jump,
-                                 min_contrast=mix_contrast * noise_sigma)
+                                 min_contrast=mix_contrast * noise_sigma,
+                                 extrapolate=mix_extrapolate)
     for i in range(ys.size):
         flip = view_test[i] and centre[i] < CENTRE_FRACTION
         if not flip and mix > 0 and enough[i] and alpha[i] < mix:
@@ -353,7 +360,8 @@ def _snap_kernel(gray, m, occ, top, reach, ys, xs, far, offsets, landing_px, min
 def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float,
                     disparity_range: tuple[float, float], jump: float, support: int,
                     confidence: float,
-                    mix: float = 0.0, mix_contrast: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+                    mix: float = 0.0, mix_contrast: float = 12.0,
+                    mix_extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The matched map with the pixels beside a depth jump that their own grey value places on the
     surface behind given that surface's value (module docstring).
 
@@ -369,9 +377,10 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
         The searched ``(min, max)``: a ray is marched until nothing within it can be nearer
         (constants of the whole image, so that a tile decides as the whole image does;
         :func:`boundary_reach_px`).
-    jump, support, confidence, mix, mix_contrast
+    jump, support, confidence, mix, mix_contrast, mix_extrapolate
         :class:`recon.entropy.EntropyOptions` ``boundary_jump``, ``boundary_support``,
-        ``boundary_confidence``, ``boundary_mix``, ``boundary_mix_contrast`` (``mix=0``: no mix test).
+        ``boundary_confidence``, ``boundary_mix``, ``boundary_mix_contrast``,
+        ``boundary_mix_extrapolate`` (``mix=0``: no mix test).
 
     Returns
     -------
@@ -402,7 +411,8 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     enough = views >= MIN_VIEWS
     flip = enough & (near_mean - far_mean > threshold / np.sqrt(np.maximum(views, 1)))
     alpha, centre = rim_evidence(gray, m, ys, xs, far, far_median, jump=jump,
-                                 min_contrast=mix_contrast * noise_sigma)
+                                 min_contrast=mix_contrast * noise_sigma,
+                                 extrapolate=mix_extrapolate)
     flip &= (centre < CENTRE_FRACTION) & ~(line <= 0)  # NaN: no view in line sees it
     if mix > 0:
         flip |= enough & (alpha < mix)
