@@ -164,3 +164,19 @@ def test_the_initial_disparity_can_be_snapped_too():
         d0 = estimate_disparity(lf, boundary_snap_initial=on, stop_after="matching").initial_disparity
         rims[on] = ((truth[inner] < 0) & (d0[inner] > (FRONT + BACK) / 2)).sum()
     assert rims[False] > 100 and rims[True] <= rims[False] - 20  # measured 176 -> 144
+
+
+def test_a_shaded_silhouette_is_not_read_as_a_mix_when_extrapolated():
+    """A near surface that brightens towards its rim (shading at a curved silhouette) gives the rim
+    pixel a grey value between its inside and the background: a mix fraction of 0.375 read
+    naively, none once the inside's gradient is carried on to the rim."""
+    from recon.entropy.boundary import rim_evidence
+
+    m = np.where(np.arange(12) >= 5, 1.0, -1.0).astype(np.float32)[None, :].repeat(9, axis=0)
+    row = np.array([0.8] * 5 + [0.65, 0.4, 0.25, 0.25, 0.25, 0.25, 0.25], np.float32)
+    gray = np.broadcast_to(row, (3, 3, 9, 12)).copy()
+    ys, xs, far = np.array([4]), np.array([5]), np.array([-1.0], np.float32)
+    naive, _ = rim_evidence(gray, m, ys, xs, far, np.array([0.8]), jump=0.5, min_contrast=0.05)
+    carried, _ = rim_evidence(gray, m, ys, xs, far, np.array([0.8]), jump=0.5, min_contrast=0.05,
+                              extrapolate=True)
+    assert naive[0] == pytest.approx(0.375) and not carried[0] < 0.5
