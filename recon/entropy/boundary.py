@@ -27,11 +27,13 @@ seeing it there, either
   pixel's grey value is nearer the far one's); or
 - *the mix test* (``mix > 0``): its grey value ``c`` holds less than ``mix`` of the near surface,
   ``alpha = (c - B) / (F - B) < mix`` with ``B`` the far surface's grey value at the pixel (the
-  median of the views at ``d_f``: the very point behind, unmixed) and ``F`` the near neighbour's,
-  where the two differ by ``mix_contrast`` noise sigmas and each surface is even beside the pixel
+  median of the views at ``d_f``: the very point behind, unmixed) and ``F`` the near neighbour's
+  (with ``mix_extrapolate``: carried on linearly to the pixel from two pixels inside), where the two
+  differ by ``mix_contrast`` noise sigmas and each surface is even beside the pixel
   (:data:`UNIFORMITY`). An anti-aliased rim pixel mixes both surfaces and matches neither; the truth
-  is the surface at its centre, which is the far one when ``alpha < 0.5``. The default 0.3 leaves a
-  margin: shading at a curved silhouette (occlusion-v1's post) also reads as mixing.
+  is the surface at its centre, which is the far one when ``alpha < 0.5``. The default 0.4 leaves a
+  margin; without the extrapolation shading at a curved silhouette (occlusion-v1's post) reads as
+  mixing and 0.3 was the most that did not cost elsewhere.
 
 Only the near-to-far direction is tested: the window bias this corrects runs that way (flipping to
 the near value as well made every dev scene worse).

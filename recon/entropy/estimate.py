@@ -204,18 +204,17 @@ class EntropyOptions:
         3.0, "... and the farther value wins by more than this many standard errors of noise "
              "(sigma / sqrt(views)) of the mean absolute grey difference")
     boundary_mix: float = _opt(
-        0.3, "... or the pixel's centre grey value holds less than this fraction of the near "
+        0.4, "... or the pixel's centre grey value holds less than this fraction of the near "
              "surface's: alpha = (c - B) / (F - B), B = the far surface's grey value there (median "
              "over the views that see it), F = the near neighbour's opposite; the truth is the "
              "surface at the pixel centre, which an anti-aliased rim pixel with alpha < 0.5 shows "
-             "behind it (0.3, not 0.5: shading at a curved silhouette reads as mixing; 0: off)")
+             "behind it (0.4, not 0.5: a margin for shading and texture at a silhouette; 0: off)")
     boundary_mix_contrast: float = _opt(
         12.0, "... alpha is used only where |F - B| is at least this many noise sigmas")
     boundary_mix_extrapolate: bool = _opt(
-        False, "... F is the near surface's grey carried on linearly to the pixel (2 F - F2, F2 two "
-               "pixels inside), so that shading towards a silhouette is not read as mixing; with "
-               "boundary_mix=0.4 backgammon reaches 3 % / 3 at a cost elsewhere "
-               "(docs/entropy-method.md, 'Boundaries')")
+        True, "... F is the near surface's grey carried on linearly to the pixel (2 F - F2, F2 two "
+              "pixels inside), so that shading towards a silhouette is not read as mixing "
+              "(occlusion-v1's metal post; docs/entropy-method.md, 'Boundaries')")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
