@@ -13,7 +13,8 @@ from recon.entropy.confidence import confidence_map
 from recon.entropy.estimate import PRESETS, _largest_windows_only
 from recon.entropy.estimate import noise_limited_pixels
 from recon.entropy.noise import (filter_flat_views, filter_gain, filter_reach_px, gradient_noise_energy,
-                                 texture_reach_px, texture_to_noise)
+                                 soften_reach_px, soften_views, texture_reach_px, texture_to_noise,
+                                 weak_texture_pixels)
 from recon.lf.lightfield import LightField
 from recon.synthetic import noise_texture
 
@@ -131,12 +132,12 @@ def test_noise_limited_pixels_by_gate():
         estimate_disparity(LightField(views=_views(image)), noise_gate="flat")
 
 
-def _faint_wall(n: int, d: float, seed: int) -> LightField:
-    # A plane at disparity d whose texture (0.7 grey levels) is weaker than the render noise (1.5
-    # levels, its own in every view).
+def _faint_wall(n: int, d: float, seed: int, *, texture_levels: float = 0.7) -> LightField:
+    # A plane at disparity d whose texture (0.7 grey levels by default) is weaker than the render
+    # noise (1.5 levels, its own in every view).
     rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.standard_normal((n + 40, n + 40)).astype(np.float32), (0, 0), 1.0)
-    texture = 0.5 + texture * (0.7 / 255) / texture.std()
+    texture = 0.5 + texture * (texture_levels / 255) / texture.std()
     views = np.empty((9, 9, n, n), np.float32)
     for u in range(9):
         for v in range(9):
@@ -145,6 +146,41 @@ def _faint_wall(n: int, d: float, seed: int) -> LightField:
             views[u, v] = cv2.warpAffine(texture, m, (n, n), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     views += rng.normal(0, 1.5 / 255, views.shape).astype(np.float32)
     return LightField(views=np.clip(views, 0, 1), disparity_range=(d - 0.75, d + 1.25))
+
+
+def test_soften_views_filters_only_where_asked_and_is_local():
+    rng = np.random.default_rng(21)
+    views = rng.random((3, 3, 40, 40)).astype(np.float32)
+    where = np.zeros(views.shape, bool)
+    where[1, 2, 10:20, 10:20] = True
+    out = soften_views(views, sigma_px=0.6, where=where)
+    np.testing.assert_array_equal(np.delete(out.reshape(9, 40, 40), 5, 0),
+                                  np.delete(views.reshape(9, 40, 40), 5, 0))  # other views untouched
+    r = soften_reach_px(0.6)
+    assert r == 4
+    far = np.ones((40, 40), bool)
+    far[10 - r:20 + r, 10 - r:20 + r] = False
+    np.testing.assert_array_equal(out[1, 2][far], views[1, 2][far])
+    assert out[1, 2, 12:18, 12:18].std() < 0.7 * views[1, 2, 12:18, 12:18].std()  # filtered inside
+    assert soften_views(views, sigma_px=0.0, where=where) is views
+    np.testing.assert_array_equal(weak_texture_pixels(np.array([1.0, 15.9, 16.0, 40.0]), texture_ratio=16.0),
+                                  [True, True, False, False])
+
+
+def test_the_default_removes_the_half_pixel_pull_on_weak_texture_under_noise():
+    """Texture a few times stronger than the noise (texture/noise energy ~11 over the window):
+    matched unfiltered, the cost minimum is pulled towards the candidates whose shifts fall near
+    half pixels in most views (d = -1.75: the outer views' shifts are whole, half and quarter
+    pixels); the mild filter of the weak-texture pixels removes most of the pull."""
+    d = -1.75
+    lf = _faint_wall(72, d, seed=5, texture_levels=2.0)
+    inner = (slice(15, -15), slice(15, -15))
+    new = np.abs(estimate_disparity(lf).disparity[inner] - d)
+    old = np.abs(estimate_disparity(lf, weak_texture_filter=0.0).disparity[inner] - d)
+    assert np.median(old) > 0.04  # the pull: more than half the BadPix threshold
+    assert np.median(new) < 0.5 * np.median(old)
+    with pytest.raises(ValueError, match="weak_texture_filter must be a sigma"):
+        estimate_disparity(lf, weak_texture_filter=-1.0)
 
 
 def test_the_default_matches_a_faint_wall_under_noise():

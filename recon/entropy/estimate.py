@@ -24,8 +24,8 @@ from recon.entropy.boundary import snap_boundaries
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
-from recon.entropy.noise import (filter_flat_views, noise_limited_windows, texture_to_noise,
-                                 warp_mask_to_views)
+from recon.entropy.noise import (filter_flat_views, noise_limited_windows, soften_views,
+                                 texture_to_noise, warp_mask_to_views, weak_texture_pixels)
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
@@ -184,6 +184,15 @@ class EntropyOptions:
     noise_texture_ratio: float = _opt(
         4.0, "for noise_gate='texture': a window is noise-limited when its filtered gradient energy "
              "is below this many times that of the noise alone (1 = pure noise)")
+    weak_texture_filter: float = _opt(
+        0.6, "Gaussian sigma (px) applied, before the line search, to the views where pixels of weak "
+             "texture (below weak_texture_ratio) land: bilinear sampling averages noise more at half "
+             "pixels than at whole ones, which pulls a noisy surface's cost minimum towards "
+             "half-pixel shifts; a mild filter correlates the noise so the pull goes, and keeps the "
+             "texture (0: off, the paper; see docs/entropy-method.md)")
+    weak_texture_ratio: float = _opt(
+        16.0, "weak_texture_filter applies where the filtered gradient energy over the largest window "
+              "(as for noise_texture_ratio) is below this many times the noise's")
     boundary_snap: bool = _opt(
         True, "after matching, test each pixel whose value lies more than boundary_jump above a "
               "neighbour's by its own grey value: over the views that would see it at the "
@@ -234,7 +243,7 @@ PRESETS: dict[str, dict] = {
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
               "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0,
-              "boundary_snap": False},
+              "weak_texture_filter": 0.0, "boundary_snap": False},
 }
 
 
@@ -409,6 +418,10 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"noise_texture_ratio must be > 0 (1 = pure noise), got {opts.noise_texture_ratio}")
     if not opts.noise_filter >= 0:
         raise ValueError(f"noise_filter must be a sigma >= 0 pixels (0: off), got {opts.noise_filter}")
+    if not opts.weak_texture_filter >= 0:
+        raise ValueError(f"weak_texture_filter must be a sigma >= 0 pixels (0: off), got {opts.weak_texture_filter}")
+    if not opts.weak_texture_ratio > 0:
+        raise ValueError(f"weak_texture_ratio must be > 0 (1 = pure noise), got {opts.weak_texture_ratio}")
     if not 0 <= opts.boundary_mix <= 1 or not opts.boundary_mix_contrast >= 0:
         raise ValueError(f"boundary_mix must be a fraction in [0, 1] (0: off) and boundary_mix_contrast "
                          f">= 0 noise sigmas; got {opts.boundary_mix}, {opts.boundary_mix_contrast}")
@@ -532,6 +545,12 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                  where=warp_mask_to_views(noise_limited, d0, (U, V)),
                                  texture_ratio=opts.noise_texture_ratio if texture else None,
                                  radius_px=max(opts.window_sizes) // 2)
+    if opts.weak_texture_filter > 0:  # the rest of the weak texture, mildly
+        weak = weak_texture_pixels(_texture_ratio(raw_gray[u0, v0], noise, opts),
+                                   texture_ratio=opts.weak_texture_ratio) & ~noise_limited
+        if weak.any():
+            gray = soften_views(gray, sigma_px=opts.weak_texture_filter,
+                                where=warp_mask_to_views(weak, d0, (U, V)))
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -748,11 +767,20 @@ def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.nd
     with no valley in the initial nine-view cost."""
     if options.noise_gate == "holes":
         return flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
-    sigma_px = options.noise_filter if options.noise_filter > 0 else 1.5
-    ratio = texture_to_noise(centre, noise_sigma=noise, sigma_px=sigma_px,
-                             radius_px=max(options.window_sizes) // 2)
-    return noise_limited_windows(ratio < options.noise_texture_ratio,
+    return noise_limited_windows(_texture_ratio(centre, noise, options) < options.noise_texture_ratio,
                                  radius_px=max(options.window_sizes) // 2)
+
+
+def texture_sigma_px(options: EntropyOptions) -> float:
+    """Sigma (px) of the filter with which the texture gates measure texture against noise
+    (:func:`recon.entropy.noise.texture_to_noise`): ``noise_filter``, 1.5 px when it is off."""
+    return options.noise_filter if options.noise_filter > 0 else 1.5
+
+
+def _texture_ratio(centre: np.ndarray, noise: float, options: EntropyOptions) -> np.ndarray:
+    # texture_to_noise over the largest window
+    return texture_to_noise(centre, noise_sigma=noise, sigma_px=texture_sigma_px(options),
+                            radius_px=max(options.window_sizes) // 2)
 
 
 def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:

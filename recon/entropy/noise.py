@@ -31,6 +31,8 @@ filtered and unfiltered parts join without a seam.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
@@ -59,6 +61,14 @@ def filter_reach_px(sigma_px: float, *, size: int, radius_px: int | None = None)
         return 0
     test = size // 2 + 1 if radius_px is None else texture_reach_px(sigma_px, radius_px=radius_px)
     return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)) + test)
+
+
+def soften_reach_px(sigma_px: float) -> int:
+    """How far (pixels) a value of :func:`soften_views` depends on the view and on ``where``: the
+    filter and the soft mask; 0 when off."""
+    if sigma_px <= 0:
+        return 0
+    return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)))
 
 
 def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
@@ -130,10 +140,46 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
             if not flat.any():
                 out[u, v] = view
                 continue
-            weight = _gaussian(flat.astype(np.float32), MASK_SIGMA_PX)
-            smooth = _gaussian(view, sigma_px)
-            out[u, v] = view + weight * (smooth - view)
+            out[u, v] = _blend_filtered(view, flat, sigma_px)
     return out
+
+
+def _blend_filtered(view: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    # The view Gaussian filtered where mask is set, joined to the rest through a soft mask.
+    weight = _gaussian(mask.view(np.uint8).astype(np.float32), MASK_SIGMA_PX)
+    return cv2.add(view, cv2.multiply(weight, cv2.subtract(_gaussian(view, sigma_px), view)))
+
+
+def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray) -> np.ndarray:
+    """``(U, V, H, W)`` float32 views Gaussian filtered with ``sigma_px`` where ``where``
+    (``(U, V, H, W)`` bool, e.g. :func:`warp_mask_to_views` of the weak-texture pixels), blended in
+    with a 1-px soft mask; views without a pixel of ``where`` are passed through.
+
+    The filter for textured but noisy surfaces (:func:`weak_texture_pixels`): a mild one (0.6 px
+    by default) whose job is not to lower the noise but to correlate it over neighbouring pixels, so
+    that a bilinear sample between pixels averages it little more than a sample at a pixel."""
+    if sigma_px <= 0:
+        return gray
+    out = np.empty_like(gray, dtype=np.float32)
+    U, V = gray.shape[:2]
+
+    def one(k: int) -> None:  # OpenCV releases the GIL: the views run on every core
+        u, v = divmod(k, V)
+        view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
+        out[u, v] = _blend_filtered(view, where[u, v], sigma_px) if where[u, v].any() else view
+
+    with ThreadPoolExecutor(max_workers=max(1, min(U * V, cv2.getNumThreads()))) as pool:
+        list(pool.map(one, range(U * V)))
+    return out
+
+
+def weak_texture_pixels(ratio: np.ndarray, *, texture_ratio: float) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose window-scale texture (:func:`texture_to_noise`, ``ratio``) is
+    below ``texture_ratio`` times the noise's: textured enough to match unfiltered on average, but
+    weak enough that the noise's sub-pixel pattern (see the module's text) still moves the cost
+    minimum. No opening: the mild filter keeps the texture, so mixing filtered and unfiltered
+    values in one window costs little."""
+    return np.asarray(ratio) < texture_ratio
 
 
 def _gradient_kernels(sigma_px: float) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,8 @@ cotton         training/cotton: a smooth round object with weak texture before a
 bars           6-px bars with 12-px gaps: background hidden from both grid halves
 slants         training/sideboard: steep slanted planes, a box in front
 noisy          boxes-like layout with strong noise (sigma 8 grey levels) everywhere
+thin           rods (4 px, diagonal), wires (2 px) and a dense mesh (2-px wires every 8 px)
+               in front of a textured wall: the issue's held-out "thin" kind
 =============  ==========================================================================
 
 :func:`region_masks` splits the centre view by the ground truth into ``edge`` (within 2 px of a
@@ -242,6 +244,29 @@ def _slants(n: int, seed: int) -> Scene:
     return Scene("slants", lf, truth, clean)
 
 
+def _thin(n: int, seed: int) -> Scene:
+    """Rods, wires and a mesh far in front of a wall: structures narrower than every window but the
+    strips, and background seen through gaps that every half of the grid loses somewhere."""
+    wall = Surface(natural_texture((n, n), seed=seed, contrast=0.35), lambda y, x: -0.7 + 0.002 * (y - n / 2))
+
+    def rods(y, x):  # 4 px wide across x, leaning 31 degrees, every 40 px, in the left half
+        return (np.mod(x + 0.6 * y, 40.0) < 4.0) & (x < 0.5 * n)
+
+    def wires(y, x):  # vertical, 1.5 px wide (1 or 2 px in each view), upper right
+        return (np.mod(x, 14.0) < 1.5) & (x >= 0.5 * n) & (y < 0.5 * n)
+
+    def mesh(y, x):  # 2-px wires every 8 px, lower right: 6-px holes
+        return ((np.mod(x, 8.0) < 2.0) | (np.mod(y, 8.0) < 2.0)) & (x >= 0.5 * n) & (y >= 0.5 * n)
+
+    def texture(offset: int, shift: float) -> np.ndarray:
+        return np.clip(natural_texture((n, n), seed=seed + offset, contrast=0.35) + shift, 0, 1)
+
+    surfaces = [wall, Surface(texture(3, 0.1), 0.9, rods), Surface(texture(5, -0.2), 1.4, wires),
+                Surface(texture(7, 0.15), 1.1, mesh)]
+    lf, truth, clean = render_surfaces(surfaces, seed=seed)
+    return Scene("thin", lf, truth, clean)
+
+
 SCENES: dict[str, Callable[[int, int], Scene]] = {
     "dots": _dots,
     "pyramids": _pyramids,
@@ -251,6 +276,7 @@ SCENES: dict[str, Callable[[int, int], Scene]] = {
     "bars": _bars,
     "slants": _slants,
     "noisy": lambda n, seed: _boxes(n, seed, noise=8 / 255, name="noisy"),
+    "thin": _thin,
 }
 
 

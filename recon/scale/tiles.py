@@ -249,7 +249,8 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
 def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     from recon.entropy import make_options
     from recon.entropy.boundary import boundary_reach_px
-    from recon.entropy.noise import filter_reach_px
+    from recon.entropy.estimate import texture_sigma_px
+    from recon.entropy.noise import filter_reach_px, soften_reach_px, texture_reach_px
 
     opts = make_options(**{k: v for k, v in options.items() if v is not None})
     lo, hi = opts.disparity_range
@@ -268,6 +269,9 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     # d0) and the view is flat (Eq. 12, or with noise_gate="texture" the window-scale test)
     radius = max(opts.window_sizes) // 2 if opts.noise_gate == "texture" else None
     filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood, radius_px=radius) + shift + 1
+    if opts.weak_texture_filter > 0:  # then the mild filter where weak-texture pixels land (the same warp)
+        filtered += (soften_reach_px(opts.weak_texture_filter) + shift + 1
+                     + texture_reach_px(texture_sigma_px(opts), radius_px=max(opts.window_sizes) // 2))
     # the boundary test after matching reads the matched map along each pixel's rays
     # (recon.entropy.boundary.boundary_reach_px)
     boundary = boundary_reach_px((lo, hi), lf.grid_shape) if opts.boundary_snap else 0
