@@ -550,7 +550,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                    texture_ratio=opts.weak_texture_ratio) & ~noise_limited
         if weak.any():
             gray = soften_views(gray, sigma_px=opts.weak_texture_filter,
-                                where=warp_mask_to_views(weak, d0, (U, V)))
+                                where=warp_mask_to_views(weak, d0, (U, V)),
+                                out=None if gray is raw_gray else gray)  # raw_gray is used later
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))

@@ -150,23 +150,30 @@ def _blend_filtered(view: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.n
     return cv2.add(view, cv2.multiply(weight, cv2.subtract(_gaussian(view, sigma_px), view)))
 
 
-def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray) -> np.ndarray:
+def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray,
+                 out: np.ndarray | None = None) -> np.ndarray:
     """``(U, V, H, W)`` float32 views Gaussian filtered with ``sigma_px`` where ``where``
     (``(U, V, H, W)`` bool, e.g. :func:`warp_mask_to_views` of the weak-texture pixels), blended in
     with a 1-px soft mask; views without a pixel of ``where`` are passed through.
 
     The filter for textured but noisy surfaces (:func:`weak_texture_pixels`): a mild one (0.6 px
     by default) whose job is not to lower the noise but to correlate it over neighbouring pixels, so
-    that a bilinear sample between pixels averages it little more than a sample at a pixel."""
+    that a bilinear sample between pixels averages it little more than a sample at a pixel.
+    ``out``: a float32 array of the same shape to write to (may be ``gray`` itself, to save a copy of
+    the light field); default a new one."""
     if sigma_px <= 0:
         return gray
-    out = np.empty_like(gray, dtype=np.float32)
+    if out is None:
+        out = np.empty_like(gray, dtype=np.float32)
     U, V = gray.shape[:2]
 
     def one(k: int) -> None:  # OpenCV releases the GIL: the views run on every core
         u, v = divmod(k, V)
         view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
-        out[u, v] = _blend_filtered(view, where[u, v], sigma_px) if where[u, v].any() else view
+        if where[u, v].any():
+            out[u, v] = _blend_filtered(view, where[u, v], sigma_px)
+        elif out is not gray:
+            out[u, v] = view
 
     with ThreadPoolExecutor(max_workers=max(1, min(U * V, cv2.getNumThreads()))) as pool:
         list(pool.map(one, range(U * V)))
