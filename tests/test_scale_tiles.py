@@ -157,12 +157,12 @@ ENTROPY_ROUNDING = 1e-4
 @pytest.fixture(scope="module")
 def boxes():
     """Flat boxes over a textured wall: flat patches, black holes and occlusions, i.e. every
-    whole-image step of the estimator has work to do. 192 px: the entropy halo (119 px with the
-    strips' 31-px aperture test and the weak-texture filter's window test and warp) must leave the
-    corner tile a real crop of the image."""
+    whole-image step of the estimator has work to do. 224 px: the entropy halo (140 px with the
+    strips' 31-px aperture test, the weak-texture filter's window test and warp and the boundary
+    test's rays) must leave the corner tile of 75 px a real crop of the image."""
     from recon.entropy.scenes import make_scene
 
-    return make_scene("boxes", size=192, seed=0).lf
+    return make_scene("boxes", size=224, seed=0).lf
 
 
 def test_tiled_entropy_equals_untiled(boxes):
@@ -171,7 +171,7 @@ def test_tiled_entropy_equals_untiled(boxes):
     whole = estimate_disparity(boxes)
     assert whole.info["holes"].any() and (whole.labels == 3).any()  # the global steps matter here
     seen = []
-    result = tiled_disparity(boxes, method="entropy", tile=64, progress=lambda fraction, message: seen.append(fraction))
+    result = tiled_disparity(boxes, method="entropy", tile=75, progress=lambda fraction, message: seen.append(fraction))
     assert len(result.tiles) == 9 and result.exact
     corner = result.tiles[0].crop
     assert corner[1] < boxes.image_shape[0] and corner[3] < boxes.image_shape[1]  # a real crop
@@ -191,7 +191,7 @@ def test_entropy_tiles_need_the_whole_image_steps(boxes):
     rule_table = dict(TILE_RULES)
     try:
         TILE_RULES["entropy"] = naive
-        result = tiled_disparity(boxes, method="entropy", tile=48)
+        result = tiled_disparity(boxes, method="entropy", tile=75)
     finally:
         TILE_RULES.clear()
         TILE_RULES.update(rule_table)

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon.entropy.aperture import informative_strips
+from recon.entropy.boundary import snap_boundaries
 from recon.entropy.confidence import confidence_map
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
@@ -192,6 +193,37 @@ class EntropyOptions:
     weak_texture_ratio: float = _opt(
         12.0, "weak_texture_filter applies where the filtered gradient energy over the largest window "
               "(as for noise_texture_ratio) is below this many times the noise's")
+    boundary_snap: bool = _opt(
+        True, "after matching, test each pixel whose value lies more than boundary_jump above a "
+              "neighbour's by its own grey value: over the views that would see it at the "
+              "neighbour's (farther) value, does that value fit it clearly better than its own? "
+              "Then it takes it (a window fattens the near surface by a pixel; "
+              "recon/entropy/boundary.py)")
+    boundary_snap_initial: bool = _opt(
+        False, "the same test on the (hole-filled) initial disparity d0 before the layers and labels "
+               "are made from it (over the initial search range): better on the blender-dev scenes, "
+               "worse on backgammon's BadPix and some suite scenes (docs/entropy-method.md)")
+    boundary_jump: float = _opt(
+        0.5, "... a pixel is tested when its matched value exceeds the least of its 3x3 "
+             "neighbourhood by more than this (px/view)")
+    boundary_support: int = _opt(
+        6, "... and that least value is shared (within 0.1 px/view) by at least this many pixels of "
+           "the 5x5 neighbourhood (a surface behind, not an outlier)")
+    boundary_confidence: float = _opt(
+        3.0, "... and the farther value wins by more than this many standard errors of noise "
+             "(sigma / sqrt(views)) of the mean absolute grey difference")
+    boundary_mix: float = _opt(
+        0.4, "... or the pixel's centre grey value holds less than this fraction of the near "
+             "surface's: alpha = (c - B) / (F - B), B = the far surface's grey value there (median "
+             "over the views that see it), F = the near neighbour's opposite; the truth is the "
+             "surface at the pixel centre, which an anti-aliased rim pixel with alpha < 0.5 shows "
+             "behind it (0.4, not 0.5: a margin for shading and texture at a silhouette; 0: off)")
+    boundary_mix_contrast: float = _opt(
+        12.0, "... alpha is used only where |F - B| is at least this many noise sigmas")
+    boundary_mix_extrapolate: bool = _opt(
+        True, "... F is the near surface's grey carried on linearly to the pixel (2 F - F2, F2 two "
+              "pixels inside), so that shading towards a silhouette is not read as mixing "
+              "(occlusion-v1's metal post; docs/entropy-method.md, 'Boundaries')")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -211,7 +243,7 @@ PRESETS: dict[str, dict] = {
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
               "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0,
-              "weak_texture_filter": 0.0},
+              "weak_texture_filter": 0.0, "boundary_snap": False},
 }
 
 
@@ -390,6 +422,13 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"weak_texture_filter must be a sigma >= 0 pixels (0: off), got {opts.weak_texture_filter}")
     if not opts.weak_texture_ratio > 0:
         raise ValueError(f"weak_texture_ratio must be > 0 (1 = pure noise), got {opts.weak_texture_ratio}")
+    if not 0 <= opts.boundary_mix <= 1 or not opts.boundary_mix_contrast >= 0:
+        raise ValueError(f"boundary_mix must be a fraction in [0, 1] (0: off) and boundary_mix_contrast "
+                         f">= 0 noise sigmas; got {opts.boundary_mix}, {opts.boundary_mix_contrast}")
+    if not (opts.boundary_jump > 0 and opts.boundary_confidence >= 0 and 1 <= opts.boundary_support <= 25):
+        raise ValueError(f"boundary_jump must be > 0 px/view, boundary_confidence >= 0 and boundary_support "
+                         f"1..25 pixels; got {opts.boundary_jump}, {opts.boundary_confidence}, "
+                         f"{opts.boundary_support}")
     rng = opts.disparity_range
     if rng is not None and not rng[0] < rng[1]:
         raise ValueError(f"disparity_range must be (min, max) with min < max, got {rng}")
@@ -491,6 +530,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         d0, ambiguity0 = (np.asarray(a) for a in initial)
         if d0.shape != (H, W) or ambiguity0.shape != (H, W):
             raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
+    if opts.boundary_snap_initial:  # docs/entropy-method.md, "Boundaries"
+        d0 = _snap(raw_gray, d0, noise, initial_rng, opts)
     # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
     # with the largest window.
     if noise_limited is None:
@@ -579,6 +620,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                 for z in range(max(sizes) + 1)] for sh in range(N_SHAPES)], np.int64)
         matched = centroid_correction(matched, rect_table[shape_map, size_map],
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
+    if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
+        matched = _snap(raw_gray, matched, noise, rng, opts)
     lap("matching")
 
     if stop_after == "matching":
@@ -604,6 +647,16 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
         confidence=confidence)
+
+
+def _snap(gray: np.ndarray, disparity: np.ndarray, noise: float, rng: tuple[float, float],
+          opts: EntropyOptions) -> np.ndarray:
+    """:func:`recon.entropy.boundary.snap_boundaries` with the options' parameters."""
+    return snap_boundaries(gray, disparity, noise_sigma=noise, disparity_range=rng,
+                           jump=opts.boundary_jump, support=opts.boundary_support,
+                           confidence=opts.boundary_confidence, mix=opts.boundary_mix,
+                           mix_contrast=opts.boundary_mix_contrast,
+                           mix_extrapolate=opts.boundary_mix_extrapolate)[0]
 
 
 def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,

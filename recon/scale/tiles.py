@@ -248,6 +248,7 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
 
 def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     from recon.entropy import make_options
+    from recon.entropy.boundary import boundary_reach_px
     from recon.entropy.estimate import texture_sigma_px
     from recon.entropy.noise import filter_reach_px, soften_reach_px, texture_reach_px
 
@@ -271,7 +272,14 @@ def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
     if opts.weak_texture_filter > 0:  # then the mild filter where weak-texture pixels land (the same warp)
         filtered += (soften_reach_px(opts.weak_texture_filter) + shift + 1
                      + texture_reach_px(texture_sigma_px(opts), radius_px=max(opts.window_sizes) // 2))
-    return filtered + initial + layers + matching + window_tests + opts.smooth_neighbourhood // 2
+    # the boundary test after matching reads the matched map along each pixel's rays
+    # (recon.entropy.boundary.boundary_reach_px)
+    boundary = boundary_reach_px((lo, hi), lf.grid_shape) if opts.boundary_snap else 0
+    # ... and, with boundary_snap_initial, the initial disparity's over the initial search's range
+    if opts.boundary_snap_initial:
+        boundary += boundary_reach_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape)
+    return (filtered + initial + layers + matching + window_tests + boundary
+            + opts.smooth_neighbourhood // 2)
 
 
 #: Tiling rule per method name (the lead may move ``halo_px`` next to each runner in
