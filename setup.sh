@@ -3,11 +3,21 @@
 # uv, and the locked environment in .venv/ (with the `lfrig` command in .venv/bin/).
 #
 #   ./setup.sh            set up (fast when everything is already there)
+#   ./setup.sh --tests    also what the test suite needs: Debian's chromium and chromedriver (the
+#                         report and preview pages are tested in a real headless browser)
 #
 # Environment:
 #   LFRIG_PYTHON=/path/to/python3.12   use this interpreter instead of searching for one
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
+
+FOR_TESTS=0
+for arg in "$@"; do
+  case "$arg" in
+    --tests) FOR_TESTS=1 ;;
+    *) printf 'setup: error: unknown option %s (use --tests or nothing)\n' "$arg" >&2; exit 2 ;;
+  esac
+done
 
 say() { printf 'setup: %s\n' "$*" >&2; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
@@ -78,6 +88,18 @@ elif ! { command -v pkg-config >/dev/null 2>&1 && pkg-config --exists gobject-in
   say "no apt-get, and Aravis/gobject-introspection/cairo not found by pkg-config: setting up without"
   say "the Aravis camera (--camera aravis:); install aravis, gobject-introspection and cairo to have it"
   SYNC_EXTRAS=""
+fi
+
+# --- a real browser for the tests (./test): Debian's chromium and its driver --------------------
+# Nothing downloads a browser build: the tests drive /usr/bin/chromium through /usr/bin/chromedriver.
+if [ "$FOR_TESTS" = 1 ] && [ "$(uname -s)" = Linux ] && command -v apt-get >/dev/null 2>&1 \
+   && ! { command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; }; then
+  SUDO=""
+  [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  say "installing chromium chromium-driver (the tests open the report pages in a headless browser) with apt-get"
+  $SUDO apt-get update -qq >/dev/null && \
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null \
+    || die "could not install chromium chromium-driver; install them by hand: sudo apt-get install chromium chromium-driver"
 fi
 
 # --- uv ------------------------------------------------------------------------------------------
