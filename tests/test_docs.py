@@ -137,3 +137,17 @@ def test_user_guide_calibrates_on_the_demos_own_boards():
     stage = [board_flags(c) for c in commands if c.startswith("calibrate stage")]
     assert intrinsics and set(intrinsics) == {INTRINSICS_BOARD}
     assert stage and set(stage) == {STAGE_BOARD}
+
+
+#: How the code was made is not what it does: words of a development diary (a lab session,
+#: ``session.log``, ``rig/session.py``, a branch of the exception tree and lead screws are fine).
+DIARY = re.compile(r"\bsession \d|\b(this|that|the other|a feature) branch\b|\bthe lead\b|\blead's\b"
+                   r"|\bon main\b|\bmain's\b|\bmerg(e|ed|ing) (of )?(main|the branch)\b|\bthis session\b",
+                   re.IGNORECASE)
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
+def test_docs_describe_the_product_not_how_it_was_made(page):
+    hits = [f"{page.name}:{n}: {line.strip()}" for n, line in
+            enumerate(page.read_text(encoding="utf-8").splitlines(), 1) if DIARY.search(line)]
+    assert hits == []
