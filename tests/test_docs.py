@@ -151,3 +151,13 @@ def test_docs_describe_the_product_not_how_it_was_made(page):
     hits = [f"{page.name}:{n}: {line.strip()}" for n, line in
             enumerate(page.read_text(encoding="utf-8").splitlines(), 1) if DIARY.search(line)]
     assert hits == []
+
+
+#: A file of the project named in the docs, in backticks: `recon/...`, `tests/...`, `bench/...` ...
+PROJECT_PATH = re.compile(r"`((?:recon|rig|calib|tests|bench|docs|fixtures)/[A-Za-z0-9_./-]*)`")
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
+def test_files_the_docs_name_exist(page):
+    named = set(PROJECT_PATH.findall(page.read_text(encoding="utf-8")))
+    assert sorted(p for p in named if not (ROOT / p).exists()) == []
