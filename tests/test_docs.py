@@ -1,6 +1,7 @@
 """The docs say what the code does: every estimator option in the method page with its default and
 its ``paper`` preset value, every ``lfrig`` command line shown in README.md and docs/*.md made of
-commands and flags that exist, and the user guide's boards the demo's own.
+commands and flags that exist, every project file they name present, the user guide's boards the
+demo's own, and no words of a development diary.
 
 Commands are checked against the parser ``lfrig`` itself builds (``rig.main.build_parser``), not
 run; see ``docs/entropy-method.md`` for the option tables' form (``| `name` | `default` | `paper` |
