@@ -363,7 +363,7 @@ def _export(args: argparse.Namespace) -> None:
     if args.report is not None:
         from recon.report import report_for_result
 
-        page = report_for_result(result, args.report, camera=camera)
+        page = report_for_result(result, args.report, camera=camera, ply=args.ply)
         print(f"wrote {page}")
 
 
