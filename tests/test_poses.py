@@ -132,3 +132,44 @@ def test_poses_need_the_camera_and_name_the_flags(tmp_path, capsys):
     assert err.startswith("lfrig: error:") and "--focal-px" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "poses").exists()
     assert main(["export", str(folder), "--poses", str(tmp_path / "poses"), "--focal-px", "200"]) == 0
+
+
+@pytest.mark.hci
+def test_backgammon_views_agree_with_the_exported_poses(hci_scene_dir, tmp_path):
+    """The benchmark's own renderings (shifted sensors, d0 = 5.29) against the exported cameras: the
+    centre view's colour of each exported 3D point (from the true disparity) is found where COLMAP's
+    model projects that point in the corner views, and not where the mirrored grid would put it."""
+    import pycolmap
+
+    from recon.depth import benchmark_camera
+    from recon.lf.imageio import read_image
+    from recon.lf.params import read_parameters
+    from recon.lf.pfm import read_pfm
+
+    camera = benchmark_camera(read_parameters(hci_scene_dir / "parameters.cfg")).camera()
+    folder = tmp_path / "run"
+    folder.mkdir()
+    write_pfm(folder / "disparity.pfm", read_pfm(hci_scene_dir / "gt_disp_lowres.pfm"))
+    cv2.imwrite(str(folder / "centre_view.png"), cv2.imread(str(hci_scene_dir / "input_Cam040.png")))
+    (folder / "result.json").write_text(json.dumps({**camera.as_dict(), "source": str(hci_scene_dir),
+                                                    "grid": [9, 9], "image": [512, 512]}))
+    out = tmp_path / "poses"
+    assert main(["export", str(folder), "--poses", str(out)]) == 0
+    model = pycolmap.Reconstruction(str(out))
+    points = list(model.points3D.values())[::10]
+    xyz = np.array([p.xyz for p in points])
+    colour = np.array([p.color for p in points], dtype=float)
+    for image in model.images.values():
+        if image.name not in ("input_Cam000.png", "input_Cam008.png", "input_Cam080.png"):
+            continue
+        view = read_image(hci_scene_dir / image.name).astype(np.float32)
+        intrinsics = model.cameras[image.camera_id]
+        seen = np.array([intrinsics.img_from_cam(image.cam_from_world() * p) for p in xyz]) - 0.5
+        centre = np.array([camera.focal_px * p[:2] / p[2] for p in xyz]) + 255.5  # lfrig pixel in the centre view
+        mirrored = 2 * centre - seen  # the grid mirrored through the centre view
+        errors = []
+        for where in (seen, mirrored):
+            sampled = cv2.remap(view, where[:, :1].astype(np.float32), where[:, 1:].astype(np.float32),
+                                cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)[:, 0]
+            errors.append(float(np.median(np.abs(sampled - colour))))
+        assert errors[0] < 4.0 and errors[1] > 3 * errors[0], (image.name, errors)
