@@ -413,13 +413,26 @@ def _viewer_section(out: Path, model: ViewerModel) -> tuple[str, list[str]]:
     return body, scripts
 
 
+def _round_up(value: float) -> float:
+    """The smallest of 1, 2 and 5 times a power of ten that is at least ``value`` (> 0; else 1)."""
+    if not (math.isfinite(value) and value > 0):
+        return 1.0
+    power = 10.0 ** math.floor(math.log10(value))
+    return next(m * power for m in (1, 2, 5, 10) if m * power >= value * (1 - 1e-12))
+
+
+def _span_number(value: float) -> str:
+    """A colour bar's end for a caption: whole numbers from 1000 up, four significant digits below."""
+    return f"{value:.0f}" if abs(value) >= 1000 else f"{value:.4g}"
+
+
 def _clip_note(values: np.ndarray, low: float, high: float, *, how: str, unit: str) -> tuple[str, bool]:
     """What a colour bar does with values outside ``[low, high]``: the caption's words and whether
     anything is clipped."""
     finite = np.asarray(values, np.float64)
     finite = finite[np.isfinite(finite)]
     outside = 100.0 * float(np.mean((finite < low) | (finite > high))) if finite.size else 0.0
-    span = f"{_format(float(low))} … {_format(float(high))} {unit}".rstrip()
+    span = f"{_span_number(float(low))} … {_span_number(float(high))} {unit}".rstrip()
     if outside > 0:
         return f"colours clipped to {how}: {span} ({outside:.1f} % of pixels outside)", True
     return f"colours span {span}, nothing clipped", False
@@ -586,21 +599,17 @@ _CLIPPED = ", clipped"
 
 
 def _depth_error_figure(out: Path, maps: _Maps) -> str:
-    """``depth_error.png``: estimated minus true depth in mm, symmetric about 0 at the 98th
-    percentile of ``|error|`` (rounded up to a round number); red too near, blue too far."""
+    """``depth_error.png``: estimated minus true depth in mm, symmetric about 0 up to the 95th
+    percentile of ``|error|`` rounded up to 1, 2 or 5 times a power of ten; red too near, blue too far."""
     error_mm = maps.depth - maps.truth_depth
     finite = np.abs(error_mm[np.isfinite(error_mm)])
-    limit = float(np.percentile(finite, 98)) if finite.size else 1.0
-    limit = limit if limit > 0 else 1.0
-    steps = nice_ticks(0.0, limit, count=3)
-    step = float(steps[1] - steps[0]) if len(steps) > 1 else limit
-    limit = math.ceil(limit / step - 1e-9) * step
-    note, clipped = _clip_note(error_mm, -limit, limit, how=f"±{_format(limit)} mm, the 98th percentile of |error|",
+    limit = _round_up(float(np.percentile(finite, 95)) if finite.size else 1.0)
+    note, clipped = _clip_note(error_mm, -limit, limit, how=f"±{_format(limit)} mm (about the 95th percentile of |error|)",
                                unit="mm")
     # too near (negative error) is red, as on the disparity error map
     picture = colour_map(-error_mm, low=-limit, high=limit, lut="diverging")
     write_png(out / "depth_error.png", colourbar_figure(picture, low=-limit, high=limit, lut="diverging",
-                                                         ticks=None, label="truth - estimate (mm)" + _CLIPPED * clipped,
+                                                         label="truth - estimate (mm)" + _CLIPPED * clipped,
                                                          scale=maps.factor))
     median = float(np.median(finite)) if finite.size else float("nan")
     return _figure("depth_error.png", "Depth error in mm",
