@@ -269,7 +269,7 @@ def _evaluate(args: argparse.Namespace) -> None:
 def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export = subparsers.add_parser(
         "export",
-        help="turn a reconstruction into metric depth and a PLY point cloud or mesh",
+        help="turn a reconstruction into metric depth, a PLY point cloud or mesh, a report or camera poses",
         description=(
             "Read RESULT_DIR (written by lfrig reconstruct: disparity.pfm and result.json with focal_px, "
             "pitch_mm, disparity_offset, source), convert disparity to depth in mm "
@@ -343,6 +343,10 @@ def _export(args: argparse.Namespace) -> None:
             raise
         camera = None  # a report without metric depth
 
+    if args.poses is not None:
+        from recon.poses import result_grid
+
+        result_grid(result)  # before any file is written
     if args.ply is not None:
         summary = export_ply(
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,

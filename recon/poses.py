@@ -238,6 +238,25 @@ def _source_layout(source: Path | None, grid: tuple[int, int]) -> tuple[list[str
     return None, {}
 
 
+def result_grid(result) -> tuple[int, int]:
+    """``(rows, cols)`` of the light field a reconstruction folder came from (``result.json`` → ``grid``).
+
+    Raises
+    ------
+    ExportError
+        When ``result.json`` does not record it as two positive integers.
+    """
+    from recon.result import RESULT_JSON
+
+    grid = result.record.grid
+    if not (isinstance(grid, list) and len(grid) == 2
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in grid)):
+        what = "records no grid" if grid is None else f"has grid = {grid!r}, not [rows, cols]"
+        raise ExportError(f"{result.path / RESULT_JSON} {what}; the poses need the light field's grid "
+                          "(run lfrig reconstruct again to record it)")
+    return int(grid[0]), int(grid[1])
+
+
 def export_poses(result, out_dir, *, camera: Camera, max_points: int = MAX_POINTS, seed: int = 0) -> PosesSummary:
     """Write the views' cameras of a reconstruction folder (:func:`recon.result.read_result`) into
     ``out_dir`` (created if missing): COLMAP's text model and ``transforms.json``.
@@ -255,13 +274,10 @@ def export_poses(result, out_dir, *, camera: Camera, max_points: int = MAX_POINT
     from recon.cloud import depth_to_points, valid_depth
     from recon.export import trusted_pixels
     from recon.lf.imageio import write_bytes_atomic
-    from recon.result import RESULT_JSON, source_folder
+    from recon.result import source_folder
 
     record = result.record
-    grid = record.grid
-    if not (isinstance(grid, list) and len(grid) == 2 and all(isinstance(n, int) and n > 0 for n in grid)):
-        raise ExportError(f"{result.path / RESULT_JSON}: grid = {grid!r}; the poses need the light field's [rows, cols] "
-                          "(run lfrig reconstruct again to record it)")
+    grid = result_grid(result)
     height, width = result.disparity_px.shape
     source = source_folder(result.path, record)
     names, header = _source_layout(source, (grid[0], grid[1]))

@@ -173,3 +173,14 @@ def test_backgammon_views_agree_with_the_exported_poses(hci_scene_dir, tmp_path)
                                 cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)[:, 0]
             errors.append(float(np.median(np.abs(sampled - colour))))
         assert errors[0] < 4.0 and errors[1] > 3 * errors[0], (image.name, errors)
+
+
+def test_poses_without_a_recorded_grid_fail_before_anything_is_written(tmp_path, capsys):
+    folder, _, _ = _result(tmp_path, disparity_offset=0.0)
+    record = json.loads((folder / "result.json").read_text())
+    del record["grid"]
+    (folder / "result.json").write_text(json.dumps(record))
+    assert main(["export", str(folder), "--ply", str(tmp_path / "m.ply"), "--poses", str(tmp_path / "poses")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lfrig: error:") and "records no grid" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "m.ply").exists() and not (tmp_path / "poses").exists()
