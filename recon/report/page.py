@@ -13,12 +13,20 @@ Figures (all PNG, drawn with OpenCV; matplotlib is not a dependency):
 - ``shaded.png``: the depth map as a lit surface, so bumps and false steps are easy to see;
 - ``error.png``: signed disparity error against the truth (blue = estimate too small, i.e. too
   far; red = too large, too near), clipped at ``error_range_px``;
+- ``depth_error.png``: true minus estimated depth in mm (with a truth and the camera), red where
+  the estimate is too near;
 - ``badpix.png``: the centre view in grey with pixels off by more than 0.07 px in red;
 - ``regions.png``: the region map in the paper's colours (occluding red, occluded blue, texture
   yellow, smooth green);
 - ``window_size.png``: the chosen window side per pixel with a colour bar;
 - ``profile_row<N>.png``: disparity and depth along row ``N`` against the truth (cf. the paper's
   Figs. 13-14).
+
+Every colour bar's caption says what its colours span and how much is clipped. With a ``model``
+the page also has an interactive 3D view (:mod:`recon.report.model`: ``model-data.js``,
+``viewer.js`` and the vendored ``three.viewer.min.js`` with ``LICENSE-three.txt``, all classic
+scripts so that the page works from ``file://``). The method's options are shown as grouped tables,
+and the footer lists how the result was made (``provenance``) or says it was not recorded.
 
 Headline colours (green / amber / red) use fixed thresholds, documented in
 ``docs/depth-and-export.md``: BadPix 0.07 below 10 % / 25 %; median depth error below 0.5 % / 2 %
@@ -45,8 +53,8 @@ from recon.depth import depth_error_scores
 from recon.lf.imageio import write_bytes_atomic, write_png
 from recon.report.model import ViewerModel, decimate, write_viewer_files
 from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
-                                      colourbar_figure, display_scale, image_figure, line_plot, nice_ticks,
-                                      region_picture, shaded_relief)
+                                      colourbar_figure, display_scale, image_figure, line_plot, region_picture,
+                                      shaded_relief)
 from recon.result import (REGIONS_NPY, REGIONS_PNG, WINDOW_SIZE_NPY, ResultFolder, source_folder)
 
 BADPIX_THRESHOLD = 0.07
@@ -599,8 +607,9 @@ _CLIPPED = ", clipped"
 
 
 def _depth_error_figure(out: Path, maps: _Maps) -> str:
-    """``depth_error.png``: estimated minus true depth in mm, symmetric about 0 up to the 95th
-    percentile of ``|error|`` rounded up to 1, 2 or 5 times a power of ten; red too near, blue too far."""
+    """``depth_error.png``: true minus estimated depth in mm, symmetric about 0 up to the 95th
+    percentile of ``|error|`` rounded up to 1, 2 or 5 times a power of ten; red where the estimate
+    is too near, blue too far (as on the disparity error map)."""
     error_mm = maps.depth - maps.truth_depth
     finite = np.abs(error_mm[np.isfinite(error_mm)])
     limit = _round_up(float(np.percentile(finite, 95)) if finite.size else 1.0)
