@@ -18,7 +18,7 @@ disparity of ``docs/conventions.md``.
 pitch, for a benchmark scene its baseline. For a rectified capture the rectification is recorded
 too, with ``M_pose_rect``: the rectification's ``K`` absorbs the stage's residual axis skew and the
 difference of its two pitch errors, so the pose frame is the metric rectified frame times this
-near-identity matrix (``x_pose = M_pose_rect @ x_rect``; ``R_rect_cam`` then leads to the raw
+near-identity matrix (``x_pose = M_pose_rect @ x_rect``; ``x_cam = R_rect_cam.T @ x_rect`` is the raw
 camera's frame).
 
 Files (:func:`export_poses`):
