@@ -328,17 +328,18 @@ def write_report(
     return path
 
 
-#: The settings table's groups: (title, option-name prefixes), in page order; the rest go last.
+#: The settings table's groups: (title, option names), in page order; a name also takes the options
+#: that extend it (``hole`` takes ``hole_width``), the first group that matches wins, the rest go last.
 SETTING_GROUPS = (
     ("disparity range and sampling", ("disparity_range", "initial_range", "discover_range", "initial_step",
-                                      "initial_window", "initial_shiftable", "range_", "step", "window")),
-    ("occlusion layers", ("layer_", "occlusion_")),
-    ("windows and matching entropy", ("window_", "grey_bins", "disparity_bin", "smooth_", "strip_windows", "side_",
-                                      "single_layer", "crease_", "visible_sets", "joint", "lambda_",
-                                      "intensity_scale", "centroid_", "flat_windows")),
-    ("refinement and holes", ("gamma", "tv_", "fill_holes", "hole_", "initial_hole")),
-    ("noise and weak texture", ("noise_", "weak_texture", "strip_aperture")),
-    ("object boundaries", ("boundary_",)),
+                                      "initial_window", "initial_shiftable", "range", "step")),
+    ("occlusion layers", ("layer", "occlusion")),
+    ("windows and matching entropy", ("window", "grey_bins", "disparity_bin", "smooth", "strip_windows", "side",
+                                      "single_layer", "crease", "visible_sets", "joint", "lambda", "alpha1", "alpha2",
+                                      "intensity_scale", "centroid", "flat_windows")),
+    ("refinement and holes", ("gamma", "tv", "fill_holes", "hole", "initial_hole")),
+    ("noise and weak texture", ("noise", "weak_texture", "strip_aperture")),
+    ("object boundaries", ("boundary",)),
 )
 
 
@@ -348,7 +349,7 @@ def _settings_tables(options: Mapping[str, Any]) -> str:
     groups["other"] = []
     for key, value in options.items():
         title = next((t for t, prefixes in SETTING_GROUPS
-                      if any(key == p or (p.endswith("_") and key.startswith(p)) for p in prefixes)), "other")
+                      if any(key == p or key.startswith(p + "_") for p in prefixes)), "other")
         groups[title].append((key, value))
     tables = []
     for title, items in groups.items():
