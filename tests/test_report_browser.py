@@ -106,7 +106,7 @@ def _drawn(rgba: np.ndarray) -> tuple[float, int]:
     return float(drawn.mean()), len(colours)
 
 
-def test_the_3d_view_draws_the_exported_mesh_without_errors(browser, report):
+def test_the_3d_view_draws_the_exported_mesh_without_errors(browser, report, capsys):
     state, log = _open(browser, report)
     severe = [entry for entry in log if entry.get("level") == "SEVERE"]
     assert not severe, f"console errors: {severe}"
@@ -122,7 +122,8 @@ def test_the_3d_view_draws_the_exported_mesh_without_errors(browser, report):
     ARTIFACTS.mkdir(exist_ok=True)
     shot = ARTIFACTS / "report-3d.png"
     canvas.screenshot(str(shot))
-    print(f"screenshot of the report's 3D view: {shot}")
+    with capsys.disabled():  # into the test log, also when output is captured
+        print(f"\nscreenshot of the report's 3D view: {shot}")
 
     browser.find_element(By.CSS_SELECTOR, "#lfrig-3d button[data-colour='depth']").click()
     by_depth = _canvas_pixels(browser)
