@@ -101,6 +101,8 @@ def view_poses(*, grid: tuple[int, int], camera: Camera, image_size: tuple[int, 
 
     ``names[u * V + v]`` is view ``(u, v)``'s file (default lfrig's capture layout, ``views/uUU_vVV.png``).
     """
+    from recon.lf.capture import view_name
+
     rows, cols = (int(n) for n in grid)
     if rows < 1 or cols < 1:
         raise ValueError(f"grid must be (rows, cols) >= 1; got {grid!r}")
@@ -114,7 +116,7 @@ def view_poses(*, grid: tuple[int, int], camera: Camera, image_size: tuple[int, 
     for u in range(rows):
         for v in range(cols):
             number = u * cols + v
-            name = names[number] if names is not None else f"views/u{u:02d}_v{v:02d}.png"
+            name = names[number] if names is not None else view_name(u, v)
             poses.append(ViewPose(u=u, v=v, number=number, name=name,
                                   centre_mm=np.array([(v - v0) * pitch, (u - u0) * pitch, 0.0]),
                                   principal_point_px=(cx + (v - v0) * d0, cy + (u - u0) * d0)))

@@ -132,17 +132,7 @@ def read_ply(path) -> ViewerModel:
         tokens = data[body_at:].split()
         at = 0
         for name, count, props in elements:
-            values: dict[str, list] = {p[-1]: [] for p in props}
-            for _ in range(count):
-                for prop in props:
-                    if prop[0] == "list":
-                        n = int(tokens[at])
-                        values[prop[-1]].append([float(t) for t in tokens[at + 1:at + 1 + n]])
-                        at += 1 + n
-                    else:
-                        values[prop[-1]].append(float(tokens[at]))
-                        at += 1
-            columns[name] = {key: np.asarray(v) for key, v in values.items()}
+            columns[name], at = _ascii_element(path, tokens, at, count, props)
     else:
         at = body_at
         for name, count, props in elements:
@@ -172,6 +162,31 @@ def read_ply(path) -> ViewerModel:
         triangles = lists.astype(np.int64).reshape(-1, 3)
     return ViewerModel(vertices_mm=vertices, triangles=triangles, colours=colours, confidence=confidence,
                        name=path.name)
+
+
+def _ascii_element(path: Path, tokens: list[bytes], at: int, count: int, props: list[list[str]]):
+    """One element of an ASCII PLY from ``tokens[at:]``: scalar properties as columns, list properties
+    as ``(count, n)`` arrays (every list of one property must have the same length ``n``)."""
+    widths = []
+    for prop in props:  # the row layout, from the first row's list lengths
+        widths.append(1 + int(tokens[at + sum(widths)]) if prop[0] == "list" else 1)
+    size = count * sum(widths)
+    if at + size > len(tokens):
+        raise ReconError(f"{path}: the file is shorter than its header says")
+    try:
+        table = np.asarray(tokens[at:at + size], dtype=np.float64).reshape(count, sum(widths))
+    except ValueError:
+        raise ReconError(f"{path}: a value in the PLY body is not a number") from None
+    out, first = {}, 0
+    for prop, width in zip(props, widths):
+        if prop[0] == "list":
+            if count and not (table[:, first] == width - 1).all():
+                raise ReconError(f"{path}: the faces are not all triangles; lfrig's 3D view shows triangle meshes")
+            out[prop[-1]] = table[:, first + 1:first + width]
+        else:
+            out[prop[-1]] = table[:, first]
+        first += width
+    return out, at + size
 
 
 def _binary_lists(path: Path, data: bytes, at: int, count: int, props: list[list[str]]):
