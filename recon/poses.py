@@ -318,8 +318,11 @@ def export_poses(result, out_dir, *, camera: Camera, max_points: int = MAX_POINT
     }
     if rectification:
         extra["rectification"] = rectification
-        k_rect = np.asarray(rectification.get("K_rect", []), dtype=float)
-        if k_rect.shape == (3, 3):
+        try:
+            k_rect = np.asarray(rectification.get("K_rect", []), dtype=float)
+        except (TypeError, ValueError):  # a damaged header: the poses do not need it
+            k_rect = np.zeros(0)
+        if k_rect.shape == (3, 3) and np.isfinite(k_rect).all():
             cx, cy = camera.principal_point((height, width))
             k_pose = np.array([[camera.focal_px, 0.0, cx], [0.0, camera.focal_px, cy], [0.0, 0.0, 1.0]])
             extra["M_pose_rect"] = (np.linalg.inv(k_pose) @ k_rect).tolist()

@@ -184,3 +184,33 @@ def test_poses_without_a_recorded_grid_fail_before_anything_is_written(tmp_path,
     err = capsys.readouterr().err
     assert err.startswith("lfrig: error:") and "records no grid" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "m.ply").exists() and not (tmp_path / "poses").exists()
+
+
+def test_a_rectified_capture_header_is_recorded_and_a_damaged_one_is_not_fatal(tmp_path):
+    """A capture whose journal header records a rectification: transforms.json carries it and
+    M_pose_rect = K_pose^-1 K_rect; a K_rect that is not a matrix of numbers is left out."""
+    from recon.lf.capture import write_lightfield
+    from recon.lf.lightfield import LightField
+
+    folder, camera, _ = _result(tmp_path, disparity_offset=0.0, layout="capture")
+    rows, cols = GRID
+    views = np.zeros((rows, cols, SIZE[1], SIZE[0]), np.uint8)
+    k_rect = [[200.5, -0.9, 19.0], [0.0, 199.4, 14.25], [0.0, 0.0, 1.0]]
+    lf = LightField(views=views, pitch_mm=camera.pitch_mm, focal_px=camera.focal_px,
+                    principal_point_px=camera.principal_point_px)
+    write_lightfield(tmp_path / "scene", lf, header_extra={"rectification": {"K_rect": k_rect, "stage": "stage.json"}})
+    out = tmp_path / "poses"
+    assert main(["export", str(folder), "--poses", str(out)]) == 0
+    record = json.loads((out / "transforms.json").read_text())
+    assert record["frames"][0]["file_path"].endswith("scene/views/u00_v00.png")
+    assert record["lfrig"]["rectification"]["stage"] == "stage.json"
+    k_pose = np.array([[200.0, 0, 19.0], [0, 200.0, 14.25], [0, 0, 1]])
+    np.testing.assert_allclose(record["lfrig"]["M_pose_rect"], np.linalg.inv(k_pose) @ np.array(k_rect))
+
+    manifest = tmp_path / "scene" / "manifest.jsonl"
+    lines = manifest.read_text().splitlines()
+    header = json.loads(lines[0])
+    header["rectification"]["K_rect"] = [["a", "b"]]
+    manifest.write_text("\n".join([json.dumps(header)] + lines[1:]) + "\n")
+    assert main(["export", str(folder), "--poses", str(out)]) == 0
+    assert "M_pose_rect" not in json.loads((out / "transforms.json").read_text())["lfrig"]
