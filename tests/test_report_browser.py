@@ -21,6 +21,8 @@ from recon.camera import Camera
 from recon.report import write_report
 from recon.report.model import LIBRARY_JS, MODEL_JS, read_ply
 
+pytestmark = pytest.mark.slow  # a browser start and WebGL on the CPU: tens of seconds
+
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
