@@ -269,7 +269,7 @@ def _evaluate(args: argparse.Namespace) -> None:
 def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export = subparsers.add_parser(
         "export",
-        help="turn a reconstruction into metric depth and a PLY point cloud or mesh",
+        help="turn a reconstruction into metric depth, a PLY point cloud or mesh, a report or camera poses",
         description=(
             "Read RESULT_DIR (written by lfrig reconstruct: disparity.pfm and result.json with focal_px, "
             "pitch_mm, disparity_offset, source), convert disparity to depth in mm "
@@ -301,7 +301,12 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--depth", type=output_file, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
                         help="also write the depth map in mm (16-bit PNG records its scale); may repeat")
     export.add_argument("--report", type=output_folder, metavar="REPORT_DIR",
-                        help="also write an HTML report (index.html and PNG figures) into this folder")
+                        help="also write an HTML report (index.html, PNG figures and an interactive 3D view of "
+                             "the --ply model, or of the kept points) into this folder")
+    export.add_argument("--poses", type=output_folder, metavar="POSES_DIR",
+                        help="also write the views' cameras into this folder: a COLMAP text model (cameras.txt, "
+                             "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
+                             "camera's frame")
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
     camera.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views in pixels")
     camera.add_argument("--pitch-mm", type=positive_float, help="grid pitch (distance between neighbouring views) in mm")
@@ -312,8 +317,9 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
 def _export(args: argparse.Namespace) -> None:
     from recon.errors import ExportError
 
-    if args.ply is None and not args.depth and args.report is None:
-        raise ExportError("nothing to do: give --ply OUT.ply, --depth DEPTH.pfm and/or --report REPORT_DIR")
+    if args.ply is None and not args.depth and args.report is None and args.poses is None:
+        raise ExportError("nothing to do: give --ply OUT.ply, --depth DEPTH.pfm, --report REPORT_DIR and/or "
+                          "--poses POSES_DIR")
     if args.poisson and args.kind == "points":
         raise ExportError("--poisson makes a mesh; drop --points")
     if args.max_jump is not None and not args.max_jump > 0:
@@ -333,10 +339,14 @@ def _export(args: argparse.Namespace) -> None:
     try:
         camera = result.camera(**overrides)
     except ExportError:
-        if args.ply or args.depth:
+        if args.ply or args.depth or args.poses:
             raise
         camera = None  # a report without metric depth
 
+    if args.poses is not None:
+        from recon.poses import result_grid
+
+        result_grid(result)  # before any file is written
     if args.ply is not None:
         summary = export_ply(
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
@@ -360,10 +370,14 @@ def _export(args: argparse.Namespace) -> None:
             except ValueError as error:  # a user's path, not a bug
                 raise ExportError(f"{path}: {error}") from None
             print(f"wrote {path} (depth in mm)")
+    if args.poses is not None:
+        from recon.poses import export_poses
+
+        print(f"wrote {export_poses(result, args.poses, camera=camera)}")
     if args.report is not None:
         from recon.report import report_for_result
 
-        page = report_for_result(result, args.report, camera=camera)
+        page = report_for_result(result, args.report, camera=camera, ply=args.ply)
         print(f"wrote {page}")
 
 

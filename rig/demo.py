@@ -121,6 +121,7 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
     from recon.pipeline import reconstruct_to_folder
     from recon.progress import Progress
     from recon.report import write_report
+    from recon.report.model import read_ply
     from recon.result import CENTRE_VIEW_PNG, DISPARITY_PFM, REGIONS_NPY, WINDOW_SIZE_NPY, read_result
     from rig.fakecam import FakeCamera, FakeRig, calibration_poses
     from rig.render import chessboard_scene, default_scene
@@ -236,6 +237,8 @@ def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float =
         confidence=folder_result.confidence,
         min_confidence=MIN_CONFIDENCE if folder_result.confidence is not None else None,
         scores=summary["disparity_scores"], info={"steps (s)": steps.times},
+        model=read_ply(folder / "model_mesh.ply"),
+        provenance=getattr(folder_result.record, "provenance", None) or folder_result.record.extra.get("provenance"),
     )
     summary["report"] = str(report)
     steps.end(f"median depth error {summary['depth_error']['all']['median_abs_rel_pct']:.3f} % (all pixels)")

@@ -68,6 +68,40 @@ def test_report_and_the_files_a_user_looks_at(session):
         assert (folder / name).exists(), name
 
 
+def test_the_report_shows_the_mesh_in_3d_and_the_depth_error_in_mm(session):
+    folder, _ = session
+    html = (folder / "report" / "index.html").read_text()
+    assert "model_mesh.ply: a mesh of" in html and "depth_error.png" in html
+    for name in ("three.viewer.min.js", "model-data.js", "viewer.js", "LICENSE-three.txt", "depth_error.png"):
+        assert (folder / "report" / name).is_file(), name
+
+
+def test_poses_of_the_rectified_capture_follow_the_stage_calibration(session, tmp_path):
+    """The rectified views' poses are the grid at the calibrated pitch; M_pose_rect takes the stage's
+    real steps (stage.json, in the rectified frame) exactly onto the grid's steps."""
+    import pycolmap
+
+    from calib.stage import StageCalibration
+    from rig.main import main
+
+    folder, _ = session
+    out = tmp_path / "poses"
+    assert main(["export", str(folder / "result"), "--poses", str(out)]) == 0
+    record = json.loads((out / "transforms.json").read_text())["lfrig"]
+    assert record["pitch_from"].startswith("stage calibration")
+    pitch = record["pitch_mm"]
+    rect = record["rectification"]
+    stage = StageCalibration.load(folder / "stage.json")
+    step_u, step_v = stage.steps_for(rect["capture_pitch_mm"])
+    to_pose = np.asarray(record["M_pose_rect"]) @ np.asarray(rect["R_rect_cam"])
+    np.testing.assert_allclose(to_pose @ step_v, [pitch, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(to_pose @ step_u, [0, pitch, 0], atol=1e-9)
+    assert np.abs(np.asarray(record["M_pose_rect"]) - np.eye(3)).max() < 0.02  # a near-metric frame
+    model = pycolmap.Reconstruction(str(out))
+    corner = next(image for image in model.images.values() if image.name == "views/u08_v08.png")
+    np.testing.assert_allclose(corner.projection_center(), [4 * pitch, 4 * pitch, 0], atol=1e-9)
+
+
 def test_a_second_run_refuses_a_folder_it_did_not_write(tmp_path):
     from rig.demo import run_demo
     from recon.errors import LfrigError

@@ -478,7 +478,8 @@ COMMANDS = {
     "export": (["{root}/res"], [
         flag("--ply", values=PATHS), flag("--points", 0), flag("--mesh", 0), flag("--ascii", 0), flag("--max-jump"),
         flag("--depth", values=PATHS + ["{root}/out/d.png", "{root}/out/d.xyz"]), flag("--focal-px"),
-        flag("--pitch-mm"), flag("--disparity-offset"), flag("--poisson", 0)]),
+        flag("--pitch-mm"), flag("--disparity-offset"), flag("--poisson", 0), flag("--poses", values=PATHS),
+        flag("--report", values=PATHS)]),
     "capture": (["{root}/out/c"], [
         flag("--dry-run", 0), flag("--rows"), flag("--cols"), flag("--pitch-mm"), flag("--centre-mm", 3),
         flag("--row-axis", values=["+y", "-x", "z", "q", ""]), flag("--backlash-mm"), flag("--settle-s"),

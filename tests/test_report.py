@@ -148,3 +148,84 @@ def test_truth_as_depth_gives_the_same_page_numbers(tmp_path):
     assert badges(by_disparity) == badges(by_depth) and len(badges(by_depth)) >= 4
     with pytest.raises(ValueError, match="camera"):
         write_report(tmp_path / "c", centre_view=image, disparity_px=estimate, truth_depth_mm=truth)
+
+
+def _captions(text: str) -> dict[str, str]:
+    return dict(re.findall(r"<figcaption><b>([^<]+)</b> — (.*?)</figcaption>", text))
+
+
+def test_depth_error_in_mm_and_every_colour_bar_says_whether_it_clips(tmp_path):
+    image, estimate, truth, labels, window = scene()
+    confidence = np.clip(np.linspace(0, 1, estimate.size).reshape(estimate.shape), 0, 1)
+    page = write_report(tmp_path, centre_view=image, disparity_px=estimate, truth_disparity_px=truth, camera=CAMERA,
+                        region_map=labels, window_size_px=window, confidence=confidence, min_confidence=0.4,
+                        border_px=4)
+    text = page.read_text()
+    assert "depth_error.png" in page_images(page)
+    captions = _captions(text)
+    error_mm = CAMERA.depth_mm(estimate) - CAMERA.depth_mm(truth)
+    median = np.nanmedian(np.abs(error_mm))
+    assert f"median |error| {median:.4g} mm" in captions["Depth error in mm"]
+    # the map is clipped at a round number >= the 95th percentile, and says how much lies beyond
+    limit = float(re.search(r"clipped to ±([0-9.]+) mm", captions["Depth error in mm"])[1])
+    p95 = np.nanpercentile(np.abs(error_mm), 95)
+    assert p95 <= limit <= 5 * p95
+    beyond = 100 * np.mean(np.abs(error_mm[np.isfinite(error_mm)]) > limit)
+    assert f"({beyond:.1f} % of pixels outside)" in captions["Depth error in mm"]
+    for title in ("Disparity", "Depth", "Disparity error", "Depth error in mm", "Confidence", "Window size"):
+        assert "clipped to" in captions[title] or "nothing clipped" in captions[title], title
+    assert "clipped to the 1st–99th percentile" in captions["Depth"]
+    assert "nothing clipped" in captions["Confidence"] and "nothing clipped" in captions["Window size"]
+
+
+def test_settings_are_grouped_tables_and_the_footer_shows_provenance(tmp_path):
+    image, estimate, *_ = scene()
+    options = {"disparity_range": [-1, 2], "step": 0.04, "window_sizes": [3, 5], "gamma": 0.2, "tv_iterations": 300,
+               "boundary_snap": True, "noise_gate": "auto", "layer_gap": 0.5, "something_new": 1}
+    provenance = {"lfrig_version": "9.8.7", "command": ["lfrig", "reconstruct", "my scene", "-o", "out"],
+                  "started_utc": "2026-01-02T03:04:05Z",
+                  "input": {"kind": "capture", "path": "/data/scene", "journal_sha256": "ab" * 32},
+                  "timings_s": {"estimate": 12.5}, "machine": {"python": "3.12.1", "cpus": 2}}
+    page = write_report(tmp_path, centre_view=image, disparity_px=estimate,
+                        info={"method": "entropy", "options": options}, provenance=provenance)
+    text = page.read_text()
+    tables = dict(re.findall(r"<caption>([^<]+)</caption><tbody>(.*?)</tbody>", text))
+    assert set(tables) == {"disparity range and sampling", "occlusion layers", "windows and matching entropy",
+                           "refinement and holes", "noise and weak texture", "object boundaries", "other"}
+    assert "gamma" in tables["refinement and holes"] and "tv_iterations" in tables["refinement and holes"]
+    assert "boundary_snap" in tables["object boundaries"] and "something_new" in tables["other"]
+    assert "window_sizes" in tables["windows and matching entropy"]
+    footer = text[text.index("<footer>"):]
+    for expected in ("9.8.7", "lfrig reconstruct &#x27;my scene&#x27; -o out", "capture /data/scene", "abababab",
+                     "estimate 12.5 s", "python 3.12.1"):
+        assert expected in footer, expected
+    older = write_report(tmp_path / "old", centre_view=image, disparity_px=estimate).read_text()
+    assert "not recorded" in older[older.index("<footer>"):]
+
+
+def test_report_for_result_shows_the_exported_ply_in_3d(tmp_path):
+    import json
+
+    from recon.export import export_ply
+    from recon.lf.pfm import write_pfm
+    from recon.report import report_for_result
+    from recon.result import read_result
+
+    image, estimate, truth, *_ = scene()
+    folder = tmp_path / "run"
+    folder.mkdir()
+    write_pfm(folder / "disparity.pfm", estimate.astype(np.float32))
+    cv2.imwrite(str(folder / "centre_view.png"), image[..., ::-1])
+    (folder / "result.json").write_text(json.dumps({**CAMERA.as_dict(), "provenance": {"lfrig_version": "1.2.3"}}))
+    result = read_result(folder)
+    summary = export_ply(tmp_path / "m.ply", disparity_px=estimate, image=image, camera=CAMERA)
+    page = report_for_result(result, tmp_path / "report", ply=tmp_path / "m.ply")
+    text = page.read_text()
+    assert f"m.ply: a mesh of {summary.points:,} vertices and {summary.triangles:,} triangles" in text
+    for name in ("three.viewer.min.js", "model-data.js", "viewer.js"):
+        assert f'<script src="{name}"></script>' in text and (page.parent / name).is_file()
+    assert (page.parent / "LICENSE-three.txt").read_text().startswith("The MIT License")
+    assert "1.2.3" in text[text.index("<footer>"):]
+    # without a PLY the view shows the points the export keeps
+    text = report_for_result(result, tmp_path / "report2").read_text()
+    assert "the points lfrig export keeps" in text and "model-data.js" in text

@@ -13,12 +13,20 @@ Figures (all PNG, drawn with OpenCV; matplotlib is not a dependency):
 - ``shaded.png``: the depth map as a lit surface, so bumps and false steps are easy to see;
 - ``error.png``: signed disparity error against the truth (blue = estimate too small, i.e. too
   far; red = too large, too near), clipped at ``error_range_px``;
+- ``depth_error.png``: true minus estimated depth in mm (with a truth and the camera), red where
+  the estimate is too near;
 - ``badpix.png``: the centre view in grey with pixels off by more than 0.07 px in red;
 - ``regions.png``: the region map in the paper's colours (occluding red, occluded blue, texture
   yellow, smooth green);
 - ``window_size.png``: the chosen window side per pixel with a colour bar;
 - ``profile_row<N>.png``: disparity and depth along row ``N`` against the truth (cf. the paper's
   Figs. 13-14).
+
+Every colour bar's caption says what its colours span and how much is clipped. With a ``model``
+the page also has an interactive 3D view (:mod:`recon.report.model`: ``model-data.js``,
+``viewer.js`` and the vendored ``three.viewer.min.js`` with ``LICENSE-three.txt``, all classic
+scripts so that the page works from ``file://``). The method's options are shown as grouped tables,
+and the footer lists how the result was made (``provenance``) or says it was not recorded.
 
 Headline colours (green / amber / red) use fixed thresholds, documented in
 ``docs/depth-and-export.md``: BadPix 0.07 below 10 % / 25 %; median depth error below 0.5 % / 2 %
@@ -43,6 +51,7 @@ from recon.camera import Camera
 from recon.colour import colour_map, robust_range
 from recon.depth import depth_error_scores
 from recon.lf.imageio import write_bytes_atomic, write_png
+from recon.report.model import ViewerModel, decimate, write_viewer_files
 from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
                                       colourbar_figure, display_scale, image_figure, line_plot, region_picture,
                                       shaded_relief)
@@ -155,6 +164,20 @@ thead th { background: #eef0f4; font-weight: 600; }
 td.text, table.kv th { text-align: left; }
 table.kv th { color: var(--muted); font-weight: 500; }
 footer { color: var(--muted); font-size: 12.5px; margin-top: 30px; }
+footer table.kv { margin-top: 6px; } footer td, footer th { font-size: 12.5px; padding: 3px 10px; }
+.settings { display: grid; grid-template-columns: repeat(auto-fit, minmax(340px, 1fr)); gap: 12px; align-items: start; }
+.settings table { width: 100%; }
+.settings caption { text-align: left; font-weight: 600; padding: 0 0 4px 2px; }
+#lfrig-3d canvas { width: 100%; height: 520px; display: block; border-radius: 6px; background: #f4f5f7; cursor: grab; }
+#lfrig-3d .toolbar { display: flex; flex-wrap: wrap; gap: 6px; margin-bottom: 8px; align-items: center; }
+#lfrig-3d button { font: inherit; font-size: 13px; padding: 3px 10px; border: 1px solid #c4c8d0; border-radius: 5px;
+                   background: #fff; cursor: pointer; }
+#lfrig-3d button.on { background: #222; color: #fff; border-color: #222; }
+#lfrig-3d button:disabled { opacity: .4; cursor: default; }
+#lfrig-3d .status { color: #a33; margin: 6px 0 0; }
+#lfrig-3d .legend3d { font-size: 13px; color: var(--muted); margin-top: 6px; }
+#lfrig-3d .ramp { display: inline-block; width: 120px; height: 10px; margin-right: 8px; vertical-align: -1px;
+                  border: 1px solid rgba(0,0,0,.25); }
 """
 
 
@@ -180,6 +203,8 @@ def write_report(
     border_px: int = 15,
     scores: Mapping[str, Any] | None = None,
     info: Mapping[str, Any] | None = None,
+    model: ViewerModel | None = None,
+    provenance: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``out_dir/index.html`` and its PNG figures; returns the path of the page.
 
@@ -222,6 +247,17 @@ def write_report(
     scores, info
         Extra numbers ("Reported by the run") and facts about the run (method, options, times) to
         list on the page; values may be numbers, strings or one level of nested mappings.
+        ``info["options"]`` (the method's settings) is shown as a table grouped by the stage of the
+        method each option belongs to.
+    model
+        The exported mesh or point cloud (:class:`recon.report.model.ViewerModel`, e.g.
+        :func:`recon.report.model.read_ply`) for the interactive 3D view, or ``None`` for no view.
+        It is simplified to at most :data:`recon.report.model.MAX_TRIANGLES` triangles or
+        ``MAX_POINTS`` points first (:func:`recon.report.model.decimate`); the page says so.
+    provenance
+        How the result was made (``result.json``'s ``provenance``: ``lfrig_version``, ``command``,
+        ``started_utc``, ``input``, ``timings_s``, ``machine``), shown in the footer; ``None``: the
+        footer says it was not recorded.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -240,11 +276,14 @@ def write_report(
         kept = np.asarray(confidence) >= min_confidence
         region_rows = region_rows + [_score_rows(maps, kept.astype(np.int64), ("dropped by the export", "kept by the export"))[1][1]]
     profiles = _profiles(out, maps, rows)
+    viewer, viewer_scripts = _viewer_section(out, model) if model is not None else ("", [])
 
     parts = [f"<header><h1>{html.escape(title)}</h1>"]
     parts.append(f'<p class="sub">{html.escape(subtitle)}</p>' if subtitle else '<p class="sub"></p>')
     parts.append(f'<div class="badges">{"".join(_badges(maps, general, region_rows))}</div></header>')
     parts.append(f'<div class="grid">{"".join(figures)}</div>')
+    if viewer:
+        parts.append(viewer)
     if profiles:
         what = "Depth and disparity" if maps.depth is not None else "Disparity"
         against = " against the truth (black)" if maps.truth is not None else ""
@@ -265,23 +304,147 @@ def write_report(
     if scores:
         parts.append("<h2>Reported by the run</h2>" + _key_values(scores))
     if info:
-        parts.append("<h2>Run</h2>" + _key_values(info))
+        rest = {key: value for key, value in info.items() if key != "options"}
+        if rest:
+            parts.append("<h2>Run</h2>" + _key_values(rest))
+        if isinstance(info.get("options"), Mapping) and info["options"]:
+            parts.append("<h2>Settings</h2>" + _settings_tables(info["options"]))
     stamp = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     parts.append(
         f"<footer>Written by lfrig on {html.escape(stamp)}. Disparity in pixels per view step, positive for points "
         "in front of the plane of zero disparity; depth in mm along the centre camera's optical axis "
-        "(docs/conventions.md).</footer>"
+        f"(docs/conventions.md).{_provenance_footer(provenance)}</footer>"
     )
+    scripts = "".join(f'<script src="{html.escape(name)}"></script>' for name in viewer_scripts)
     page = (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
         f"<title>{html.escape(title)}</title><style>{_CSS}</style></head>\n<body><main>\n"
         + "\n".join(parts)
-        + "\n</main></body></html>\n"
+        + f"\n</main>{scripts}</body></html>\n"
     )
     path = out / "index.html"
     write_bytes_atomic(path, page.encode("utf-8"))
     return path
+
+
+#: The settings table's groups: (title, option names), in page order; a name also takes the options
+#: that extend it (``hole`` takes ``hole_width``), the first group that matches wins, the rest go last.
+SETTING_GROUPS = (
+    ("disparity range and sampling", ("disparity_range", "initial_range", "discover_range", "initial_step",
+                                      "initial_window", "initial_shiftable", "range", "step")),
+    ("occlusion layers", ("layer", "occlusion")),
+    ("windows and matching entropy", ("window", "grey_bins", "disparity_bin", "smooth", "strip_windows", "side",
+                                      "single_layer", "crease", "visible_sets", "joint", "lambda", "alpha1", "alpha2",
+                                      "intensity_scale", "centroid", "flat_windows")),
+    ("refinement and holes", ("gamma", "tv", "fill_holes", "hole", "initial_hole")),
+    ("noise and weak texture", ("noise", "weak_texture", "strip_aperture")),
+    ("object boundaries", ("boundary",)),
+)
+
+
+def _settings_tables(options: Mapping[str, Any]) -> str:
+    """The method's options as small tables, one per :data:`SETTING_GROUPS` group ("other" last)."""
+    groups: dict[str, list[tuple[str, Any]]] = {title: [] for title, _ in SETTING_GROUPS}
+    groups["other"] = []
+    for key, value in options.items():
+        title = next((t for t, prefixes in SETTING_GROUPS
+                      if any(key == p or key.startswith(p + "_") for p in prefixes)), "other")
+        groups[title].append((key, value))
+    tables = []
+    for title, items in groups.items():
+        if not items:
+            continue
+        rows = "".join(f'<tr><th>{html.escape(str(k))}</th><td class="text">{_format(v)}</td></tr>' for k, v in items)
+        tables.append(f'<table class="kv"><caption>{html.escape(title)}</caption><tbody>{rows}</tbody></table>')
+    return f'<div class="settings">{"".join(tables)}</div>'
+
+
+def _provenance_footer(provenance: Mapping[str, Any] | None) -> str:
+    """The footer's record of how the result was made (``result.json`` → ``provenance``)."""
+    if not isinstance(provenance, Mapping) or not provenance:
+        return " <br>How the result was made (lfrig version, command, input, timings, machine): not recorded."
+    rows: dict[str, Any] = {}
+    if provenance.get("lfrig_version"):
+        rows["lfrig version"] = provenance["lfrig_version"]
+    command = provenance.get("command")
+    if isinstance(command, (list, tuple)):
+        import shlex
+
+        rows["command"] = shlex.join(str(word) for word in command)
+    elif command:
+        rows["command"] = command
+    if provenance.get("started_utc"):
+        rows["started (UTC)"] = provenance["started_utc"]
+    source = provenance.get("input")
+    if isinstance(source, Mapping):
+        digest = source.get("journal_sha256") or source.get("files_sha256")
+        what = f"{source.get('kind', '')} {source.get('path', '')}".strip()
+        if digest:
+            what += f" (sha256 {str(digest)[:16]}…)"
+        rows["input"] = what
+    timings = provenance.get("timings_s")
+    if isinstance(timings, Mapping) and timings:
+        rows["timings"] = ", ".join(f"{k} {_format(v)} s" for k, v in timings.items())
+    machine = provenance.get("machine")
+    if isinstance(machine, Mapping) and machine:
+        rows["machine"] = ", ".join(f"{k} {_format(v)}" for k, v in machine.items())
+    if not rows:
+        return " <br>How the result was made: not recorded."
+    return " How the result was made:" + _key_values(rows)
+
+
+def _viewer_section(out: Path, model: ViewerModel) -> tuple[str, list[str]]:
+    """The interactive 3D view: writes its files into ``out``; returns its HTML and the scripts to load."""
+    shown = decimate(model)
+    scripts = write_viewer_files(out, shown)
+    vertices, triangles = model.original
+    if shown.kind == "mesh":
+        what = f"{html.escape(model.name)}: a mesh of {vertices:,} vertices and {triangles:,} triangles"
+        if len(shown.triangles) < triangles:
+            what += (f", shown simplified to {len(shown.triangles):,} triangles by vertex clustering so that a browser "
+                     "draws it smoothly (the PLY file has them all)")
+    else:
+        what = f"{html.escape(model.name)}: {vertices:,} points"
+        if len(shown.vertices_mm) < vertices:
+            what += f", of which a random {len(shown.vertices_mm):,} are shown so that a browser draws them smoothly"
+    buttons = "".join(f'<button type="button" data-colour="{key}">{label}</button>'
+                      for key, label in (("image", "centre view"), ("depth", "depth"), ("confidence", "confidence")))
+    body = (
+        '<h2>3D model</h2><figure class="wide" id="lfrig-3d">'
+        f'<div class="toolbar">colour by {buttons}<button type="button" data-reset>reset view</button></div>'
+        '<canvas aria-label="3D view of the model"></canvas>'
+        '<p class="status">The 3D view needs JavaScript and WebGL.</p><div class="legend3d"></div>'
+        f"<figcaption><b>3D model</b> — {what}. Drag to orbit, right-drag to pan, wheel to zoom; it starts "
+        "on the centre camera's side, turned a little so that depth shows. Coordinates in mm, centre camera frame (docs/conventions.md). "
+        'Drawn with three.js (MIT licence: <a href="LICENSE-three.txt">LICENSE-three.txt</a>).</figcaption></figure>'
+    )
+    return body, scripts
+
+
+def _round_up(value: float) -> float:
+    """The smallest of 1, 2 and 5 times a power of ten that is at least ``value`` (> 0; else 1)."""
+    if not (math.isfinite(value) and value > 0):
+        return 1.0
+    power = 10.0 ** math.floor(math.log10(value))
+    return next(m * power for m in (1, 2, 5, 10) if m * power >= value * (1 - 1e-12))
+
+
+def _span_number(value: float) -> str:
+    """A colour bar's end for a caption: whole numbers from 1000 up, four significant digits below."""
+    return f"{value:.0f}" if abs(value) >= 1000 else f"{value:.4g}"
+
+
+def _clip_note(values: np.ndarray, low: float, high: float, *, how: str, unit: str) -> tuple[str, bool]:
+    """What a colour bar does with values outside ``[low, high]``: the caption's words and whether
+    anything is clipped."""
+    finite = np.asarray(values, np.float64)
+    finite = finite[np.isfinite(finite)]
+    outside = 100.0 * float(np.mean((finite < low) | (finite > high))) if finite.size else 0.0
+    span = f"{_span_number(float(low))} … {_span_number(float(high))} {unit}".rstrip()
+    if outside > 0:
+        return f"colours clipped to {how}: {span} ({outside:.1f} % of pixels outside)", True
+    return f"colours span {span}, nothing clipped", False
 
 
 @dataclass
@@ -388,21 +551,26 @@ def _map_figures(out: Path, maps: _Maps, *, rows: list[int], disparity_range, er
 
     low, high = robust_range(disparity if truth is None else np.concatenate([disparity.ravel(), truth.ravel()]),
                               disparity_range)
+    how = "the given range" if disparity_range is not None else "the 1st–99th percentile" + (
+        " of estimate and truth" if truth is not None else "")
+    note, clipped = _clip_note(disparity, low, high, how=how, unit="px")
     picture = colour_map(disparity, low=low, high=high, lut="turbo")
     write_png(out / "disparity.png", colourbar_figure(picture, low=low, high=high, lut="turbo",
-                                                       label="disparity (px per view step)", scale=factor))
+                                                       label="disparity (px per view step)" + _CLIPPED * clipped,
+                                                       scale=factor))
     figures.append(_figure("disparity.png", "Disparity",
-                           f"near is red, far is blue; dark grey: no value ({100 - maps.coverage:.1f} % of pixels)"))
+                           f"near is red, far is blue; dark grey: no value ({100 - maps.coverage:.1f} % of pixels); {note}"))
 
     if depth is not None:
         camera = maps.camera
         d_low, d_high = robust_range(depth)
+        note, clipped = _clip_note(depth, d_low, d_high, how="the 1st–99th percentile", unit="mm")
         picture = colour_map(depth, low=d_low, high=d_high, lut="turbo_r")
         write_png(out / "depth.png", colourbar_figure(picture, low=d_low, high=d_high, lut="turbo_r",
-                                                       label="depth (mm)", scale=factor))
+                                                       label="depth (mm)" + _CLIPPED * clipped, scale=factor))
         figures.append(_figure("depth.png", "Depth",
                                f"Z = focal_px · pitch_mm / (d + d0), focal {camera.focal_px:.6g} px, "
-                               f"pitch {camera.pitch_mm:.4g} mm, d0 {camera.disparity_offset:.4g}"))
+                               f"pitch {camera.pitch_mm:.4g} mm, d0 {camera.disparity_offset:.4g}; {note}"))
         write_png(out / "shaded.png", image_figure(shaded_relief(depth, focal_px=camera.focal_px), scale=factor))
         figures.append(_figure("shaded.png", "Shaded surface",
                                "the depth map (smoothed over 1.5 px) lit from the upper left: bumps and false steps show as "
@@ -410,11 +578,14 @@ def _map_figures(out: Path, maps: _Maps, *, rows: list[int], disparity_range, er
 
     if truth is not None:
         error = disparity - truth
+        note, clipped = _clip_note(error, -error_range_px, error_range_px, how=f"±{error_range_px:g} px", unit="px")
         picture = colour_map(error, low=-error_range_px, high=error_range_px, lut="diverging")
         write_png(out / "error.png", colourbar_figure(picture, low=-error_range_px, high=error_range_px,
-                                                       lut="diverging", label="estimate - truth (px)", scale=factor))
-        figures.append(_figure("error.png", "Disparity error",
-                               f"red: estimate too near, blue: too far; clipped at ±{error_range_px:g} px"))
+                                                       lut="diverging", label="estimate - truth (px)" + _CLIPPED * clipped,
+                                                       scale=factor))
+        figures.append(_figure("error.png", "Disparity error", f"red: estimate too near, blue: too far; {note}"))
+        if maps.truth_depth is not None:
+            figures.append(_depth_error_figure(out, maps))
         grey = cv2.cvtColor(maps.view, cv2.COLOR_RGB2GRAY)
         bad = (np.abs(error) > BADPIX_THRESHOLD) | (np.isfinite(truth) & ~maps.finite)
         pale = (155 + 0.35 * grey).astype(np.uint8)
@@ -433,6 +604,28 @@ def _map_figures(out: Path, maps: _Maps, *, rows: list[int], disparity_range, er
     return figures
 
 
+_CLIPPED = ", clipped"
+
+
+def _depth_error_figure(out: Path, maps: _Maps) -> str:
+    """``depth_error.png``: true minus estimated depth in mm, symmetric about 0 up to the 95th
+    percentile of ``|error|`` rounded up to 1, 2 or 5 times a power of ten; red where the estimate
+    is too near, blue too far (as on the disparity error map)."""
+    error_mm = maps.depth - maps.truth_depth
+    finite = np.abs(error_mm[np.isfinite(error_mm)])
+    limit = _round_up(float(np.percentile(finite, 95)) if finite.size else 1.0)
+    note, clipped = _clip_note(error_mm, -limit, limit, how=f"±{_format(limit)} mm (about the 95th percentile of |error|)",
+                               unit="mm")
+    # too near (negative error) is red, as on the disparity error map
+    picture = colour_map(-error_mm, low=-limit, high=limit, lut="diverging")
+    write_png(out / "depth_error.png", colourbar_figure(picture, low=-limit, high=limit, lut="diverging",
+                                                         label="truth - estimate (mm)" + _CLIPPED * clipped,
+                                                         scale=maps.factor))
+    median = float(np.median(finite)) if finite.size else float("nan")
+    return _figure("depth_error.png", "Depth error in mm",
+                   f"red: estimate nearer than the truth, blue: farther; median |error| {_format(median)} mm; {note}")
+
+
 def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequence[str], window_size_px,
                     confidence=None, min_confidence=None) -> list[str]:
     """What the method explains itself with: region types, window sizes, confidence; returns their HTML."""
@@ -442,9 +635,10 @@ def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequenc
         if conf.shape != maps.shape:
             raise ValueError(f"confidence is {conf.shape} but disparity_px is {maps.shape}")
         picture = colour_map(conf, low=0.0, high=1.0, lut="viridis")
+        note, clipped = _clip_note(conf, 0.0, 1.0, how="0 … 1", unit="")
         write_png(out / "confidence.png", colourbar_figure(picture, low=0.0, high=1.0, lut="viridis",
-                                                            label="confidence", scale=maps.factor))
-        caption = "from the cost curve's valley width and the refinement's change (recon.entropy.confidence)"
+                                                            label="confidence" + _CLIPPED * clipped, scale=maps.factor))
+        caption = f"from the cost curve's valley width and the refinement's change (recon.entropy.confidence); {note}"
         if min_confidence is not None:
             caption += (f"; the export keeps {100.0 * np.mean(conf >= min_confidence):.1f} % of pixels "
                         f"(confidence ≥ {min_confidence:g})")
@@ -472,7 +666,8 @@ def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequenc
         picture = colour_map(sizes, low=w_low, high=w_high, lut="viridis")
         write_png(out / "window_size.png", colourbar_figure(picture, low=w_low, high=w_high, lut="viridis",
                                                              label="window side (px)", ticks=ticks, scale=maps.factor))
-        figures.append(_figure("window_size.png", "Window size", "side of the square window chosen per pixel"))
+        figures.append(_figure("window_size.png", "Window size", "side of the square window chosen per pixel; "
+                               + _clip_note(sizes, w_low, w_high, how="", unit="px")[0]))
     return figures
 
 
@@ -507,14 +702,16 @@ def _figure(name: str, title: str, caption: str, *, extra: str = "") -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = None) -> Path:
+def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = None, ply=None) -> Path:
     """:func:`write_report` for a reconstruction folder (:func:`recon.result.read_result`; ``lfrig
     export --report``).
 
     Reads, when present: the truth ``gt_disp_lowres.pfm`` in the ``source`` light-field folder;
     ``regions.npy`` (``(H, W)`` labels 0..3) or ``regions.png`` (labels, or the coloured picture) and
-    ``window_size.npy`` in the result folder; ``scores``, ``method``, ``options`` and ``seconds``
-    from ``result.json``. ``camera`` defaults to the folder's own (none: no metric depth).
+    ``window_size.npy`` in the result folder; ``scores``, ``method``, ``options``, ``seconds`` and
+    ``provenance`` from ``result.json``. ``camera`` defaults to the folder's own (none: no metric
+    depth). The 3D view shows ``ply`` (an exported PLY file) when given, else, with a camera, the
+    points the export would keep (:func:`recon.export.trusted_pixels`).
     """
     from recon.lf.benchmark import GROUND_TRUTH
     from recon.lf.pfm import read_pfm
@@ -538,7 +735,9 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
 
         regions = read_image(folder / REGIONS_PNG)
     window = np.load(folder / WINDOW_SIZE_NPY) if (folder / WINDOW_SIZE_NPY).is_file() else None
-    from recon.export import MIN_CONFIDENCE
+    from recon.export import MIN_CONFIDENCE, trusted_pixels
+    from recon.report.model import cloud_model, read_ply
+
     view = result.image
     if view is None:
         view = np.zeros(shape, np.uint8)
@@ -547,6 +746,18 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
     # the run's own scores only when the page cannot score against the truth itself
     extra = None if truth is not None else ({k: v for k, v in (record.scores or {}).items()
                                              if not isinstance(v, Mapping)} or None)
+    model = None
+    if ply is not None:
+        model = read_ply(ply)
+    elif camera is not None:
+        keep = trusted_pixels(result.disparity_px, confidence=result.confidence, search_range=result.search_range)
+        if result.mask is not None:
+            keep &= result.mask
+        model = cloud_model(camera.depth_mm(result.disparity_px.astype(np.float64)), focal_px=camera.focal_px,
+                            principal_point_px=camera.principal_point_px, image=None if result.image is None else
+                            as_rgb8(result.image), keep=keep, confidence=result.confidence,
+                            name="the points lfrig export keeps (no PLY was exported with this report)")
+    provenance = getattr(record, "provenance", None) or record.extra.get("provenance")
     return write_report(
         out_dir,
         centre_view=view,
@@ -561,4 +772,6 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
         min_confidence=MIN_CONFIDENCE if result.confidence is not None else None,
         scores=extra,
         info=info or None,
+        model=model,
+        provenance=provenance if isinstance(provenance, Mapping) else None,
     )
