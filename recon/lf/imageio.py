@@ -20,7 +20,7 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
-from recon.errors import FileWriteError, LightFieldFormatError
+from recon.errors import FileWriteError, LfrigError, LightFieldFormatError
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -98,7 +98,7 @@ def _size_text(size: int) -> str:
     return f"{size} bytes"
 
 
-def read_bytes(path: str | os.PathLike, *, error: type[LightFieldFormatError] = LightFieldFormatError,
+def read_bytes(path: str | os.PathLike, *, error: type[LfrigError] = LightFieldFormatError,
                missing: str = "no such file", max_bytes: int = MAX_TEXT_BYTES) -> bytes:
     """The whole file, or ``error`` naming ``path``: ``"{path}: {missing}"`` when it does not exist,
     ``"{path}: cannot read (reason)"`` when the system refuses, and a size error when the file is not
@@ -107,7 +107,7 @@ def read_bytes(path: str | os.PathLike, *, error: type[LightFieldFormatError] = 
     return read_head(path, max_bytes, error=error, missing=missing, whole=True)[0]
 
 
-def read_head(path: str | os.PathLike, count: int, *, error: type[LightFieldFormatError] = LightFieldFormatError,
+def read_head(path: str | os.PathLike, count: int, *, error: type[LfrigError] = LightFieldFormatError,
               missing: str = "no such file", whole: bool = False) -> tuple[bytes, int]:
     """The first ``count`` bytes of a regular file and its size, with :func:`read_bytes`' errors; with
     ``whole``, a file longer than ``count`` bytes is an error instead."""
@@ -135,7 +135,7 @@ def read_head(path: str | os.PathLike, count: int, *, error: type[LightFieldForm
         os.close(fd)
 
 
-def read_npy(path: str | os.PathLike, *, error: type[LightFieldFormatError] = LightFieldFormatError) -> np.ndarray:
+def read_npy(path: str | os.PathLike, *, error: type[LfrigError] = LightFieldFormatError) -> np.ndarray:
     """A ``.npy`` array of numbers or booleans (no pickles), its header checked before the data is read:
     at most :data:`MAX_IMAGE_PIXELS` times 4 elements, and the file as long as the header says.
 
@@ -165,7 +165,7 @@ def read_npy(path: str | os.PathLike, *, error: type[LightFieldFormatError] = Li
 
 
 def sha256_file(path: str | os.PathLike, *, max_bytes: int = MAX_IMAGE_BYTES,
-                error: type[LightFieldFormatError] = LightFieldFormatError) -> str:
+                error: type[LfrigError] = LightFieldFormatError) -> str:
     """SHA-256 hex digest of a regular file of at most ``max_bytes`` (:func:`read_bytes`' checks)."""
     return hashlib.sha256(read_bytes(path, error=error, max_bytes=max_bytes)).hexdigest()
 
