@@ -505,7 +505,13 @@ COMMANDS = {
     "batch": (["reconstruct", "{root}/cap", "-o", "{root}/out/b"], [
         flag("--workers"), flag("--tile"), flag("--halo"), flag("--step"), flag("--scheduler", values=["garbage", ""]),
         flag("--worker-timeout-s"), flag("--transfer", values=["ship", "shared", "x"]),
-        flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"])]),
+        flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"]),
+        flag("--dashboard-address", values=["nonsense:::", ":8787", "127.0.0.1:0", "[::1]:99999", "", "0.0.0.0:0"])]),
+    "import": (["{root}/cap/views", "-o", "{root}/out/imp"], [
+        flag("--pattern", values=["u{u:02d}_v{v:02d}.png", "u{u:0999999999d}_v{v}.png", "{i}", "{x}", "a/{u}{v}", ""]),
+        flag("--order", values=["raster", "serpentine", "x"]), flag("--rows"), flag("--cols"), flag("--index-base"),
+        flag("--pitch-mm"), flag("--focal-px"), flag("--principal-point-px", 2), flag("--disparity-range", 2),
+        flag("--quiet", 0)]),
     "calibrate": (["intrinsics", "{root}/res/centre_view.png", "-o", "{root}/out/cam.cameramodel"], [
         flag("--board", values=["9x6", "0x0", "1x1", "x", "10000x3", "9X6"]), flag("--square-mm"),
         flag("--marker-mm"), flag("--focal-px"), flag("--working-distance-mm"), flag("--quiet", 0)]),

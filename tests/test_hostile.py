@@ -22,33 +22,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.errors import LfrigError
 from recon.lf.imageio import write_png
 from recon.lf.pfm import read_pfm, write_pfm
 from rig.main import main
+from test_bad_input import capture, one_line_error  # noqa: F401 - the same error check and capture fixture
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_CAPTURE = ROOT / "fixtures" / "tiny_capture"
-TRUTH = ROOT / "fixtures" / "tiny_capture_truth.pfm"
 BASELINE = ["--method", "baseline", "--window", "3", "--step", "0.1", "--quiet"]
 LFRIG = [sys.executable, "-c", "import sys; from rig.main import main; sys.exit(main())"]
-
-
-def one_line_error(capsys, status: int, *needles: str) -> str:
-    """Assert exit 2 and exactly one non-empty stderr line, lfrig's, containing every needle."""
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert status == 2, err
-    assert len(lines) == 1 and lines[0].startswith("lfrig: error:"), err
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-    return lines[0]
-
-
-@pytest.fixture
-def capture(tmp_path) -> Path:
-    shutil.copytree(TINY_CAPTURE, tmp_path / "cap")
-    return tmp_path / "cap"
 
 
 @pytest.fixture
@@ -70,13 +52,19 @@ def benchmark_folder(folder: Path, capture: Path = TINY_CAPTURE) -> Path:
     return folder
 
 
-def plain_views(folder: Path, name_of, *, rows: int = 3, cols: int = 3) -> Path:
+def plain_views(folder: Path, name_of, *, rows: int = 3, cols: int = 3, size: int = 16) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(1)
     for u in range(rows):
         for v in range(cols):
-            write_png(folder / name_of(u, v), rng.integers(0, 255, (16, 16), dtype=np.uint8))
+            write_png(folder / name_of(u, v), rng.integers(0, 255, (size, size), dtype=np.uint8))
     return folder
+
+
+def peak_memory_mib() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def set_parameter(cfg: Path, key: str, value: str) -> None:
@@ -110,8 +98,8 @@ def test_a_lock_file_that_is_a_fifo_is_refused_without_waiting(tmp_path):
 def test_a_failed_capture_leaves_no_folder_with_a_lock(tmp_path, capsys):
     out = tmp_path / "c"
     status = main(["capture", str(out), "--stage", f"grbl://{tmp_path / 'no-such-port'}", "--camera", "fake",
-                   "--rows", "3", "--cols", "3", "--quiet"])
-    one_line_error(capsys, status)
+                   "--rows", "3", "--cols", "3", "--centre-mm", "10", "10", "-5", "--quiet"])
+    one_line_error(capsys, status, "no-such-port")
     assert not out.exists()
 
 
@@ -151,13 +139,20 @@ def test_an_atomic_write_never_writes_through_a_planted_temporary_link(tmp_path,
 
 @pytest.mark.parametrize("flags", [["--pitch-mm", "inf"], ["--pitch-mm", "1e-320"], ["--focal-px", "inf"],
                                    ["--disparity-range", "nan", "nan"], ["--disparity-range", "5", "1"],
-                                   ["--disparity-range", "0", "inf"], ["--rows", "1025"],
-                                   ["--principal-point-px", "1e308", "3"]])
+                                   ["--disparity-range", "0", "inf"], ["--principal-point-px", "1e308", "3"]])
 def test_import_refuses_what_readers_refuse(tmp_path, flags, capsys):
     src = plain_views(tmp_path / "src", lambda u, v: f"view_{u}_{v}.png")
     argv = ["import", str(src), "-o", str(tmp_path / "cap"), "--pattern", "view_{u}_{v}.png",
             "--rows", "3", "--cols", "3", "--pitch-mm", "0.5", *flags, "--quiet"]
     one_line_error(capsys, main(argv))
+    assert not (tmp_path / "cap").exists()
+
+
+def test_import_refuses_more_rows_than_readers_read(tmp_path, capsys):
+    src = plain_views(tmp_path / "src", lambda u, v: f"view_{u}_{v}.png", rows=1025, cols=1, size=1)
+    argv = ["import", str(src), "-o", str(tmp_path / "cap"), "--pattern", "view_{u}_{v}.png",
+            "--rows", "1025", "--cols", "1", "--pitch-mm", "0.5", "--quiet"]
+    one_line_error(capsys, main(argv), "--rows", "1024")
     assert not (tmp_path / "cap").exists()
 
 
@@ -237,8 +232,10 @@ def test_a_view_whose_header_claims_a_huge_image_is_refused_before_decoding(tmp_
 def test_a_sparse_view_is_not_read_whole(tmp_path, capsys):
     bench = benchmark_folder(tmp_path / "bench")
     os.truncate(bench / "input_Cam004.png", 8 << 30)  # 8 GiB, no blocks on disk
+    before = peak_memory_mib()
     status = main(["info", str(bench)])
     one_line_error(capsys, status, "input_Cam004.png", "8.0 GiB")
+    assert peak_memory_mib() - before < 512
 
 
 def test_a_sparse_confidence_map_is_not_read_whole(tmp_path, capture, capsys):
@@ -247,16 +244,31 @@ def test_a_sparse_confidence_map_is_not_read_whole(tmp_path, capture, capsys):
     confidence = tmp_path / "res" / "confidence.pfm"
     confidence.write_bytes(b"Pf\n32 32\n-1.0\n")
     os.truncate(confidence, 8 << 30)  # a header, then 8 GiB of nothing: only the 4 KiB it describes are read
+    before = peak_memory_mib()
     assert main(["export", str(tmp_path / "res"), "--ply", str(tmp_path / "m.ply"), "--points", "--keep-all"]) == 0
     assert (tmp_path / "m.ply").is_file()
+    assert peak_memory_mib() - before < 512
 
 
 def test_a_sparse_import_source_is_not_read_whole(tmp_path, capsys):
     src = plain_views(tmp_path / "src", lambda u, v: f"view_{u}_{v}.png")
     os.truncate(src / "view_1_1.png", 8 << 30)
+    before = peak_memory_mib()
     status = main(["import", str(src), "-o", str(tmp_path / "cap"), "--pattern", "view_{u}_{v}.png",
                    "--rows", "3", "--cols", "3", "--pitch-mm", "0.5", "--quiet"])
     one_line_error(capsys, status, "view_1_1.png", "8.0 GiB")
+    assert peak_memory_mib() - before < 512
+
+
+def test_a_resume_does_not_read_a_sparse_view_whole(capture):
+    from recon.lf.capture import CaptureWriter
+
+    os.truncate(capture / "views" / "u01_v01.png", 8 << 30)
+    header = json.loads((capture / "manifest.jsonl").read_text().splitlines()[0])
+    before = peak_memory_mib()
+    with CaptureWriter(capture, header={"grid": header["grid"], "settings": header["settings"]}) as writer:
+        assert (1, 1) not in writer.completed and len(writer.completed) == 8  # to be taken again
+    assert peak_memory_mib() - before < 512
 
 
 def test_a_pfm_header_claiming_a_huge_map_is_refused(tmp_path):

@@ -298,7 +298,7 @@ class CaptureWriter:
                 self.completed.pop(key, None)
                 continue
             try:
-                digest = sha256_file(file)
+                digest = sha256_file(file, error=CaptureLayoutError)
             except CaptureLayoutError:  # unreadable or not a regular file: taken again
                 self.completed.pop(key, None)
                 continue

@@ -309,6 +309,9 @@ def _sha256(path: Path) -> str:
 
 
 def _check_target(target: Path) -> None:
+    if target.is_symlink():
+        raise ViewImportError(f"{target}: is a symbolic link; give the new capture folder itself (lfrig does not "
+                              "write through links)")
     if is_capture(target) or (target.exists() and (not target.is_dir() or any(target.iterdir()))):
         raise ViewImportError(f"{target}: exists and is not empty; choose a new folder for the imported capture")
     if not target.parent.is_dir():
