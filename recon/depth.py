@@ -380,7 +380,7 @@ def read_depth(path) -> np.ndarray:
             if PNG_SCALE_KEY in texts:
                 metadata = json.loads(texts[PNG_SCALE_KEY])
             elif png_sidecar_path(path).is_file():
-                metadata = json.loads(png_sidecar_path(path).read_text(encoding="utf-8"))
+                metadata = json.loads(read_bytes(png_sidecar_path(path), error=DepthFormatError).decode("utf-8"))
             else:
                 metadata = None
         except (ValueError, UnicodeDecodeError) as error:

@@ -109,10 +109,11 @@ def check_output_outside(source: str | os.PathLike, out_dir: str | os.PathLike) 
     ReconError
     """
     source_path, out_path = Path(source).resolve(), Path(out_dir).resolve()
-    for data in (source_path / "views", source_path):
-        if out_path == data or (data.name == "views" and out_path.is_relative_to(data)):
-            raise ReconError(f"{out_dir}: is {'inside the views of' if data.name == 'views' else 'the light-field folder'} "
-                             f"{source}; the results would mix with its data: give a folder of its own for them")
+    where = ("the light-field folder" if out_path == source_path
+             else "inside the views of" if out_path.is_relative_to(source_path / "views") else None)
+    if where is not None:
+        raise ReconError(f"{out_dir}: is {where} {source}; the results would mix with its data: give a folder of "
+                         "its own for them")
 
 
 def write_json_atomic(path: Path, record: Any) -> None:

@@ -213,8 +213,11 @@ def clear_result(folder: str | Path) -> list[str]:
     folder = Path(folder)
     names = set(RESULT_FILES)
     record_path = folder / RESULT_JSON
+    from recon.errors import LfrigError
+    from recon.lf.imageio import read_bytes
+
     try:
-        old = json.loads(record_path.read_text(encoding="utf-8"))
+        old = json.loads(read_bytes(record_path, error=ExportError).decode("utf-8"))
         listed = old.get("files") if isinstance(old, dict) else None
         if isinstance(listed, list):
             for name in listed:
@@ -222,7 +225,7 @@ def clear_result(folder: str | Path) -> list[str]:
                     names.add(folder_file(folder, name, what="files", where=record_path).relative_to(folder).as_posix())
                 except (ExportError, ValueError):
                     continue  # a name outside the folder is never removed
-    except (OSError, ValueError):
+    except (LfrigError, ValueError, RecursionError):
         pass  # no (readable) record: the known names are still removed
     from recon.lf.imageio import remove_stale_temporaries
 
