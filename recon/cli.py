@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (ALL_INTERFACES, finite_float, host_port, int_range, nonnegative_int, output_file, output_folder,
-                           positive_float, positive_int)
+from recon.cliargs import (ALL_INTERFACES, finite_float, float_range, host_port, int_range, nonnegative_int, output_file,
+                           output_folder, positive_float, positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
 
@@ -303,10 +303,20 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--report", type=output_folder, metavar="REPORT_DIR",
                         help="also write an HTML report (index.html and PNG figures) into this folder")
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
-    camera.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views in pixels")
-    camera.add_argument("--pitch-mm", type=positive_float, help="grid pitch (distance between neighbouring views) in mm")
-    camera.add_argument("--disparity-offset", type=finite_float, help="refocusing shift d0 in pixels per view step")
+    focal, pitch, offset = _camera_flag_types()
+    camera.add_argument("--focal-px", type=focal, help="focal length of the rectified views in pixels")
+    camera.add_argument("--pitch-mm", type=pitch, help="grid pitch (distance between neighbouring views) in mm")
+    camera.add_argument("--disparity-offset", type=offset, help="refocusing shift d0 in pixels per view step")
     export.set_defaults(handler=_export)
+
+
+def _camera_flag_types():
+    """``--focal-px``, ``--pitch-mm``, ``--disparity-offset`` within lfrig's camera bounds
+    (:func:`recon.lf.params.camera_problem`)."""
+    from recon.lf.params import FOCAL_PX_RANGE, MAX_DISPARITY_OFFSET_PX, PITCH_MM_RANGE
+
+    return (float_range(*FOCAL_PX_RANGE), float_range(*PITCH_MM_RANGE),
+            float_range(-MAX_DISPARITY_OFFSET_PX, MAX_DISPARITY_OFFSET_PX))
 
 
 def _export(args: argparse.Namespace) -> None:
@@ -493,8 +503,9 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--rows", type=int_range(1, MAX_GRID_SIDE), help="grid rows (u) (not needed for a benchmark folder)")
     imp.add_argument("--cols", type=int_range(1, MAX_GRID_SIDE), help="grid columns (v)")
     imp.add_argument("--index-base", type=int_range(0, 10**9), default=0, help="the number the indices in the names start at")
-    imp.add_argument("--pitch-mm", type=positive_float, help="distance between neighbouring views (required unless a benchmark folder gives it)")
-    imp.add_argument("--focal-px", type=positive_float, help="focal length of the views in pixels")
+    focal, pitch, _ = _camera_flag_types()
+    imp.add_argument("--pitch-mm", type=pitch, help="distance between neighbouring views (required unless a benchmark folder gives it)")
+    imp.add_argument("--focal-px", type=focal, help="focal length of the views in pixels")
     imp.add_argument("--principal-point-px", type=finite_float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
     imp.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                      help="disparity the scene spans, pixels per view step")

@@ -375,6 +375,12 @@ def read_depth(path) -> np.ndarray:
         problem = png_problem(data)
         if problem:
             raise DepthFormatError(f"{path}: {problem}")
+        from recon.lf.imageio import check_image_size, png_header
+
+        header = png_header(data)
+        if header is None:
+            raise DepthFormatError(f"{path}: damaged PNG header (IHDR)")
+        check_image_size(path, header[0], header[1])
         texts = _read_text_chunks(data)
         try:
             if PNG_SCALE_KEY in texts:

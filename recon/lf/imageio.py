@@ -11,6 +11,7 @@ import re
 import signal
 import stat
 import threading
+import warnings
 import zlib
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
@@ -144,11 +145,13 @@ def read_npy(path: str | os.PathLike, *, error: type[LfrigError] = LightFieldFor
     head, size = read_head(path, 4096, error=error)
     stream = io.BytesIO(head)
     try:
-        version = np.lib.format.read_magic(stream)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
-        if version not in read_header:
-            raise ValueError(f"format version {version}")
-        shape, fortran, dtype = read_header[version](stream, max_header_size=4000)
+        with warnings.catch_warnings():  # a damaged header's SyntaxWarning is not the user's to read
+            warnings.simplefilter("ignore")
+            version = np.lib.format.read_magic(stream)
+            read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+            if version not in read_header:
+                raise ValueError(f"format version {version}")
+            shape, fortran, dtype = read_header[version](stream, max_header_size=4000)
     except Exception as err:  # noqa: BLE001 - numpy's header parser raises many kinds on a damaged file
         raise error(f"{path}: not a readable .npy file ({type(err).__name__}: {str(err)[:100]})") from None
     if dtype.hasobject or dtype.kind not in "biuf" or dtype.fields is not None:
@@ -173,7 +176,7 @@ def sha256_file(path: str | os.PathLike, *, max_bytes: int = MAX_IMAGE_BYTES,
 def png_header(data: bytes) -> tuple[int, int, int, int] | None:
     """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk, or ``None`` when the bytes
     do not start with one."""
-    if not data.startswith(PNG_SIGNATURE) or len(data) < 33 or data[12:16] != b"IHDR":
+    if not data.startswith(PNG_SIGNATURE) or len(data) < 33 or data[8:16] != b"\0\0\0\x0dIHDR":
         return None
     return (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), data[24], data[25])
 
@@ -204,8 +207,10 @@ def read_image(path: Path) -> np.ndarray:
         problem = png_problem(raw)
         if problem:
             raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
-        width, height, _, _ = png_header(raw)
-        check_image_size(path, width, height)
+        header = png_header(raw)
+        if header is None:
+            raise LightFieldFormatError(f"{path}: damaged PNG header (IHDR); replace or re-capture it")
+        check_image_size(path, header[0], header[1])
     image = decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
