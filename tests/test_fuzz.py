@@ -508,7 +508,8 @@ COMMANDS = {
         flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"]),
         flag("--dashboard-address", values=["nonsense:::", ":8787", "127.0.0.1:0", "[::1]:99999", "", "0.0.0.0:0"])]),
     "import": (["{root}/cap/views", "-o", "{root}/out/imp"], [
-        flag("--pattern", values=["u{u:02d}_v{v:02d}.png", "u{u:0999999999d}_v{v}.png", "{i}", "{x}", "a/{u}{v}", ""]),
+        flag("--pattern", values=["u{{u:02d}}_v{{v:02d}}.png", "u{{u:0999999999d}}_v{{v}}.png", "{{i}}", "{{x}}",
+                                  "a/{{u}}{{v}}", ""]),  # braces doubled: argv is str.format-ted with {root}
         flag("--order", values=["raster", "serpentine", "x"]), flag("--rows"), flag("--cols"), flag("--index-base"),
         flag("--pitch-mm"), flag("--focal-px"), flag("--principal-point-px", 2), flag("--disparity-range", 2),
         flag("--quiet", 0)]),

@@ -410,7 +410,7 @@ def test_ctrl_c_while_the_commands_load(monkeypatch, capsys):
 
 
 def test_ctrl_c_in_the_first_second_of_a_real_command(tmp_path):
-    for delay_s in (0.3, 0.8):
+    for delay_s in (0.6, 1.2):  # after the interpreter started, while the command modules load
         process = subprocess.Popen([*LFRIG, "info", str(TINY_CAPTURE)], stdout=subprocess.PIPE,
                                    stderr=subprocess.PIPE, cwd=tmp_path)
         time.sleep(delay_s)
