@@ -8,7 +8,10 @@ can cause are :class:`recon.errors.LfrigError`; they are printed as one line, wi
 and the command exits with status 2. So are usage errors (a flag's value is checked by the types of
 :mod:`recon.cliargs`) and an ``OSError`` that a user's path or disk causes (read-only, full, no
 permission: :data:`USER_PATH_ERRNOS`, when the error names a path). Anything else is a bug and keeps
-its traceback.
+its traceback. Ctrl-C is ``lfrig: interrupted`` and status 130 at any moment of :func:`main`, also
+while the command modules load (they bring numba and scipy); ``SIGTERM`` and ``SIGHUP`` stop a command
+the same way (:class:`Stopped`), so that its writers remove their temporary files, with status 128 +
+the signal.
 """
 
 from __future__ import annotations
