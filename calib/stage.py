@@ -21,6 +21,7 @@ File: JSON (``{"format": "lfrig-stage", "version": 1, ...}``), see :meth:`StageC
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -162,15 +163,15 @@ class StageCalibration:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "StageCalibration":
+        from recon.lf.imageio import read_bytes
+
         path = Path(path)
+        data = read_bytes(path, error=CalibError, max_bytes=16 << 20,
+                          missing="no such stage calibration; make one with `lfrig calibrate stage`")
         try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise CalibError(f"{path}: no such stage calibration; make one with `lfrig calibrate stage`") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            d = json.loads(data.decode("utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
             raise CalibError(f"{path}: not valid JSON ({e}); make it again with `lfrig calibrate stage`") from None
-        except OSError as e:
-            raise CalibError(f"{path}: cannot read the stage calibration ({e.strerror})") from None
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise CalibError(f"{path}: not an lfrig stage calibration (format {FORMAT!r})")
         if d.get("version") != VERSION:
@@ -399,11 +400,13 @@ def load_model(path: str | os.PathLike):
     """Read an mrcal ``.cameramodel`` file, with an error that names the file."""
     import mrcal
 
+    from recon.lf.imageio import read_bytes
+
     path = Path(path)
-    if not path.is_file():
-        raise CalibError(f"{path}: no such camera model; make one with `lfrig calibrate intrinsics`")
+    data = read_bytes(path, error=CalibError, max_bytes=64 << 20,  # read once, bounded: mrcal reads it whole
+                      missing="no such camera model; make one with `lfrig calibrate intrinsics`")
     try:
-        model = mrcal.cameramodel(str(path))
+        model = mrcal.cameramodel(io.StringIO(data.decode("utf-8")))
     except Exception as e:  # mrcal raises plain exceptions for broken files
         raise CalibError(f"{path}: not a readable mrcal camera model ({e})") from None
     problem = _model_problem(model)

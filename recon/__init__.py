@@ -18,3 +18,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # ~0.7 s more CPU, with no kernel faster for the huge pages (docs/entropy-results.md, "Speed and
 # memory"). Read when numpy is first imported (so only if recon comes first); a user's explicit value wins.
 os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+# OpenCV refuses to decode an image of more pixels than this before allocating it (its own default is
+# 1 Gpx, 3 GiB for 8-bit RGB): lfrig's limit, recon.lf.imageio.MAX_IMAGE_PIXELS (64 Mpx). PNGs are
+# checked by lfrig from their header; this covers the other formats `lfrig import` reads. Read when
+# OpenCV is loaded (so only if recon comes first); a user's explicit value wins.
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 26))

@@ -42,10 +42,13 @@ def disparity_candidates(disparity_range: tuple[float, float], step: float) -> n
 def parabolic_refine(volume: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel minimum of a cost volume ``(D, H, W)`` by a parabola through the best and its neighbours.
 
-    Returns ``(disparity, cost)`` ``(H, W)`` float32. At the ends of the range the integer minimum is kept.
+    Returns ``(disparity, cost)`` ``(H, W)`` float32. At the ends of the range (and with fewer than three
+    candidates) the integer minimum is kept.
     """
     best = np.argmin(volume, axis=0)
     rows, cols = np.indices(best.shape)
+    if len(candidates) < 3:  # no neighbours on both sides: the best candidate as it is
+        return candidates[best].astype(np.float32), volume[best, rows, cols].astype(np.float32)
     inner = np.clip(best, 1, len(candidates) - 2)
     c_minus = volume[inner - 1, rows, cols]
     c_zero = volume[inner, rows, cols]

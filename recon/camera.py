@@ -21,7 +21,6 @@ that a reconstruction's camera travels as one value from rectification to the PL
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +28,10 @@ import numpy as np
 
 if TYPE_CHECKING:
     from recon.lf.lightfield import LightField
+
+
+#: Depths beyond this (1000 km) are "at infinity" for a light field taken on a lab stage: no depth.
+MAX_DEPTH_MM = 1e9
 
 
 @dataclass(frozen=True)
@@ -49,8 +52,9 @@ class Camera:
     Raises
     ------
     ValueError
-        For a focal length or pitch that is not a positive finite number, a non-finite offset or
-        principal point.
+        For a focal length, pitch, offset or principal point that is not finite or lies outside
+        lfrig's bounds (``recon.lf.params.camera_problem``: focal length 1 to 1e7 px, pitch 1e-6 to
+        1e6 mm, ``|d0|`` up to 1e6, principal point within +-1e7 px).
     """
 
     focal_px: float
@@ -62,8 +66,11 @@ class Camera:
         _check_camera(self.focal_px, self.pitch_mm, self.disparity_offset)
         if self.principal_point_px is not None:
             cx, cy = self.principal_point_px
-            if not (math.isfinite(cx) and math.isfinite(cy)):
-                raise ValueError(f"principal_point_px must be finite (cx, cy) in pixels; got {self.principal_point_px!r}")
+            from recon.lf.params import camera_problem
+
+            problem = camera_problem(principal_point_px=(float(cx), float(cy)))
+            if problem is not None:
+                raise ValueError(problem)
             object.__setattr__(self, "principal_point_px", (float(cx), float(cy)))
 
     @classmethod
@@ -98,12 +105,16 @@ class Camera:
 
 
 def _check_camera(focal_px: float, pitch_mm: float, disparity_offset: float) -> None:
-    if not (np.isfinite(focal_px) and focal_px > 0):
-        raise ValueError(f"focal_px must be a positive number of pixels; got {focal_px!r}")
-    if not (np.isfinite(pitch_mm) and pitch_mm > 0):
-        raise ValueError(f"pitch_mm must be a positive distance in mm; got {pitch_mm!r}")
-    if not np.isfinite(disparity_offset):
-        raise ValueError(f"disparity_offset must be finite (pixels per view step); got {disparity_offset!r}")
+    from recon.lf.params import camera_problem
+
+    for name, value in (("focal_px", focal_px), ("pitch_mm", pitch_mm), ("disparity_offset", disparity_offset)):
+        if isinstance(value, np.generic):
+            value = value.item()
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{name} must be a number; got {value!r}")
+    problem = camera_problem(focal_px=float(focal_px), pitch_mm=float(pitch_mm), disparity_offset=float(disparity_offset))
+    if problem is not None:
+        raise ValueError(problem)
 
 
 def _float_array(values, name: str) -> np.ndarray:
@@ -139,14 +150,16 @@ def disparity_to_depth(
     depth_mm
         Same shape as ``disparity_px``, floating point (``float32`` stays ``float32``, anything else
         becomes ``float64``), mm. ``NaN`` where the effective disparity ``disparity_px +
-        disparity_offset`` is not positive or not finite.
+        disparity_offset`` is not positive or not finite, or where the depth would lie beyond
+        :data:`MAX_DEPTH_MM` (a disparity of 1e-40 is "at infinity", not a point 1e42 mm away).
     """
     _check_camera(focal_px, pitch_mm, disparity_offset)
     disparity = _float_array(disparity_px, "disparity_px")
     effective = disparity + disparity.dtype.type(disparity_offset)
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = disparity.dtype.type(focal_px * pitch_mm) / effective
-    return np.where(np.isfinite(effective) & (effective > 0), depth, np.nan).astype(disparity.dtype)
+    keep = np.isfinite(effective) & (effective > 0) & (np.abs(depth) <= MAX_DEPTH_MM)
+    return np.where(keep, depth, np.nan).astype(disparity.dtype)
 
 
 def depth_to_disparity(

@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (finite_float, nonnegative_int, output_file, output_folder, positive_float,
-                           positive_int)
+from recon.cliargs import (ALL_INTERFACES, finite_float, float_range, host_port, int_range, nonnegative_int, output_file,
+                           output_folder, positive_float, positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
 
@@ -308,10 +308,20 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                              "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
                              "camera's frame")
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
-    camera.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views in pixels")
-    camera.add_argument("--pitch-mm", type=positive_float, help="grid pitch (distance between neighbouring views) in mm")
-    camera.add_argument("--disparity-offset", type=finite_float, help="refocusing shift d0 in pixels per view step")
+    focal, pitch, offset = _camera_flag_types()
+    camera.add_argument("--focal-px", type=focal, help="focal length of the rectified views in pixels")
+    camera.add_argument("--pitch-mm", type=pitch, help="grid pitch (distance between neighbouring views) in mm")
+    camera.add_argument("--disparity-offset", type=offset, help="refocusing shift d0 in pixels per view step")
     export.set_defaults(handler=_export)
+
+
+def _camera_flag_types():
+    """``--focal-px``, ``--pitch-mm``, ``--disparity-offset`` within lfrig's camera bounds
+    (:func:`recon.lf.params.camera_problem`)."""
+    from recon.lf.params import FOCAL_PX_RANGE, MAX_DISPARITY_OFFSET_PX, PITCH_MM_RANGE
+
+    return (float_range(*FOCAL_PX_RANGE), float_range(*PITCH_MM_RANGE),
+            float_range(-MAX_DISPARITY_OFFSET_PX, MAX_DISPARITY_OFFSET_PX))
 
 
 def _export(args: argparse.Namespace) -> None:
@@ -326,6 +336,8 @@ def _export(args: argparse.Namespace) -> None:
         raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
     if args.min_confidence is not None and not 0 <= args.min_confidence <= 1:
         raise ExportError(f"--min-confidence {args.min_confidence}: give a value in [0, 1], e.g. 0.4")
+
+    import numpy as np
 
     from recon.cloud import MAX_RELATIVE_JUMP
     from recon.depth import write_depth
@@ -364,6 +376,10 @@ def _export(args: argparse.Namespace) -> None:
         if not args.keep_all:
             depth[~trusted_pixels(result.disparity_px, confidence=result.confidence, min_confidence=min_confidence,
                                   search_range=result.search_range)] = float("nan")
+        if not np.isfinite(depth).any():
+            raise ExportError(f"{args.result_dir}: no pixel has a depth (none is finite, positive and trusted), so "
+                              "the depth map would be empty; nothing written (--keep-all or a lower --min-confidence "
+                              "keep more pixels)")
         for path in args.depth:
             try:
                 write_depth(path, depth)
@@ -425,9 +441,10 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
     rec.add_argument("--worker-timeout-s", type=positive_float, default=60.0, metavar="S",
                      help="with no worker connected for this long (at the start or after all were lost), say so "
                           "and stop; the captures not run are reported as failed (default 60)")
-    rec.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
+    rec.add_argument("--dashboard-address", type=host_port, default="127.0.0.1:8787", metavar="HOST:PORT",
                      help="local cluster: where the dashboard listens, a free port if this one is taken "
-                          "(default 127.0.0.1:8787)")
+                          "(default 127.0.0.1:8787; all interfaces only when asked for by name, 0.0.0.0:PORT "
+                          "or [::]:PORT)")
     rec.set_defaults(handler=_batch_reconstruct)
 
 
@@ -463,6 +480,9 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
                      dashboard_address=args.dashboard_address, timeout_s=args.worker_timeout_s) as connection:
             print(connection.describe() + f"; data: {transfer}", flush=True)
             print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
+            if args.scheduler is None and args.dashboard_address.rpartition(":")[0].strip("[]") in ALL_INTERFACES:
+                print(f"note: the dashboard listens on every interface ({args.dashboard_address}): anyone who can "
+                      "reach this machine can see it", flush=True)
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
                                  on_outcome=show, on_note=lambda text: print(f"note: {text}", flush=True),
                                  no_worker_timeout_s=args.worker_timeout_s)
@@ -476,6 +496,8 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _register_import(subparsers: argparse._SubParsersAction) -> None:
+    from recon.lf.params import MAX_GRID_SIDE
+
     imp = subparsers.add_parser(
         "import",
         help="turn a folder of views from another tool into an lfrig capture",
@@ -492,13 +514,14 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order")
     imp.add_argument("--order", choices=("serpentine", "raster"),
                      help="files are in capture order (serpentine: every other row right to left, as lfrig captures)")
-    imp.add_argument("--rows", type=int, help="grid rows (u) (not needed for a benchmark folder)")
-    imp.add_argument("--cols", type=int, help="grid columns (v)")
-    imp.add_argument("--index-base", type=int, default=0, help="the number the indices in the names start at")
-    imp.add_argument("--pitch-mm", type=float, help="distance between neighbouring views (required unless a benchmark folder gives it)")
-    imp.add_argument("--focal-px", type=float, help="focal length of the views in pixels")
-    imp.add_argument("--principal-point-px", type=float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
-    imp.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
+    imp.add_argument("--rows", type=int_range(1, MAX_GRID_SIDE), help="grid rows (u) (not needed for a benchmark folder)")
+    imp.add_argument("--cols", type=int_range(1, MAX_GRID_SIDE), help="grid columns (v)")
+    imp.add_argument("--index-base", type=int_range(0, 10**9), default=0, help="the number the indices in the names start at")
+    focal, pitch, _ = _camera_flag_types()
+    imp.add_argument("--pitch-mm", type=pitch, help="distance between neighbouring views (required unless a benchmark folder gives it)")
+    imp.add_argument("--focal-px", type=focal, help="focal length of the views in pixels")
+    imp.add_argument("--principal-point-px", type=finite_float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
+    imp.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                      help="disparity the scene spans, pixels per view step")
     imp.add_argument("--quiet", action="store_true", help="no progress output")
     imp.set_defaults(handler=_import)

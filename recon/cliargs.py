@@ -106,6 +106,32 @@ def float_range(low: float, high: float, *, low_open: bool = False) -> Callable[
     return parse
 
 
+#: Hosts that mean "every interface of this machine": a dashboard there is open to the whole network.
+ALL_INTERFACES = ("0.0.0.0", "::")
+
+
+def host_port(text: str) -> str:
+    """``HOST:PORT`` (``[IPv6]:PORT`` for an IPv6 address) with a port from 0 to 65535 (0: any free
+    port). An empty host (``:8787``), which servers read as every interface, is refused: name
+    ``0.0.0.0`` or ``[::]`` to mean that."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST:PORT with a port from 0 to 65535, e.g. 127.0.0.1:8787")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+        if ":" not in host:
+            raise argparse.ArgumentTypeError(f"{text!r}: brackets are for IPv6 addresses, e.g. [::1]:8787")
+    elif ":" in host:
+        raise argparse.ArgumentTypeError(f"{text!r}: write an IPv6 address in brackets, e.g. [::1]:8787")
+    if not host:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} has no host, which would listen on every interface; say 127.0.0.1:{port} for this machine "
+            f"only, or 0.0.0.0:{port} to mean every interface")
+    if any(c.isspace() or c in "/@?#" for c in host):
+        raise argparse.ArgumentTypeError(f"{text!r}: {host!r} is not a host name or address")
+    return text
+
+
 def output_file(text: str) -> Path:
     """A path for a file to write: not an existing folder (its folder is checked when writing)."""
     if not text:

@@ -332,10 +332,11 @@ def write_depth(path, depth_mm: np.ndarray, *, scale_mm: float | None = None, of
                 raise DepthFormatError(f"{path}: OpenCV could not encode the depth PNG")
             text = json.dumps(metadata, sort_keys=True)
             # The PNG carries its own scale; the sidecar is a copy for tools that cannot read tEXt.
-            # Sidecar first: a crash between the two leaves the old PNG with a new sidecar, which the
-            # reader ignores when the PNG has its chunk (lfrig's always has).
-            write_bytes_atomic(png_sidecar_path(path), (json.dumps(metadata, indent=2, sort_keys=True) + "\n").encode())
+            # PNG first: a write that fails there (a full disk) leaves nothing new at all, and a crash
+            # between the two leaves the new PNG with the old sidecar, which the reader ignores when
+            # the PNG has its chunk (lfrig's always has).
             write_bytes_atomic(path, _insert_text_chunk(encoded.tobytes(), PNG_SCALE_KEY, text))
+            write_bytes_atomic(png_sidecar_path(path), (json.dumps(metadata, indent=2, sort_keys=True) + "\n").encode())
         else:
             raise DepthFormatError(f"{path}: unknown depth-map suffix {path.suffix!r}; use .pfm, .png or .npy")
     except FileWriteError as error:
@@ -357,11 +358,9 @@ def read_depth(path) -> np.ndarray:
 
         return read_pfm(path)
     if suffix == ".npy":
-        try:
-            depth = np.load(path, allow_pickle=False)
-        except Exception as error:  # noqa: BLE001 - numpy's header parser raises many kinds on a damaged file
-            raise DepthFormatError(f"{path}: not a readable .npy depth map ({type(error).__name__}: "
-                                   f"{str(error)[:120]})") from None
+        from recon.lf.imageio import read_npy
+
+        depth = read_npy(path, error=DepthFormatError)
         if not (isinstance(depth, np.ndarray) and depth.ndim == 2 and depth.dtype.kind in "fiu"):
             raise DepthFormatError(f"{path}: a depth map is a 2-D array of numbers; this one is "
                                    f"{getattr(depth, 'shape', '?')} {getattr(depth, 'dtype', type(depth).__name__)}")
@@ -370,16 +369,24 @@ def read_depth(path) -> np.ndarray:
         from recon.lf.imageio import decode_quietly, png_problem
         from recon.lf.params import is_finite
 
-        data = path.read_bytes()
+        from recon.lf.imageio import MAX_IMAGE_BYTES, read_bytes
+
+        data = read_bytes(path, error=DepthFormatError, max_bytes=MAX_IMAGE_BYTES)
         problem = png_problem(data)
         if problem:
             raise DepthFormatError(f"{path}: {problem}")
+        from recon.lf.imageio import check_image_size, png_header
+
+        header = png_header(data)
+        if header is None:
+            raise DepthFormatError(f"{path}: damaged PNG header (IHDR)")
+        check_image_size(path, header[0], header[1])
         texts = _read_text_chunks(data)
         try:
             if PNG_SCALE_KEY in texts:
                 metadata = json.loads(texts[PNG_SCALE_KEY])
             elif png_sidecar_path(path).is_file():
-                metadata = json.loads(png_sidecar_path(path).read_text(encoding="utf-8"))
+                metadata = json.loads(read_bytes(png_sidecar_path(path), error=DepthFormatError).decode("utf-8"))
             else:
                 metadata = None
         except (ValueError, UnicodeDecodeError) as error:

@@ -21,9 +21,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from recon.errors import ReconError
 from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
+from recon.lf.params import disparity_range_problem
 from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
 from recon.progress import ProgressCallback
 from recon.lf.lock import FolderLock
@@ -97,6 +100,22 @@ def check_options(method: str, options: Mapping[str, Any]) -> None:
         raise ReconError(f"{method}: {error}") from None
 
 
+def check_output_outside(source: str | os.PathLike, out_dir: str | os.PathLike) -> None:
+    """Refuse a result folder that is the light-field folder itself or lies inside its views
+    (``CAP/views``: the files written there would break the capture), naming both.
+
+    Raises
+    ------
+    ReconError
+    """
+    source_path, out_path = Path(source).resolve(), Path(out_dir).resolve()
+    where = ("the light-field folder" if out_path == source_path
+             else "inside the views of" if out_path.is_relative_to(source_path / "views") else None)
+    if where is not None:
+        raise ReconError(f"{out_dir}: is {where} {source}; the results would mix with its data: give a folder of "
+                         "its own for them")
+
+
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
     from recon.lf.imageio import write_bytes_atomic
@@ -151,10 +170,15 @@ def reconstruct_to_folder(
     from recon.lf import read_lightfield
 
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
+    if lf.source is not None:
+        check_output_outside(lf.source, out_dir)
     opts: dict[str, Any] = dict(options or {})
     check_options(method, opts)
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
+        problem = disparity_range_problem(opts["disparity_range"], grid=lf.grid_shape, image_shape=lf.image_shape)
+        if problem is not None:
+            raise ReconError(f"{problem} (pixels per view step)")
     out = writable_folder(out_dir, what="result folder")  # a file, read-only, full: now, not after the work
     if ply is not None:
         writable_file(ply, what="PLY")
@@ -178,6 +202,9 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
 
         raise ReconError(f"{lf.metadata.get('ground_truth')}: ground truth is {describe_map(gt)} but the views are "
                          f"{lf.image_shape[1]}x{lf.image_shape[0]}; remove or replace it")
+    if gt is not None and not np.isfinite(gt).any():
+        raise ReconError(f"{lf.metadata.get('ground_truth')}: ground truth has no finite value (nothing to score "
+                         "against); remove or replace it")
     # The folder holds one run: the previous run's files go first, result.json before the rest, so
     # an interrupted run leaves a folder without result.json (clearly unfinished) and never old maps
     # beside new ones. The new result.json is renamed in last.

@@ -133,8 +133,26 @@ class ResultRecord:
                     and all(isinstance(c, (int, float)) and not isinstance(c, bool) and is_finite(c) for c in principal)):
                 raise ExportError(f"{where}: principal_point_px = {principal!r} must be [cx, cy] in pixels")
             values["principal_point_px"] = [float(c) for c in principal]
+        from recon.lf.params import camera_problem
+
+        problem = camera_problem(focal_px=values["focal_px"], pitch_mm=values["pitch_mm"],
+                                 disparity_offset=values["disparity_offset"],
+                                 principal_point_px=values.get("principal_point_px"))
+        if problem is not None:
+            raise ExportError(f"{where}: {problem}; fix result.json or run lfrig reconstruct again")
         if values.get("options") is None:
             values["options"] = {}
+        for key, kinds, what in (("method", str, "a method name"), ("source", str, "a folder name"),
+                                 ("scores", dict, "a JSON object of scores"), ("seconds", (int, float), "a number"),
+                                 ("image", list, "[W, H]"), ("grid", list, "[U, V]"),
+                                 ("disparity_png_range", list, "[low, high]")):
+            value = values.get(key)
+            if value is not None and (not isinstance(value, kinds) or isinstance(value, bool)):
+                raise ExportError(f"{where}: {key} = {str(value)[:80]!r} must be {what}; fix result.json or run "
+                                  "lfrig reconstruct again")
+        if not isinstance(values["options"], dict):
+            raise ExportError(f"{where}: options = {str(values['options'])[:80]!r} must be a JSON object of the "
+                              "method's options; fix result.json or run lfrig reconstruct again")
         files = record.get("files")
         if files is not None and not (isinstance(files, list) and all(isinstance(f, str) for f in files)):
             raise ExportError(f"{where}: files = {files!r} must be a list of file names")
@@ -195,8 +213,11 @@ def clear_result(folder: str | Path) -> list[str]:
     folder = Path(folder)
     names = set(RESULT_FILES)
     record_path = folder / RESULT_JSON
+    from recon.errors import LfrigError
+    from recon.lf.imageio import read_bytes
+
     try:
-        old = json.loads(record_path.read_text(encoding="utf-8"))
+        old = json.loads(read_bytes(record_path, error=ExportError).decode("utf-8"))
         listed = old.get("files") if isinstance(old, dict) else None
         if isinstance(listed, list):
             for name in listed:
@@ -204,7 +225,7 @@ def clear_result(folder: str | Path) -> list[str]:
                     names.add(folder_file(folder, name, what="files", where=record_path).relative_to(folder).as_posix())
                 except (ExportError, ValueError):
                     continue  # a name outside the folder is never removed
-    except (OSError, ValueError):
+    except (LfrigError, ValueError, RecursionError):
         pass  # no (readable) record: the known names are still removed
     from recon.lf.imageio import remove_stale_temporaries
 
@@ -308,9 +329,11 @@ def read_result(result_dir) -> ResultFolder:
     record_path = folder / RESULT_JSON
     if not record_path.is_file():
         raise ExportError(f"{record_path}: missing; RESULT_DIR must be a folder written by lfrig reconstruct")
+    from recon.lf.imageio import read_bytes
+
     try:
-        raw = json.loads(record_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raw = json.loads(read_bytes(record_path, error=ExportError).decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
         raise ExportError(f"{record_path}: not valid JSON ({error})") from None
     record = ResultRecord.from_json(raw, where=record_path)
     disparity_path = folder / DISPARITY_PFM

@@ -436,6 +436,15 @@ class AravisCamera:
             sensor = self._call("reading the sensor size", cam.get_sensor_size)
             if x < 0 or y < 0:
                 raise CameraError(f"camera {self.name}: ROI offset ({x}, {y}) must be >= 0")
+            dx, dy = (1, 1)
+            if self._call("is_binning_available", cam.is_binning_available):
+                dx, dy = (max(1, int(b)) for b in self._call("reading the binning", cam.get_binning))
+            width, height = sensor.width // dx, sensor.height // dy  # the region is in binned pixels
+            if x + w > width or y + h > height:
+                raise CameraError(
+                    f"camera {self.name}: ROI ({x}, {y}, {w}, {h}) reaches beyond the {width}x{height} sensor"
+                    f"{f' (binned {dx}x{dy})' if (dx, dy) != (1, 1) else ''}; give offset + size within it"
+                )
             self._call(f"setting the ROI {x},{y} {w}x{h}", cam.set_region, x, y, w, h)
             got = self._call("reading the region", cam.get_region)
             if (got.x, got.y, got.width, got.height) != (x, y, w, h):

@@ -185,7 +185,7 @@ def _capture(args: argparse.Namespace) -> int:
             return 130
     finally:
         devices.close()
-        lock.release()
+        lock.release(discard=True)  # a folder this command made and left empty (no device opened) goes
     if result.interrupted:
         print(
             f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "

@@ -8,19 +8,21 @@ can cause are :class:`recon.errors.LfrigError`; they are printed as one line, wi
 and the command exits with status 2. So are usage errors (a flag's value is checked by the types of
 :mod:`recon.cliargs`) and an ``OSError`` that a user's path or disk causes (read-only, full, no
 permission: :data:`USER_PATH_ERRNOS`, when the error names a path). Anything else is a bug and keeps
-its traceback.
+its traceback. Ctrl-C is ``lfrig: interrupted`` and status 130 at any moment of :func:`main`, also
+while the command modules load (they bring numba and scipy); ``SIGTERM`` and ``SIGHUP`` stop a command
+the same way (:class:`Stopped`), so that its writers remove their temporary files, with status 128 +
+the signal.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
+import signal
 import sys
+from typing import Iterator
 
-import calib.cli
-import recon.cli
-import rig.cli
-import rig.demo
 from recon.cliargs import OneLineParser, print_error
 from recon.errors import LfrigError
 
@@ -52,21 +54,65 @@ def user_path_error(error: OSError) -> str | None:
     return f"{path}: {error.strerror or 'OS error'}; {hint}"
 
 #: The modules whose ``register(subparsers)`` add subcommands, in the order ``--help`` lists them.
-COMMAND_MODULES = (rig.demo, recon.cli, rig.cli, calib.cli)
+#: Imported by :func:`build_parser` (inside :func:`main`'s handling of Ctrl-C: they load numba and scipy).
+COMMAND_MODULES = ("rig.demo", "recon.cli", "rig.cli", "calib.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import importlib
+
     parser = OneLineParser(
         prog="lfrig",
         description="Light-field capture on a translation stage, calibration, and disparity/depth reconstruction.",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in COMMAND_MODULES:
-        module.register(subparsers)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
     return parser
 
 
+class Stopped(KeyboardInterrupt):
+    """``SIGTERM`` or ``SIGHUP`` arrived: raised like Ctrl-C, so that a command stops the way it stops
+    for Ctrl-C (a capture parks the stage, every writer removes its temporary files) and exits
+    with ``128 + signal``."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """Turn ``SIGTERM`` and ``SIGHUP`` into :class:`Stopped` while the block runs (main thread only;
+    elsewhere, and for signals a caller chose to ignore, nothing changes)."""
+    def stop(signum: int, frame: object) -> None:
+        raise Stopped(signum)
+
+    saved = {}
+    try:
+        for signum in (signal.SIGTERM, signal.SIGHUP):
+            if signal.getsignal(signum) is not signal.SIG_IGN:  # e.g. nohup's SIGHUP stays ignored
+                saved[signum] = signal.signal(signum, stop)
+    except ValueError:  # not the main thread
+        pass
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        with stop_signals():
+            return _main(argv)
+    except KeyboardInterrupt as stop:  # Ctrl-C or a stop signal, even while the modules load
+        print("lfrig: interrupted" if not isinstance(stop, Stopped) else
+              f"lfrig: stopped by {signal.Signals(stop.signum).name}", file=sys.stderr)
+        return 128 + (stop.signum if isinstance(stop, Stopped) else signal.SIGINT)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -83,9 +129,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print_error(line)
         return 2
-    except KeyboardInterrupt:
-        print("lfrig: interrupted", file=sys.stderr)
-        return 130
     return 0 if status is None else int(status)
 
 

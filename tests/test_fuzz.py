@@ -29,6 +29,7 @@ import random
 import shutil
 import sys
 import tempfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,8 @@ class FileAudit:
     def __init__(self) -> None:
         self.active = False
         self.events: list[tuple[str, str, bool]] = []  # (event, path, writes)
+        #: Opens of a path that was a symbolic link at the time, without O_NOFOLLOW: (path, writes).
+        self.followed: list[tuple[str, bool]] = []
 
     def hook(self, event: str, args: tuple) -> None:
         if not self.active:
@@ -66,7 +69,16 @@ class FileAudit:
                 return
             writes = bool((mode and any(c in mode for c in "wax+"))
                           or (flags or 0) & (os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC))
-            self.events.append((event, os.fsdecode(path), writes))
+            path = os.fsdecode(path)
+            if (flags or 0) & os.O_NOFOLLOW:
+                # cannot follow a link at its last component (a link there fails with ELOOP): judge
+                # where it is, not where a link of that name leads
+                path = os.path.join(os.path.realpath(os.path.dirname(os.path.abspath(path))), os.path.basename(path))
+                self.events.append(("open-nofollow", path, writes))
+                return
+            if os.path.islink(path):
+                self.followed.append((path, writes))
+            self.events.append((event, path, writes))
         elif event in ("os.remove", "os.rename", "os.mkdir", "os.rmdir", "shutil.rmtree", "os.truncate"):
             path = args[0]
             if not isinstance(path, int):
@@ -75,6 +87,7 @@ class FileAudit:
     @contextlib.contextmanager
     def watch(self):
         self.events.clear()
+        self.followed.clear()
         self.active = True
         try:
             yield self
@@ -88,7 +101,10 @@ class FileAudit:
             "/dev/null", "/dev/urandom", "/dev/shm")
         bad = []
         for event, path, writes in self.events:
-            resolved = str(Path(os.path.abspath(path)).resolve()) if path else path
+            if event == "open-nofollow":
+                resolved = path
+            else:
+                resolved = str(Path(os.path.abspath(path)).resolve()) if path else path
             if resolved.startswith(str(folder.resolve()) + os.sep) or resolved == str(folder.resolve()):
                 continue
             if not writes and resolved.startswith(allowed_reads):
@@ -490,7 +506,14 @@ COMMANDS = {
     "batch": (["reconstruct", "{root}/cap", "-o", "{root}/out/b"], [
         flag("--workers"), flag("--tile"), flag("--halo"), flag("--step"), flag("--scheduler", values=["garbage", ""]),
         flag("--worker-timeout-s"), flag("--transfer", values=["ship", "shared", "x"]),
-        flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"])]),
+        flag("--export", values=["mesh", "none", "x"]), flag("--method", values=["baseline", "x"]),
+        flag("--dashboard-address", values=["nonsense:::", ":8787", "127.0.0.1:0", "[::1]:99999", "", "0.0.0.0:0"])]),
+    "import": (["{root}/cap/views", "-o", "{root}/out/imp"], [
+        flag("--pattern", values=["u{{u:02d}}_v{{v:02d}}.png", "u{{u:0999999999d}}_v{{v}}.png", "{{i}}", "{{x}}",
+                                  "a/{{u}}{{v}}", ""]),  # braces doubled: argv is str.format-ted with {root}
+        flag("--order", values=["raster", "serpentine", "x"]), flag("--rows"), flag("--cols"), flag("--index-base"),
+        flag("--pitch-mm"), flag("--focal-px"), flag("--principal-point-px", 2), flag("--disparity-range", 2),
+        flag("--quiet", 0)]),
     "calibrate": (["intrinsics", "{root}/res/centre_view.png", "-o", "{root}/out/cam.cameramodel"], [
         flag("--board", values=["9x6", "0x0", "1x1", "x", "10000x3", "9X6"]), flag("--square-mm"),
         flag("--marker-mm"), flag("--focal-px"), flag("--working-distance-mm"), flag("--quiet", 0)]),
@@ -564,3 +587,253 @@ def test_cli_argument_vectors(cli_world, stand_ins, data):
             assert len(lines) == 1 and lines[0].startswith("lfrig: error:"), (argv, err.getvalue())
     outside = AUDIT.outside(root)
     assert not outside, (argv, outside[:5])
+
+
+# --------------------------------------------------------------------------------------------------
+# issue #22: hostile files, sizes and sources
+
+
+def _valid_result_json() -> dict:
+    return {"method": "baseline", "options": {"window": 3, "disparity_range": [-1.0, 1.5]}, "source": None,
+            "image": [16, 16], "grid": [3, 3], "focal_px": 1000.0, "pitch_mm": 0.5, "disparity_offset": 0.0,
+            "principal_point_px": [7.5, 7.5], "disparity_png_range": [-1.0, 1.0], "seconds": 0.1,
+            "scores": {"mse_x100": 1.0}}
+
+
+@settings(FUZZ, max_examples=120)
+@given(data=st.data())
+def test_result_json_field_types(base, data):
+    """Every field of result.json replaced by any JSON value: read_result and what export and the
+    report ask of it (the searched range, the camera) raise LfrigError or work."""
+    from recon.result import read_result
+
+    folder = fresh_folder(base)
+    write_result_folder(folder)
+    rng = rng_of(data)
+    record = _valid_result_json()
+    for _ in range(rng.randint(1, 3)):
+        key = rng.choice(sorted(record))
+        record[key] = rng.choice(INTERESTING + [[1.0, 2.0], {"disparity_range": "x"}, {"disparity_range": [1e308, -1e308]}])
+    (folder / "res" / "result.json").write_bytes(dump_json(record))
+
+    def load():
+        result = read_result(folder / "res")
+        result.search_range
+        result.record.camera
+        return result.camera()
+
+    call_loader(folder, load)
+
+
+def _regions_npy() -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, np.tile(np.arange(4, dtype=np.uint8), (16, 4)))
+    return buffer.getvalue()
+
+
+@FUZZ
+@given(data=st.data())
+def test_regions_npy_mutations(base, data):
+    """A damaged regions.npy (or window_size.npy): the report's loader raises LfrigError or reads it."""
+    from recon.errors import ExportError
+    from recon.lf.imageio import read_npy
+
+    folder = fresh_folder(base)
+    rng = rng_of(data)
+    raw = _regions_npy()
+    if rng.random() < 0.5:  # the header's dict: shape, dtype, order replaced by junk
+        header_end = raw.index(b"\n") + 1
+        header = raw[10:header_end].decode("latin-1")
+        for key in ("'descr': '|u1'", "'shape': (16, 16)", "'fortran_order': False"):
+            if rng.random() < 0.5:
+                junk = rng.choice(["'descr': '|O'", "'descr': '<f8'", "'shape': (100000, 100000)", "'shape': (-1, 4)",
+                                   "'shape': ()", "'fortran_order': 7", "'descr': 'nope'", "'shape': (2**62, 4)"])
+                header = header.replace(key, junk)
+        raw = raw[:10] + header.encode("latin-1") + raw[header_end:]
+    else:
+        raw = byte_mutation(rng, raw)
+    (folder / "regions.npy").write_bytes(raw)
+    call_loader(folder, lambda: read_npy(folder / "regions.npy", error=ExportError))
+
+
+def _sparse(path: Path, size: int = 8 << 30, head: bytes = b"") -> None:
+    path.write_bytes(head)
+    os.truncate(path, size)
+
+
+#: Loaders of every file a command reads whole, with the file's place in a copy of the tiny capture
+#: or a result folder: each must refuse an 8 GiB sparse file (or read only the header's bytes).
+OVERSIZED = ["view", "manifest", "parameters", "disparity", "confidence", "result_json", "depth_npy",
+             "depth_png", "stage_json", "camera_model", "benchmark_view", "import_source"]
+
+
+@pytest.mark.parametrize("what", OVERSIZED)
+def test_oversized_and_sparse_files(base, what):
+    """An 8 GiB sparse file (or a header claiming a huge image) where lfrig reads a file: an
+    LfrigError naming it, or a read of only the bytes the header describes; never 8 GiB in memory."""
+    from calib.stage import StageCalibration, load_model
+    from recon.depth import read_depth
+    from recon.lf import read_lightfield
+    from recon.lf.importer import import_views
+    from recon.result import read_result
+
+    folder, cap = copy_capture(base)
+    record = write_result_folder(folder)
+    (folder / "res" / "result.json").write_text(json.dumps(record))
+    huge_png = (b"\x89PNG\r\n\x1a\n" + (13).to_bytes(4, "big") + b"IHDR" + (40000).to_bytes(4, "big")
+                + (30000).to_bytes(4, "big") + bytes([8, 0, 0, 0, 0]))
+    huge_png += zlib.crc32(huge_png[12:]).to_bytes(4, "big")
+    cases = {
+        "view": (cap / "views" / "u01_v01.png", b"", lambda: read_lightfield(cap, verify=False)),
+        "manifest": (cap / "manifest.jsonl", b"", lambda: read_lightfield(cap)),
+        "parameters": (cap / "parameters.cfg", b"[extrinsics]\n", lambda: read_lightfield(cap, verify=False)),
+        "disparity": (folder / "res" / "disparity.pfm", b"Pf\n16 16\n-1.0\n", lambda: read_result(folder / "res")),
+        "confidence": (folder / "res" / "confidence.pfm", b"Pf\n99999 99999\n-1.0\n", lambda: read_result(folder / "res")),
+        "result_json": (folder / "res" / "result.json", b"{", lambda: read_result(folder / "res")),
+        "depth_npy": (folder / "d.npy", b"", lambda: read_depth(folder / "d.npy")),
+        "depth_png": (folder / "d.png", huge_png, lambda: read_depth(folder / "d.png")),
+        "stage_json": (folder / "stage.json", b"", lambda: StageCalibration.load(folder / "stage.json")),
+        "camera_model": (folder / "cam.cameramodel", b"", lambda: load_model(folder / "cam.cameramodel")),
+    }
+    if what == "benchmark_view":
+        bench = folder / "bench"
+        bench.mkdir()
+        for i, view in enumerate(sorted((cap / "views").iterdir())):
+            shutil.copy(view, bench / f"input_Cam{i:03d}.png")
+        (bench / "input_Cam004.png").write_bytes(huge_png + b"\0\0\0\0IEND\xaeB`\x82")
+        load = lambda: read_lightfield(bench)  # noqa: E731
+    elif what == "import_source":
+        src = folder / "src"
+        shutil.copytree(cap / "views", src)
+        _sparse(src / "u01_v01.png")
+        load = lambda: import_views(src, folder / "imported", pattern="u{u:02d}_v{v:02d}.png", rows=3,  # noqa: E731
+                                    cols=3, pitch_mm=0.5)
+    else:
+        path, head, load = cases[what]
+        _sparse(path, head=head)
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    call_loader(folder, load)
+    grown_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert grown_kib < 512 * 1024, f"{what}: memory grew by {grown_kib // 1024} MiB"
+
+
+HOSTILE_ENTRIES = ["link_out", "link_in", "link_dir_out", "padded_twin", "fifo", "folder_named_like_a_view",
+                   "not_an_image", "huge_header", "sparse", "empty", "dangling_link", "hidden_temporary"]
+
+
+@settings(FUZZ, max_examples=60)
+@given(data=st.data())
+def test_hostile_import_sources(base, data):
+    """A source folder with links out of it, padded twins, FIFOs, folders named like views, damaged
+    and oversized files: import_views raises LfrigError or makes a capture every reader accepts,
+    reads nothing outside the example's folder and writes nothing outside the target's folder."""
+    from recon.lf import read_lightfield
+    from recon.lf.importer import import_views
+
+    folder, cap = copy_capture(base)
+    rng = rng_of(data)
+    src = folder / "src"
+    shutil.copytree(cap / "views", src)
+    outside = fresh_folder(base)  # the user's other files: never read, never written
+    secret = outside / "secret.png"
+    shutil.copy(cap / "views" / "u00_v00.png", secret)
+    names = sorted(p.name for p in src.iterdir())
+    for _ in range(rng.randint(1, 3)):
+        kind = rng.choice(HOSTILE_ENTRIES)
+        name = rng.choice(names)
+        path = src / name
+        if path.exists() or path.is_symlink():
+            path.unlink() if not path.is_dir() or path.is_symlink() else shutil.rmtree(path)
+        if kind == "link_out":
+            path.symlink_to(secret)
+        elif kind == "link_in":
+            path.symlink_to(src / rng.choice(names))
+        elif kind == "link_dir_out":
+            path.symlink_to(outside)
+        elif kind == "padded_twin":
+            shutil.copy(cap / "views" / name, path)
+            u, v = int(name[1:3]), int(name[5:7])
+            shutil.copy(cap / "views" / name, src / f"u{u:03d}_v{v:02d}.png")
+        elif kind == "fifo":
+            os.mkfifo(path)
+        elif kind == "folder_named_like_a_view":
+            path.mkdir()
+        elif kind == "not_an_image":
+            path.write_bytes(b"hello")
+        elif kind == "huge_header":
+            path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+        elif kind == "sparse":
+            _sparse(path)
+        elif kind == "empty":
+            path.write_bytes(b"")
+        elif kind == "dangling_link":
+            path.symlink_to(outside / "missing.png")
+        else:
+            shutil.copy(cap / "views" / name, src / f".{name[:-4]}.{rng.randint(1, 99999)}.tmp.png")
+    mode = rng.choice(["pattern", "order"])
+    target = folder / "imported"
+
+    def load():
+        if mode == "pattern":
+            return import_views(src, target, pattern="u{u:02d}_v{v:02d}.png", rows=3, cols=3, pitch_mm=0.5)
+        return import_views(src, target, order="raster", rows=3, cols=3, pitch_mm=0.5)
+
+    secret_before = secret.read_bytes()
+    result = call_loader(folder, load)
+    assert secret.read_bytes() == secret_before
+    assert not AUDIT.followed or all(Path(p).resolve().is_relative_to(src.resolve()) for p, _ in AUDIT.followed), \
+        AUDIT.followed
+    if not isinstance(result, LfrigError):
+        call_loader(folder, lambda: read_lightfield(target))
+    else:
+        assert not target.exists() and not any(".import-" in p.name for p in folder.iterdir())
+
+
+def test_no_command_follows_a_link_it_did_not_create(cli_world, base):
+    """Links planted where commands write (the lock, the temporary names of atomic writes of the
+    result folder, a PLY, depth maps and the import) lead to a file outside every folder given: each
+    command refuses or writes around them; the file stays as it was and no open went through a
+    planted link. (A capture's views/ and journal: tests/test_hostile.py.)"""
+    from recon.lf.imageio import temporary_name
+    from rig.main import main
+
+    victim_folder = fresh_folder(base)
+    victim = victim_folder / "victim.txt"
+    world = fresh_folder(base)
+    shutil.copytree(cli_world / "cap", world / "cap")
+    shutil.copytree(cli_world / "res", world / "res")
+    out = world / "out"
+    out.mkdir()
+    planted = [out / ".lfrig.lock", world / "res" / ".lfrig.lock"]
+    for name in ("disparity.pfm", "result.json", "disparity.png", "centre_view.png"):
+        planted.append(temporary_name(out / name))
+    for name in ("m.ply", "d.png", "d.png.json", "d.npy"):
+        planted.append(temporary_name(world / name))
+    planted.append(world / f".imp.import-{os.getpid()}.tmp")
+    commands = [
+        ["reconstruct", str(world / "cap"), "-o", str(out), "--method", "baseline", "--window", "3", "--step", "0.1",
+         "--quiet"],
+        ["export", str(world / "res"), "--ply", str(world / "m.ply"), "--points", "--depth", str(world / "d.png"),
+         "--depth", str(world / "d.npy"), "--keep-all"],
+        ["import", str(world / "cap" / "views"), "-o", str(world / "imp"), "--pattern", "u{u:02d}_v{v:02d}.png",
+         "--rows", "3", "--cols", "3", "--pitch-mm", "0.5", "--quiet"],
+    ]
+    for argv in commands:
+        victim.write_text("precious\n")
+        for link in planted:
+            if link.is_symlink() or link.exists():
+                link.unlink()
+            link.symlink_to(victim)
+        with AUDIT.watch(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as err:
+            try:
+                status = main(argv)
+            except Reached:
+                status = None
+        assert status in (0, 1, 2, None), (argv, err.getvalue())
+        assert "Traceback" not in err.getvalue(), (argv, err.getvalue())
+        assert victim.read_text() == "precious\n", argv
+        assert victim_folder.exists() and sorted(p.name for p in victim_folder.iterdir()) == ["victim.txt"], argv
+        followed = [(p, w) for p, w in AUDIT.followed if Path(p) in planted]
+        assert not followed, (argv, followed)

@@ -17,7 +17,7 @@ import numpy as np
 from recon.errors import LightFieldFormatError
 from recon.lf.imageio import read_images
 from recon.lf.lightfield import LightField
-from recon.lf.params import camera_from_parameters, read_parameters
+from recon.lf.params import camera_from_parameters, check_camera_fits, read_parameters
 from recon.lf.pfm import read_pfm
 
 BENCHMARK_VIEW = re.compile(r"^input_Cam(\d{3})\.png$")
@@ -65,6 +65,8 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
         raise LightFieldFormatError(f"{path}: {len(missing)} of {count} views missing ({names})")
     images = read_images([numbered[i] for i in range(count)])
     views = images.reshape((rows, cols) + images.shape[1:])
+    if cfg.is_file():
+        check_camera_fits(camera, metadata["parameters"], grid=(rows, cols), image_shape=views.shape[2:4], path=cfg)
     if (path / GROUND_TRUTH).is_file():
         metadata["ground_truth"] = str(path / GROUND_TRUTH)
     return LightField(views=views, metadata=metadata, source=path, **camera)

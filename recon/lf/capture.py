@@ -15,7 +15,7 @@ the journal (the process died between the two steps) is taken again on resume. S
 
 from __future__ import annotations
 
-import hashlib
+import errno
 import json
 import os
 import re
@@ -26,12 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from recon.lf.imageio import (fault_point, read_bytes, read_images, remove_stale_temporaries, write_bytes_atomic, write_error,
-                             write_png)
+from recon.lf.imageio import (fault_point, read_bytes, read_images, remove_stale_temporaries, sha256_file,
+                             write_bytes_atomic, write_error, write_png)
 from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
-from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, is_finite, parameters_for, read_parameters, write_parameters
+from recon.lf.params import MAX_GRID_SIDE, camera_from_parameters, check_camera_fits, is_finite, parameters_for, read_parameters, write_parameters
 
 FORMAT = "lfrig-capture"
 VERSION = 1
@@ -157,6 +157,32 @@ def _unused(path: Path) -> bool:
     return True
 
 
+def _check_views_folder(path: Path) -> None:
+    """A capture writes its views only into its own ``views/``: a ``views`` that is a link (to a folder
+    elsewhere, whose files a resume would overwrite or delete) or not a folder is refused."""
+    views = path / VIEWS
+    if views.is_symlink():
+        raise CaptureLayoutError(
+            f"{views}: is a symbolic link; a capture keeps its views in a folder of its own (lfrig does not "
+            "write through the link): replace the link with the folder itself, or capture into a new folder"
+        )
+    if views.exists() and not views.is_dir():
+        raise CaptureLayoutError(f"{views}: is not a folder; remove it, or capture into a new folder")
+
+
+def _open_journal(manifest: Path, *, append: bool = True):
+    """The journal opened for appending (or for cutting a torn tail), never through a symbolic link."""
+    flags = (os.O_WRONLY | os.O_APPEND if append else os.O_RDWR) | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(manifest, flags)
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise CaptureLayoutError(f"{manifest}: is a symbolic link; lfrig does not write through it "
+                                     "(replace it with the journal itself)") from None
+        raise
+    return os.fdopen(fd, "ab" if append else "r+b")
+
+
 def _inside(path: Path, file: Path) -> bool:
     """Whether ``file`` (resolved, symlinks followed) lies inside the folder ``path``."""
     try:
@@ -209,6 +235,7 @@ class CaptureWriter:
             self.rows = int(self.header["grid"]["rows"])
             self.cols = int(self.header["grid"]["cols"])
             self._load_completed(records)
+            _check_views_folder(self.path)
             remove_stale_temporaries(self.path)  # we hold the lock: these are a dead writer's
             remove_stale_temporaries(self.path / VIEWS)
             _, end = _journal_lines(manifest)
@@ -216,7 +243,7 @@ class CaptureWriter:
                 # A torn last line (crash or full disk mid-append): cut it, or the next append would
                 # land after it and turn it into a damaged line in the middle of the journal.
                 try:
-                    with open(manifest, "r+b") as f:
+                    with _open_journal(manifest, append=False) as f:
                         f.truncate(end)
                         os.fsync(f.fileno())
                 except OSError as error:
@@ -226,6 +253,7 @@ class CaptureWriter:
                 raise CaptureLayoutError(
                     f"{self.path}: folder exists, is not empty and is not an lfrig capture; choose a new folder"
                 )
+            _check_views_folder(self.path)
             remove_stale_temporaries(self.path)  # a run that died before its header was in place
             if (self.path / VIEWS).is_dir():
                 remove_stale_temporaries(self.path / VIEWS)
@@ -239,7 +267,7 @@ class CaptureWriter:
             self.rows = int(self.header["grid"]["rows"])
             self.cols = int(self.header["grid"]["cols"])
         try:
-            self._journal = open(manifest, "ab")
+            self._journal = _open_journal(manifest)
         except OSError as error:
             raise write_error(manifest, error) from None
 
@@ -270,8 +298,8 @@ class CaptureWriter:
                 self.completed.pop(key, None)
                 continue
             try:
-                digest = hashlib.sha256(file.read_bytes()).hexdigest()
-            except OSError:
+                digest = sha256_file(file, error=CaptureLayoutError)
+            except CaptureLayoutError:  # unreadable or not a regular file: taken again
                 self.completed.pop(key, None)
                 continue
             if digest == record.get("sha256"):
@@ -313,13 +341,13 @@ class CaptureWriter:
             except OSError:
                 pass
             try:
-                with open(manifest, "r+b") as f:
+                with _open_journal(manifest, append=False) as f:
                     f.truncate(start)
                     os.fsync(f.fileno())
             except OSError:
                 pass  # the next open cuts the torn line (_journal_lines)
             try:
-                self._journal = open(manifest, "ab")
+                self._journal = _open_journal(manifest)
             except OSError:
                 self._journal = None  # nothing more can be journalled; the views so far are kept
             raise write_error(manifest, error) from None
@@ -433,6 +461,7 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
         metadata["parameters"] = parameters
         _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
         camera.update({k: v for k, v in found.items() if v is not None})
+        check_camera_fits(camera, parameters, grid=(rows, cols), image_shape=views.shape[2:4], path=path / PARAMETERS)
     return LightField(views=views, metadata=metadata, source=path, **camera)
 
 
@@ -445,7 +474,7 @@ def _verify_views(path: Path, paths: list[Path], digests: list[Any]) -> None:
     """Check each file's SHA-256 against the journal (hashing runs in threads: hashlib drops the GIL)."""
 
     def digest(file: Path) -> str:
-        return hashlib.sha256(file.read_bytes()).hexdigest()
+        return sha256_file(file, error=CaptureLayoutError)
 
     with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
         found = list(pool.map(digest, paths))

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
+import math
 import os
 import re
 import signal
+import stat
 import threading
+import warnings
 import zlib
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
@@ -17,7 +21,7 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
-from recon.errors import FileWriteError, LightFieldFormatError
+from recon.errors import FileWriteError, LfrigError, LightFieldFormatError
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -76,16 +80,114 @@ _quiet_depth = 0
 _quiet_saved = [0]
 
 
-def read_bytes(path: str | os.PathLike, *, error: type[LightFieldFormatError] = LightFieldFormatError,
-               missing: str = "no such file") -> bytes:
+#: The largest view a light field may have: sides up to this many pixels ...
+MAX_IMAGE_SIDE = 32768
+#: ... and at most this many pixels (64 Mpx, beyond any camera on a lab stage). A PNG's size is read
+#: from its header before it is decoded, so a small file that claims 20000x20000 pixels is refused
+#: instead of being given 30 GiB.
+MAX_IMAGE_PIXELS = 1 << 26
+#: The largest image file read (a 64 Mpx 16-bit RGB PNG stored uncompressed is 400 MB).
+MAX_IMAGE_BYTES = 1 << 30
+#: The largest small file read whole: a journal, parameters.cfg, result.json, a sidecar.
+MAX_TEXT_BYTES = 256 << 20
+
+
+def _size_text(size: int) -> str:
+    for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if size >= 1 << shift:
+            return f"{size / (1 << shift):.1f} {unit}"
+    return f"{size} bytes"
+
+
+def read_bytes(path: str | os.PathLike, *, error: type[LfrigError] = LightFieldFormatError,
+               missing: str = "no such file", max_bytes: int = MAX_TEXT_BYTES) -> bytes:
     """The whole file, or ``error`` naming ``path``: ``"{path}: {missing}"`` when it does not exist,
-    ``"{path}: cannot read (reason)"`` when the system refuses."""
+    ``"{path}: cannot read (reason)"`` when the system refuses, and a size error when the file is not
+    a regular file or holds more than ``max_bytes`` (checked before anything is read, so an 8 GiB
+    sparse file or ``/dev/zero`` is refused at once)."""
+    return read_head(path, max_bytes, error=error, missing=missing, whole=True)[0]
+
+
+def read_head(path: str | os.PathLike, count: int, *, error: type[LfrigError] = LightFieldFormatError,
+              missing: str = "no such file", whole: bool = False) -> tuple[bytes, int]:
+    """The first ``count`` bytes of a regular file and its size, with :func:`read_bytes`' errors; with
+    ``whole``, a file longer than ``count`` bytes is an error instead."""
     try:
-        return Path(path).read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NOCTTY | os.O_NONBLOCK)
     except FileNotFoundError:
         raise error(f"{path}: {missing}") from None
     except OSError as err:
         raise error(f"{path}: cannot read ({err.strerror})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise error(f"{path}: not a regular file; give the file itself")
+        if whole and info.st_size > count:
+            raise error(f"{path}: {_size_text(info.st_size)}, more than the {_size_text(count)} such a file "
+                        "may hold; check that it is the right file")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(count + 1 if whole else count)
+        if whole and len(data) > count:  # grew while being read
+            raise error(f"{path}: more than the {_size_text(count)} such a file may hold")
+        return data, info.st_size
+    except OSError as err:
+        raise error(f"{path}: cannot read ({err.strerror})") from None
+    finally:
+        os.close(fd)
+
+
+def read_npy(path: str | os.PathLike, *, error: type[LfrigError] = LightFieldFormatError) -> np.ndarray:
+    """A ``.npy`` array of numbers or booleans (no pickles), its header checked before the data is read:
+    at most :data:`MAX_IMAGE_PIXELS` times 4 elements, and the file as long as the header says.
+
+    Raises ``error`` naming ``path`` for anything else (damaged, truncated, too large, an object array).
+    """
+    head, size = read_head(path, 4096, error=error)
+    stream = io.BytesIO(head)
+    try:
+        with warnings.catch_warnings():  # a damaged header's SyntaxWarning is not the user's to read
+            warnings.simplefilter("ignore")
+            version = np.lib.format.read_magic(stream)
+            read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+            if version not in read_header:
+                raise ValueError(f"format version {version}")
+            shape, fortran, dtype = read_header[version](stream, max_header_size=4000)
+    except Exception as err:  # noqa: BLE001 - numpy's header parser raises many kinds on a damaged file
+        raise error(f"{path}: not a readable .npy file ({type(err).__name__}: {str(err)[:100]})") from None
+    if dtype.hasobject or dtype.kind not in "biuf" or dtype.fields is not None:
+        raise error(f"{path}: holds {dtype} values; lfrig's .npy files hold numbers")
+    count = math.prod(shape)
+    if count > 4 * MAX_IMAGE_PIXELS:
+        raise error(f"{path}: an array of shape {shape} is larger than lfrig reads")
+    need = stream.tell() + count * dtype.itemsize
+    if size < need:
+        raise error(f"{path}: truncated ({size} bytes, its header promises {need})")
+    data, _ = read_head(path, need, error=error)
+    array = np.frombuffer(data, dtype=dtype, count=count, offset=need - count * dtype.itemsize)
+    return np.array(array.reshape(shape, order="F" if fortran else "C"), dtype=dtype.newbyteorder("="))
+
+
+def sha256_file(path: str | os.PathLike, *, max_bytes: int = MAX_IMAGE_BYTES,
+                error: type[LfrigError] = LightFieldFormatError) -> str:
+    """SHA-256 hex digest of a regular file of at most ``max_bytes`` (:func:`read_bytes`' checks)."""
+    return hashlib.sha256(read_bytes(path, error=error, max_bytes=max_bytes)).hexdigest()
+
+
+def png_header(data: bytes) -> tuple[int, int, int, int] | None:
+    """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk, or ``None`` when the bytes
+    do not start with one."""
+    if not data.startswith(PNG_SIGNATURE) or len(data) < 33 or data[8:16] != b"\0\0\0\x0dIHDR":
+        return None
+    return (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), data[24], data[25])
+
+
+def check_image_size(path: str | os.PathLike, width: int, height: int) -> None:
+    """Refuse an image larger than :data:`MAX_IMAGE_SIDE` / :data:`MAX_IMAGE_PIXELS` (before decoding)."""
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise LightFieldFormatError(
+            f"{path}: image of {width}x{height} pixels is larger than lfrig reads (at most {MAX_IMAGE_SIDE} "
+            f"pixels a side and {MAX_IMAGE_PIXELS // (1 << 20)} Mpx); check the file or scale it down"
+        )
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -94,14 +196,21 @@ def read_image(path: Path) -> np.ndarray:
     Raises
     ------
     LightFieldFormatError
-        Naming the file: missing, unreadable, a damaged PNG (checked by :func:`png_problem` before
-        decoding), or not an image OpenCV can decode.
+        Naming the file: missing, unreadable, larger than :data:`MAX_IMAGE_BYTES`, a damaged PNG
+        (checked by :func:`png_problem` before decoding) or one whose header claims more pixels than
+        :func:`check_image_size` allows, or not an image OpenCV can decode (OpenCV itself refuses other
+        formats above :data:`MAX_IMAGE_PIXELS`: ``OPENCV_IO_MAX_IMAGE_PIXELS``).
     """
-    data = np.frombuffer(read_bytes(path), dtype=np.uint8)
-    if data[:8].tobytes() == PNG_SIGNATURE:
-        problem = png_problem(data.tobytes())
+    raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
+    data = np.frombuffer(raw, dtype=np.uint8)
+    if raw.startswith(PNG_SIGNATURE):
+        problem = png_problem(raw)
         if problem:
             raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
+        header = png_header(raw)
+        if header is None:
+            raise LightFieldFormatError(f"{path}: damaged PNG header (IHDR); replace or re-capture it")
+        check_image_size(path, header[0], header[1])
     image = decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
@@ -124,6 +233,7 @@ def read_images(paths: Sequence[Path]) -> np.ndarray:
     if not paths:
         raise ValueError("read_images needs at least one path")
     first = read_image(paths[0])
+    check_total_size(paths[0].parent, len(paths) * first.nbytes)
     out = np.empty((len(paths),) + first.shape, dtype=first.dtype)
     out[0] = first
 
@@ -140,6 +250,25 @@ def read_images(paths: Sequence[Path]) -> np.ndarray:
         for _ in pool.map(load, range(1, len(paths))):
             pass
     return out
+
+
+def memory_bytes() -> int:
+    """The machine's physical memory in bytes (0 when the system does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        return 0
+
+
+def check_total_size(where: str | os.PathLike, nbytes: int) -> None:
+    """Refuse a light field whose views alone would fill more than half this machine's memory (the
+    estimate needs several times as much again)."""
+    memory = memory_bytes()
+    if memory and nbytes > memory // 2:
+        raise LightFieldFormatError(
+            f"{where}: the views need {_size_text(nbytes)} of memory, more than half of this machine's "
+            f"{_size_text(memory)}; crop or bin the views, or use a larger machine"
+        )
 
 
 def _describe(image: np.ndarray) -> str:
@@ -214,6 +343,24 @@ def temporary_name(path: Path) -> Path:
     return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
 
 
+def open_new(tmp: Path):
+    """Open the temporary file ``tmp`` for writing as a new file of this process: whatever has its name
+    (a dead run's file, or a link someone planted there) is removed first, and the file is created with
+    ``O_EXCL | O_NOFOLLOW``, so the write never lands in another file through a link."""
+    _unlink_quietly(tmp)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    return os.fdopen(fd, "wb")
+
+
+def _unlink_quietly(path: Path) -> None:
+    try:
+        os.unlink(path)  # a link itself, never its target
+    except FileNotFoundError:
+        pass
+    except IsADirectoryError:
+        raise OSError(errno.EISDIR, os.strerror(errno.EISDIR), str(path)) from None
+
+
 def write_bytes_atomic(path: Path, data: bytes) -> str:
     """Write ``data`` to ``path`` so that a reader sees either the old file or the whole new one.
 
@@ -230,7 +377,8 @@ def write_bytes_atomic(path: Path, data: bytes) -> str:
     path = Path(path)
     tmp = temporary_name(path)
     try:
-        with open(tmp, "wb") as f:
+        remove_dead_temporaries(path)
+        with open_new(tmp) as f:
             half = len(data) // 2
             f.write(data[:half])
             f.flush()
@@ -252,15 +400,60 @@ def remove_stale_temporaries(folder: Path) -> list[Path]:
     Call it only while holding the folder's lock (:mod:`recon.lf.lock`): then no other lfrig process
     is writing there, and every temporary is a leftover of one that died. Returns what was removed.
     """
-    removed = []
-    for file in Path(folder).glob(".*.tmp*"):
-        if re.fullmatch(r"\..+\.\d+\.tmp(\.[^.]*)?", file.name) and file.is_file():
-            try:
-                file.unlink()
-            except OSError:
+    removed: list[Path] = []
+    folder = Path(folder)
+    if folder.is_symlink() or not folder.is_dir():
+        return removed  # only a folder of the run's own, never through a link
+    for file in folder.glob(".*.tmp*"):
+        if not re.fullmatch(r"\..+\.\d+\.tmp(\.[^.]*)?", file.name):
+            continue
+        try:
+            if not (stat.S_ISREG(file.lstat().st_mode) or file.is_symlink()):
                 continue
-            removed.append(file)
+            file.unlink()  # a link is removed itself, its target is left alone
+        except OSError:
+            continue
+        removed.append(file)
     return removed
+
+
+def remove_dead_temporaries(path: Path) -> list[Path]:
+    """Remove the temporary files of atomic writes of ``path`` (:func:`temporary_name`) whose process
+    has ended: what a write stopped by ``kill -9`` or a power cut left beside a file that is not in a
+    locked folder (a PLY, a depth map). A temporary of a running process is left alone."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    removed: list[Path] = []
+    if folder.is_symlink() or not folder.is_dir():
+        return removed
+    pattern = re.compile(re.escape(f".{path.stem}.") + r"(\d+)" + re.escape(f".tmp{path.suffix}"))
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        if match is None or int(match[1]) == os.getpid() or _alive(int(match[1])):
+            continue
+        try:
+            if entry.is_symlink() or entry.is_file(follow_symlinks=False):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+        except OSError:
+            continue
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid <= 0:
+        return True  # not a process id this module wrote: keep the file
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 @contextmanager
@@ -275,6 +468,8 @@ def atomic_output(path: Path, *, what: str = "file") -> Iterator[Path]:
     path = Path(path)
     tmp = temporary_name(path)
     try:
+        remove_dead_temporaries(path)
+        _unlink_quietly(tmp)  # the writer then creates it afresh: never through a planted link
         yield tmp
         size = tmp.stat().st_size if tmp.exists() else 0
         if size == 0:

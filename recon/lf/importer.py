@@ -25,7 +25,7 @@ journal records, for every view, the source file and its SHA-256 beside the writ
 
 from __future__ import annotations
 
-import hashlib
+import errno
 import os
 import re
 import shutil
@@ -38,14 +38,16 @@ import numpy as np
 
 from recon.errors import LightFieldFormatError
 from recon.lf.capture import CaptureWriter, is_capture
-from recon.lf.imageio import read_image
+from recon.lf.imageio import check_total_size, read_image, sha256_file
+from recon.lf.lock import FolderLock, FolderLockedError
+from recon.lf.params import MAX_GRID_SIDE, camera_problem, disparity_range_problem
 from recon.progress import ProgressCallback, report
 
 #: File suffixes taken as images when no pattern names the files (any case).
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm")
 ORDERS = ("serpentine", "raster")
 _FIELD_ALIASES = {"u": "u", "row": "u", "v": "v", "col": "v", "i": "i"}
-_SPEC = re.compile(r"^(0?\d*)d?$")
+_SPEC = re.compile(r"^(0?\d{0,2})d?$")  # a width of at most 99 digits
 
 
 class ViewImportError(LightFieldFormatError):
@@ -104,7 +106,8 @@ def parse_pattern(text: str) -> ViewPattern:
                 f"pattern {text!r}: unknown field {{{name}}}; use {{u}} (or {{row}}) and {{v}} (or {{col}}), or {{i}} for a running index"
             )
         if conversion or not _SPEC.match(spec or ""):
-            raise ViewImportError(f"pattern {text!r}: field {{{name}:{spec}}} must be a whole number, e.g. {{{name}:02d}}")
+            raise ViewImportError(f"pattern {text!r}: field {{{name}:{spec}}} must be a whole number of at most 99 "
+                                  f"digits, e.g. {{{name}:02d}}")
         canonical = _FIELD_ALIASES[name]
         if canonical in fields:
             raise ViewImportError(f"pattern {text!r}: field {{{name}}} appears twice")
@@ -131,6 +134,27 @@ def capture_order(rows: int, cols: int, *, order: str = "serpentine") -> list[tu
     return views
 
 
+def _source_files(src: Path) -> list[Path]:
+    """The files of ``src`` (not below it). A symbolic link is followed only to a file inside ``src``;
+    one that leads out of it (``view.png -> /home/x/secret``) is an error naming it."""
+    root = src.resolve()
+    files = []
+    for path in src.iterdir():
+        if path.is_symlink():
+            target = path.resolve()
+            if not target.is_relative_to(root):
+                raise ViewImportError(f"{path}: is a link to {target}, outside {src}; lfrig imports only files "
+                                      "inside SRC: copy the file in, or remove the link")
+        if path.is_file():
+            files.append(path)
+    return files
+
+
+def _number_key(name: str) -> list[Any]:
+    """:func:`natural_key` without the digits as written: ``img01`` and ``img1`` have the same."""
+    return [(kind, number) if kind == 0 else (kind, text) for kind, number, text in natural_key(name)]
+
+
 def natural_key(name: str) -> list[Any]:
     """Sort key that orders digit runs by value: ``img2.png`` before ``img10.png``."""
     return [(0, int(part), part) if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name)]
@@ -152,16 +176,17 @@ def _require_grid(rows: int | None, cols: int | None) -> None:
             "give the grid size with --rows and --cols (file names alone cannot show a missing last row or column)"
         )
     for name, value in (("rows", rows), ("cols", cols)):
-        if value is not None and (not isinstance(value, int) or value < 1):
-            raise ViewImportError(f"grid {name} must be a whole number >= 1; got {value!r}")
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)
+                                  or not 1 <= value <= MAX_GRID_SIDE):
+            raise ViewImportError(f"grid {name} must be a whole number from 1 to {MAX_GRID_SIDE}; got {value!r}")
 
 
 def plan_by_position(src: Path, pattern: ViewPattern, *, rows: int, cols: int, index_base: int = 0) -> ImportPlan:
     """Place every file matching a ``{u}``/``{v}`` pattern by the numbers in its name."""
     _require_grid(rows, cols)
     found: dict[tuple[int, int], Path] = {}
-    for path in sorted(src.iterdir(), key=lambda p: natural_key(p.name)):
-        values = pattern.match(path.name) if path.is_file() else None
+    for path in sorted(_source_files(src), key=lambda p: natural_key(p.name)):
+        values = pattern.match(path.name)
         if values is None:
             continue
         u, v = values["u"] - index_base, values["v"] - index_base
@@ -195,8 +220,8 @@ def plan_by_order(
     positions = capture_order(rows, cols, order=order)
     if pattern is not None:
         indexed: dict[int, Path] = {}
-        for path in src.iterdir():
-            values = pattern.match(path.name) if path.is_file() else None
+        for path in _source_files(src):
+            values = pattern.match(path.name)
             if values is None:
                 continue
             i = values["i"] - index_base
@@ -219,8 +244,14 @@ def plan_by_order(
             raise ViewImportError(f"{src}: {len(missing)} of {len(positions)} views missing ({names}{' ...' if len(missing) > 3 else ''})")
         files = [indexed[i] for i in range(len(positions))]
     else:
-        files = sorted((p for p in src.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        files = sorted((p for p in _source_files(src) if p.suffix.lower() in IMAGE_SUFFIXES
                         and not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+        for before, after in zip(files, files[1:]):
+            if _number_key(before.name) == _number_key(after.name):
+                raise ViewImportError(
+                    f"{after}: has the same numbers as {before.name} (written with other zero padding), so the "
+                    "capture order is ambiguous; remove one of them, or name the files with --pattern"
+                )
         if len(files) != len(positions):
             raise ViewImportError(
                 f"{src}: {len(files)} image files, but a {rows}x{cols} grid has {len(positions)} views; "
@@ -257,6 +288,7 @@ def _read_checked(plan: ImportPlan, progress: ProgressCallback | None) -> dict[t
             )
         if first is None:
             first = (path, image)
+            check_total_size(path.parent, total * image.nbytes)
         elif image.shape != first[1].shape or image.dtype != first[1].dtype:
             raise ViewImportError(
                 f"{path}: image is {_describe(image)} but {first[0].name} is {_describe(first[1])}; "
@@ -273,10 +305,13 @@ def _describe(image: np.ndarray) -> str:
 
 
 def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    return sha256_file(path, error=ViewImportError)
 
 
 def _check_target(target: Path) -> None:
+    if target.is_symlink():
+        raise ViewImportError(f"{target}: is a symbolic link; give the new capture folder itself (lfrig does not "
+                              "write through links)")
     if is_capture(target) or (target.exists() and (not target.is_dir() or any(target.iterdir()))):
         raise ViewImportError(f"{target}: exists and is not empty; choose a new folder for the imported capture")
     if not target.parent.is_dir():
@@ -332,12 +367,16 @@ def import_views(
     if not src.is_dir():
         raise ViewImportError(f"{src}: no such folder")
     _check_target(target)
-    if index_base < 0:
-        raise ViewImportError(f"--index-base must be >= 0; got {index_base}")
-    if pitch_mm is not None and not pitch_mm > 0:
-        raise ViewImportError(f"pitch must be > 0 mm; got {pitch_mm}")
-    if focal_px is not None and not focal_px > 0:
-        raise ViewImportError(f"focal length must be > 0 px; got {focal_px}")
+    if isinstance(index_base, bool) or not isinstance(index_base, int) or index_base < 0:
+        raise ViewImportError(f"--index-base must be a whole number >= 0; got {index_base!r}")
+    _require_grid(rows if rows is not None else 1, cols if cols is not None else 1)
+    problem = camera_problem(focal_px=focal_px, pitch_mm=pitch_mm, principal_point_px=principal_point_px)
+    if problem is not None:
+        raise ViewImportError(f"{problem}; give the view's real camera")
+    if disparity_range is not None:
+        problem = disparity_range_problem(disparity_range, grid=(1, 1), image_shape=(1, 1))  # the numbers alone
+        if problem is not None:
+            raise ViewImportError(f"{problem} (pixels per view step)")
     camera: dict[str, Any] = {}
     parsed = parse_pattern(pattern) if pattern is not None else None
     benchmark = parsed is None and order is None and (src / "input_Cam000.png").is_file()
@@ -384,6 +423,10 @@ def import_views(
     if camera.get("pitch_mm") is None:
         raise ViewImportError("give the grid pitch with --pitch-mm: the distance between neighbouring views in mm")
     shape = next(iter(images.values())).shape[:2]
+    if camera.get("disparity_range") is not None:
+        problem = disparity_range_problem(camera["disparity_range"], grid=(plan.rows, plan.cols), image_shape=shape)
+        if problem is not None:
+            raise ViewImportError(f"{problem} (pixels per view step)")
     if principal_point_px is not None:
         cx, cy = principal_point_px
         if not (0 <= cx <= shape[1] - 1 and 0 <= cy <= shape[0] - 1):
@@ -400,11 +443,18 @@ def _write(src: Path, target: Path, plan: ImportPlan, images: dict[tuple[int, in
     grid = {"rows": plan.rows, "cols": plan.cols, "pitch_mm": float(camera["pitch_mm"])}
     how = {**plan.how, "source": str(src.resolve())}
     header = {"grid": grid, "settings": {"grid": grid, "import": how}, "imported": how}
+    remove_abandoned_imports(target)
     tmp = target.parent / f".{target.name}.import-{os.getpid()}.tmp"
-    if tmp.exists():
+    if tmp.is_symlink() or tmp.is_file():
+        tmp.unlink()
+    elif tmp.exists():
         shutil.rmtree(tmp)
+    lock = None
     try:
-        with CaptureWriter(tmp, header=header) as writer:
+        # Held until the capture is renamed into place: another import into the same target takes
+        # this folder for a dead run's only when nobody holds its lock (remove_abandoned_imports).
+        lock = FolderLock(tmp, what="import")
+        with CaptureWriter(tmp, header=header, lock=lock) as writer:
             total = plan.rows * plan.cols
             for k, (u, v) in enumerate((u, v) for u in range(plan.rows) for v in range(plan.cols)):
                 path = plan.files[(u, v)]
@@ -419,9 +469,17 @@ def _write(src: Path, target: Path, plan: ImportPlan, images: dict[tuple[int, in
                 disparity_offset=camera.get("disparity_offset") or 0.0,
             )
             writer.mark_complete()
-        if target.exists():
-            target.rmdir()  # checked empty above; an empty folder the user made for it
-        os.rename(tmp, target)
+        try:
+            if target.is_dir() and not target.is_symlink():
+                target.rmdir()  # checked empty above; an empty folder the user made for it
+            os.rename(tmp, target)
+        except OSError as error:
+            if error.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR):
+                raise
+            raise ViewImportError(
+                f"{target}: was filled by another process while this import ran (another `lfrig import` into the "
+                "same folder?); nothing of this import was kept: choose a new folder, or run it again"
+            ) from None
         fd = os.open(target.parent, os.O_RDONLY)
         try:
             os.fsync(fd)
@@ -430,6 +488,36 @@ def _write(src: Path, target: Path, plan: ImportPlan, images: dict[tuple[int, in
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if lock is not None:
+            lock.release()
 
 
-__all__: Sequence[str] = ["ImportPlan", "ViewImportError", "capture_order", "import_views", "natural_key", "parse_pattern"]
+_IMPORT_TMP = re.compile(r"\.(?P<name>.+)\.import-\d+\.tmp")
+
+
+def remove_abandoned_imports(target: Path) -> list[Path]:
+    """Remove the temporary folders (``.NAME.import-PID.tmp``) of imports into ``target`` that ended
+    without finishing (killed, or stopped by a power cut): a folder whose lock (the capture writer's,
+    :mod:`recon.lf.lock`) nobody holds. Returns what was removed."""
+    removed: list[Path] = []
+    parent = target.parent if str(target.parent) else Path(".")
+    try:
+        entries = list(os.scandir(parent))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _IMPORT_TMP.fullmatch(entry.name)
+        if match is None or match["name"] != target.name or not entry.is_dir(follow_symlinks=False):
+            continue
+        try:
+            with FolderLock(entry.path, what="import"):
+                shutil.rmtree(entry.path)
+        except (FolderLockedError, LightFieldFormatError, OSError):
+            continue  # a running import's, or not ours to judge
+        removed.append(Path(entry.path))
+    return removed
+
+
+__all__: Sequence[str] = ["ImportPlan", "ViewImportError", "capture_order", "import_views", "natural_key", "parse_pattern",
+                          "remove_abandoned_imports"]

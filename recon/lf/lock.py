@@ -10,6 +10,11 @@ It protects against a second lfrig process (another ``lfrig capture``, ``rectify
 output, ``reconstruct`` into the same result folder); it is advisory, so it does not stop other
 programs, and ``flock`` is not reliable on every network filesystem (NFS before Linux 2.6.12, some
 SMB mounts).
+
+The lock file is opened without following a symbolic link (``O_NOFOLLOW``) and without becoming a
+terminal's controlling file (``O_NOCTTY``); a lock name that is a link, a folder, a device or a pipe
+is refused with :class:`FolderLockError`. lfrig writes its process id into the file only when it is
+a regular file of its own user with a single name (never into a hard link to some other file).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 from recon.errors import LightFieldFormatError
@@ -26,6 +32,10 @@ LOCK_NAME = ".lfrig.lock"
 
 class FolderLockedError(LightFieldFormatError):
     """Another lfrig process is writing the folder."""
+
+
+class FolderLockError(LightFieldFormatError):
+    """The folder's lock file cannot be used: it is a symbolic link or not a regular file."""
 
 
 class FolderLock:
@@ -47,13 +57,26 @@ class FolderLock:
     def __init__(self, folder: str | os.PathLike, *, what: str = "lfrig command") -> None:
         self.folder = Path(folder)
         self.what = what
+        lock_path = self.folder / LOCK_NAME
+        #: Whether this lock made the folder (then :meth:`release` with ``discard`` may remove it).
+        self.created_folder = not os.path.lexists(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
-            self._fd: int | None = os.open(self.folder / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            self._fd: int | None = os.open(
+                lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NOCTTY | os.O_NONBLOCK, 0o644)
         except OSError as error:
+            if error.errno == errno.ELOOP:
+                raise FolderLockError(
+                    f"{lock_path}: is a symbolic link; lfrig does not follow it (remove the link, or use another folder)"
+                ) from None
             raise LightFieldFormatError(
                 f"{self.folder}: cannot create the folder's lock file ({error.strerror}); check the folder"
             ) from None
+        info = os.fstat(self._fd)
+        if not stat.S_ISREG(info.st_mode):
+            os.close(self._fd)
+            self._fd = None
+            raise FolderLockError(f"{lock_path}: is not a regular file; remove it, or use another folder")
         try:
             fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
@@ -65,17 +88,29 @@ class FolderLock:
                     "wait for it to finish or stop it, or use another folder"
                 ) from None
             raise LightFieldFormatError(f"{self.folder}: cannot lock the folder ({error.strerror})") from None
-        os.ftruncate(self._fd, 0)
-        os.write(self._fd, f"{os.getpid()} {what}\n".encode())
+        if info.st_uid == os.geteuid() and info.st_nlink == 1:  # our own file, no other name: say who holds it
+            os.ftruncate(self._fd, 0)
+            os.write(self._fd, f"{os.getpid()} {what}\n".encode())
 
     @property
     def held(self) -> bool:
         return self._fd is not None
 
-    def release(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)  # closing the last descriptor drops the flock
-            self._fd = None
+    def release(self, *, discard: bool = False) -> None:
+        """Drop the lock. With ``discard``, a folder this lock created and that holds nothing but the
+        lock file (the command failed before writing anything, e.g. its stage could not be opened) is
+        removed again, so a failed command leaves no folder behind."""
+        if self._fd is None:
+            return
+        if discard and self.created_folder:
+            try:
+                if [entry.name for entry in os.scandir(self.folder)] == [LOCK_NAME]:
+                    os.unlink(self.folder / LOCK_NAME)
+                    os.rmdir(self.folder)
+            except OSError:
+                pass  # something else appeared: the folder stays
+        os.close(self._fd)  # closing the last descriptor drops the flock
+        self._fd = None
 
     def __enter__(self) -> "FolderLock":
         return self

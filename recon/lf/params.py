@@ -42,11 +42,11 @@ def read_parameters(path: str | os.PathLike) -> Parameters:
     """
     path = Path(path)
     parser = configparser.ConfigParser(interpolation=None)
+    from recon.lf.imageio import read_bytes
+
+    data = read_bytes(path, max_bytes=1 << 20)  # a scene description is a few hundred bytes
     try:
-        with open(path, encoding="utf-8") as f:
-            parser.read_file(f)
-    except FileNotFoundError:
-        raise LightFieldFormatError(f"{path}: no such file") from None
+        parser.read_string(data.decode("utf-8"), source=str(path))
     except (configparser.Error, UnicodeDecodeError) as error:
         detail = str(error).splitlines()[0]
         raise LightFieldFormatError(f"{path}: not a valid parameters.cfg ({detail})") from None
@@ -150,6 +150,103 @@ def camera_from_parameters(parameters: Parameters, *, path: Path) -> tuple[tuple
         "disparity_range": (d_min, d_max) if d_min is not None and d_max is not None else None,
         "principal_point_px": (cx, cy) if cx is not None and cy is not None else None,
     }
+
+
+#: Bounds of a camera that lfrig accepts anywhere (``parameters.cfg``, flags, ``result.json``,
+#: :class:`recon.camera.Camera`): anything outside is a typo or a damaged file, and would put points
+#: at absurd distances (a pitch of 1e-320 mm, a focal length of 1e300 px).
+FOCAL_PX_RANGE = (1.0, 1e7)
+PITCH_MM_RANGE = (1e-6, 1e6)
+#: The largest refocusing shift ``d0`` (pixels per view step) and principal point coordinate (pixels).
+MAX_DISPARITY_OFFSET_PX = 1e6
+MAX_PRINCIPAL_POINT_PX = 1e7
+
+
+def camera_problem(*, focal_px: float | None = None, pitch_mm: float | None = None,
+                   disparity_offset: float | None = None,
+                   principal_point_px: tuple[float, float] | None = None) -> str | None:
+    """What is wrong with these camera values (non-finite, or outside the bounds above), or ``None``.
+
+    ``None`` values are not checked. The message names the value and the range it must lie in.
+    """
+    def bad(value: Any) -> bool:
+        return isinstance(value, bool) or not isinstance(value, (int, float)) or not is_finite(value)
+
+    for name, value, (low, high), unit in (("focal_px", focal_px, FOCAL_PX_RANGE, "px"),
+                                           ("pitch_mm", pitch_mm, PITCH_MM_RANGE, "mm")):
+        if value is not None and (bad(value) or not low <= value <= high):
+            return f"{name} = {value!r} must be a number from {low:g} to {high:g} {unit}"
+    if disparity_offset is not None and (bad(disparity_offset) or abs(disparity_offset) > MAX_DISPARITY_OFFSET_PX):
+        return (f"disparity_offset (d0) = {disparity_offset!r} must be a number from {-MAX_DISPARITY_OFFSET_PX:g} to "
+                f"{MAX_DISPARITY_OFFSET_PX:g} pixels per view step")
+    if principal_point_px is not None:
+        if (not isinstance(principal_point_px, (tuple, list)) or len(principal_point_px) != 2
+                or any(bad(c) or abs(c) > MAX_PRINCIPAL_POINT_PX for c in principal_point_px)):
+            return (f"principal_point_px {principal_point_px!r} must be two numbers (cx, cy) within "
+                    f"+-{MAX_PRINCIPAL_POINT_PX:g} px")
+    return None
+
+
+def max_disparity_px(grid: tuple[int, int], image_shape: tuple[int, int]) -> float:
+    """The largest ``|d|`` (pixels per view step) a light field can show: the farthest view from the
+    centre, ``k`` steps away along an axis, sees a point shifted by ``k * |d|`` pixels, which must stay
+    within the image's size along that axis. ``inf`` for a single view."""
+    rows, cols = grid
+    height, width = image_shape
+    limits = []
+    for count, size in ((rows, height), (cols, width)):
+        steps = max(count // 2, count - 1 - count // 2)
+        if steps > 0:
+            limits.append(size / steps)
+    return min(limits) if limits else math.inf
+
+
+def disparity_range_problem(disparity_range: Any, *, grid: tuple[int, int],
+                            image_shape: tuple[int, int]) -> str | None:
+    """What is wrong with a disparity range ``(min, max)`` for this light field, or ``None``: not two
+    finite numbers with ``min < max``, or beyond :func:`max_disparity_px` (a range that wide would
+    ask for more candidates than the image can tell apart, and memory for all of them)."""
+    try:
+        low, high = disparity_range
+    except (TypeError, ValueError):
+        return f"disparity range {disparity_range!r} must be two numbers, MIN and MAX"
+    if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not is_finite(v) for v in (low, high)):
+        return f"disparity range ({low!r}, {high!r}) must be two finite numbers"
+    if not low < high:
+        return f"disparity range ({low:g}, {high:g}): MIN must be less than MAX"
+    limit = max_disparity_px(grid, image_shape)
+    if max(abs(low), abs(high)) > limit:
+        return (f"disparity range ({low:g}, {high:g}) goes beyond +-{limit:.4g} pixels per view step, where the "
+                f"outer views of the {grid[0]}x{grid[1]} grid would be shifted out of the "
+                f"{image_shape[1]}x{image_shape[0]} image; give a range within it")
+    return None
+
+
+def check_camera_fits(camera: dict[str, Any], parameters: Parameters, *, grid: tuple[int, int],
+                      image_shape: tuple[int, int], path: Path) -> None:
+    """Check what :func:`camera_from_parameters` found against the views it describes: the
+    resolution keys equal the views' size, the camera's values lie within lfrig's bounds, and the
+    disparity range stays within the image (:func:`disparity_range_problem`).
+
+    Raises
+    ------
+    LightFieldFormatError
+        Naming ``path`` and the value.
+    """
+    height, width = image_shape
+    intrinsics = parameters.get("intrinsics", {})
+    for key, size in (("image_resolution_x_px", width), ("image_resolution_y_px", height)):
+        value = intrinsics.get(key)
+        if value is not None and value != size:
+            raise LightFieldFormatError(f"{path}: [intrinsics] {key} = {value!r}, but the views are {width}x{height} "
+                                        "pixels; fix the line or remove it")
+    problem = camera_problem(focal_px=camera.get("focal_px"), pitch_mm=camera.get("pitch_mm"),
+                             disparity_offset=camera.get("disparity_offset"),
+                             principal_point_px=camera.get("principal_point_px"))
+    if problem is None and camera.get("disparity_range") is not None:
+        problem = disparity_range_problem(camera["disparity_range"], grid=grid, image_shape=image_shape)
+    if problem is not None:
+        raise LightFieldFormatError(f"{path}: {problem}; fix parameters.cfg")
 
 
 def parameters_for(

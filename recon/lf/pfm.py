@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import LightFieldFormatError
-from recon.lf.imageio import read_bytes
+from recon.lf.imageio import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, read_head
 
 
 def read_pfm(path: str | os.PathLike) -> np.ndarray:
@@ -28,10 +28,12 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
     Raises
     ------
     LightFieldFormatError
-        When the file is missing, the header is not PFM, or the data is shorter than the header says.
+        When the file is missing or not a regular file, the header is not PFM, claims more pixels
+        than a view may have (``recon.lf.imageio.MAX_IMAGE_PIXELS``), or the data is shorter than the
+        header says. Only the header's bytes are read.
     """
     path = Path(path)
-    data = read_bytes(path)
+    data, size = read_head(path, 256)
     # The header is three whitespace-separated tokens lines; tolerate comments-free variants that put
     # width and height on separate lines by tokenising the first bytes.
     tokens: list[bytes] = []
@@ -57,10 +59,14 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
         raise LightFieldFormatError(f"{path}: broken PFM header (size {width}x{height}, scale {scale})")
     channels = 3 if kind == b"PF" else 1
     count = width * height * channels
-    if len(data) - pos < 4 * count:
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise LightFieldFormatError(f"{path}: PFM of {width}x{height} pixels is larger than lfrig reads "
+                                    f"(at most {MAX_IMAGE_SIDE} a side and {MAX_IMAGE_PIXELS} pixels)")
+    if size - pos < 4 * count:
         raise LightFieldFormatError(
-            f"{path}: PFM data is truncated ({len(data) - pos} bytes, header promises {4 * count})"
+            f"{path}: PFM data is truncated ({max(size - pos, 0)} bytes, header promises {4 * count})"
         )
+    data, _ = read_head(path, pos + 4 * count)  # the header's bytes only, whatever follows them
     dtype = np.dtype("<f4") if scale < 0 else np.dtype(">f4")
     array = np.frombuffer(data, dtype=dtype, count=count, offset=pos).astype(np.float32)
     shape = (height, width, 3) if channels == 3 else (height, width)

@@ -55,6 +55,7 @@ from recon.report.model import ViewerModel, decimate, write_viewer_files
 from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
                                       colourbar_figure, display_scale, image_figure, line_plot, region_picture,
                                       shaded_relief)
+from recon.errors import ExportError
 from recon.result import (REGIONS_NPY, REGIONS_PNG, WINDOW_SIZE_NPY, ResultFolder, source_folder)
 
 BADPIX_THRESHOLD = 0.07
@@ -727,14 +728,19 @@ def report_for_result(result: ResultFolder, out_dir, *, camera: Camera | None = 
         truth = read_pfm(source / GROUND_TRUTH)
         if truth.shape != shape:
             truth = None
+    from recon.lf.imageio import read_npy
+
     regions = None
     if (folder / REGIONS_NPY).is_file():
-        regions = np.load(folder / REGIONS_NPY)
+        regions = read_npy(folder / REGIONS_NPY, error=ExportError)
+        if regions.ndim != 2 or regions.dtype.kind not in "biu":
+            raise ExportError(f"{folder / REGIONS_NPY}: holds {regions.dtype} values of shape {regions.shape}, "
+                              "not (H, W) region labels; remove it or run lfrig reconstruct again")
     elif (folder / REGIONS_PNG).is_file():
         from recon.lf.imageio import read_image
 
         regions = read_image(folder / REGIONS_PNG)
-    window = np.load(folder / WINDOW_SIZE_NPY) if (folder / WINDOW_SIZE_NPY).is_file() else None
+    window = read_npy(folder / WINDOW_SIZE_NPY, error=ExportError) if (folder / WINDOW_SIZE_NPY).is_file() else None
     from recon.export import MIN_CONFIDENCE, trusted_pixels
     from recon.report.model import cloud_model, read_ply
 

@@ -186,10 +186,15 @@ def check_complete(job: CaptureJob, request: BatchRequest, fingerprint: str) -> 
     path = job.out_dir / MARKER
     if not path.is_file():
         return None, "not done yet"
+    from recon.errors import LfrigError
+    from recon.lf.imageio import read_bytes
+
     try:
-        marker = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:
+        marker = json.loads(read_bytes(path).decode("utf-8"))
+    except (LfrigError, ValueError, RecursionError) as error:
         return None, f"{path} unreadable ({error})"
+    if not isinstance(marker, dict):
+        return None, f"{path} is not a JSON object"
     if marker.get("format") != MARKER_FORMAT or marker.get("version") != MARKER_VERSION:
         return None, f"{path} is not a version-{MARKER_VERSION} {MARKER_FORMAT} marker"
     if marker.get("request") != request.identity():
@@ -314,7 +319,9 @@ def read_payload(source: Path) -> dict[str, bytes]:
     files = lightfield_files(source)
     if not files:
         raise ScaleError(f"{source}: no light-field files (input_CamNNN.png or manifest.jsonl + views/)")
-    return {rel: (source / rel).read_bytes() for rel in files}
+    from recon.lf.imageio import MAX_IMAGE_BYTES, read_bytes
+
+    return {rel: read_bytes(source / rel, error=ScaleError, max_bytes=MAX_IMAGE_BYTES) for rel in files}
 
 
 def _finish(job: CaptureJob, request: BatchRequest, fingerprint: str, report: dict[str, Any],

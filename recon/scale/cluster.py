@@ -107,7 +107,8 @@ def connect(
     the ``with`` block (``workers`` processes, else sized by :func:`plan_local` for ``tasks``).
 
     A local cluster listens on 127.0.0.1 only; its dashboard on ``dashboard_address`` (a random port
-    when that one is taken; ``None`` for none).
+    when that one is taken; ``None`` for none), ``HOST:PORT`` as :func:`recon.cliargs.host_port`
+    accepts it: every interface only when named (``0.0.0.0:PORT``), never by an empty host.
 
     Raises
     ------
@@ -115,6 +116,15 @@ def connect(
         The scheduler cannot be reached, has no worker within ``timeout_s``, or a worker cannot import
         lfrig.
     """
+    if scheduler is None and dashboard_address:
+        import argparse
+
+        from recon.cliargs import host_port
+
+        try:
+            host_port(dashboard_address)
+        except argparse.ArgumentTypeError as error:
+            raise ScaleError(f"dashboard address {error}") from None
     from distributed import Client, LocalCluster
 
     quiet = _QuietDistributedLogs()
