@@ -47,6 +47,12 @@ class FolderLock:
     def __init__(self, folder: str | os.PathLike, *, what: str = "lfrig command") -> None:
         self.folder = Path(folder)
         self.what = what
+        #: The folders the lock created (the folder and missing parents), deepest first.
+        self.created: list[Path] = []
+        missing = self.folder
+        while not missing.exists() and not missing.is_symlink() and missing != missing.parent:
+            self.created.append(missing)
+            missing = missing.parent
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
             self._fd: int | None = os.open(self.folder / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
@@ -72,10 +78,23 @@ class FolderLock:
     def held(self) -> bool:
         return self._fd is not None
 
-    def release(self) -> None:
+    def release(self, *, discard: bool = False) -> None:
+        """Drop the lock. With ``discard`` (a command that wrote nothing), also remove the lock file
+        and the folders the lock created, those that are empty."""
         if self._fd is not None:
+            if discard:
+                try:
+                    os.unlink(self.folder / LOCK_NAME)  # while held: no other writer is inside
+                except OSError:
+                    pass
             os.close(self._fd)  # closing the last descriptor drops the flock
             self._fd = None
+            if discard:
+                for folder in self.created:
+                    try:
+                        folder.rmdir()  # only when empty
+                    except OSError:
+                        break
 
     def __enter__(self) -> "FolderLock":
         return self
