@@ -331,7 +331,7 @@ def check_resume(
         if present["origin"] == HOMING and not homed_capture:
             raise FrameNotProvenError(
                 f"{start}: it was captured without homing (--no-home, in GRBL's frame as found), and the stage "
-                f"{'is homed first' if homing else 'was homed since'}, which moves the frame to the switches; {retake}")
+                f"{'is homed first by this run' if homing else 'was homed since'}, which moves the frame to the switches; {retake}")
         if homing or (isinstance(stage, FrameAware) and stage.homed):
             return  # the switches set the same frame with the same settings
     if homing:
