@@ -362,17 +362,20 @@ class CaptureWriter:
 
     def discard(self) -> bool:
         """Remove the header this writer wrote and the empty ``views/`` folder, when no view was
-        written: a capture refused before its first view leaves no journal behind. Closes the
-        journal; returns whether it removed them."""
+        written (not even one the journal missed): a capture refused before its first view leaves no
+        journal behind. Closes the journal; returns whether it removed them."""
         if not self.created or self.completed or any(e.get("kind") == "frame" for e in self.events):
             return False
-        if getattr(self, "_journal", None) is not None:
-            self._journal.close()
-            self._journal = None
+        views = self.path / VIEWS
         try:
+            remove_stale_temporaries(views)
+            if any(views.iterdir()):  # a view written but not journalled: keep the capture, a resume takes it again
+                return False
+            if getattr(self, "_journal", None) is not None:
+                self._journal.close()
+                self._journal = None
             (self.path / MANIFEST).unlink(missing_ok=True)
-            remove_stale_temporaries(self.path / VIEWS)
-            (self.path / VIEWS).rmdir()
+            views.rmdir()
         except OSError:
             return False
         self.created = False
