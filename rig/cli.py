@@ -10,7 +10,7 @@ import sys
 from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
                            positive_float, positive_int)
 from recon.lf.params import MAX_GRID_SIDE
-from rig.devices import FAKE_CENTRE_MM, Devices, is_fake_stage, open_camera, open_stage
+from rig.devices import FAKE_BINNING, FAKE_CENTRE_MM, CameraOptions, Devices, is_fake_stage, open_camera, open_stage
 from rig.errors import RigError
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -45,7 +45,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     motion.add_argument("--settle-s", type=nonnegative_float, default=0.2, help="wait after the stage stops, before the frame")
     motion.add_argument("--feed-mm-min", type=positive_float, help="feed for G1 moves (default: rapid G0 moves)")
     motion.add_argument("--tolerance-mm", type=positive_float, default=0.005, help="accepted distance from the target")
-    motion.add_argument("--no-home", action="store_true", help="do not run the homing cycle first")
+    motion.add_argument("--no-home", action="store_true",
+                        help="do not run the homing cycle first: the capture is taken in GRBL's frame as found")
+    motion.add_argument("--retake-all", action="store_true",
+                        help="resuming a capture whose machine frame cannot be proven: take every view again in the "
+                             "present frame")
     motion.add_argument("--limits-mm", type=finite_float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
                         help="travel to check against (default: from the controller's $130-$132 settings)")
     camera = cap.add_argument_group("camera (opencv)")
@@ -63,7 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
     gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
     fake = cap.add_argument_group("camera (fake; --binning and --roi also for aravis)")
-    fake.add_argument("--binning", type=positive_int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
+    fake.add_argument("--binning", type=positive_int, help=f"detector binning (fake: default {FAKE_BINNING}; 1: 1280x980, 2: 640x490, ...)")
     fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
     fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
     fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
@@ -129,6 +133,16 @@ def _limits_from_args(args: argparse.Namespace):
     return ((v[0], v[1]), (v[2], v[3]), (v[4], v[5]))
 
 
+def _camera_options(args: argparse.Namespace) -> CameraOptions:
+    return CameraOptions(
+        spec=args.camera, binning=args.binning, roi=tuple(args.roi) if args.roi else None, fake_rig=args.fake_rig,
+        supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth, width=args.width,
+        height=args.height, exposure=args.exposure, gain=args.gain, drop_frames=args.drop_frames,
+        hw_trigger=args.hw_trigger, pixel_format=args.pixel_format, exposure_us=args.exposure_us,
+        gain_db=args.gain_db, trigger=args.trigger, frame_timeout_s=args.frame_timeout_s,
+    )
+
+
 def _capture(args: argparse.Namespace) -> int:
     from rig.grid import check_limits, format_plan, grid_extent_mm, plan_moves
     from recon.progress import Progress
@@ -155,20 +169,20 @@ def _capture(args: argparse.Namespace) -> int:
             print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
         return 0
 
+    from recon.lf.capture import is_capture
     from recon.lf.lock import FolderLock
+    from rig.protocols import FrameAware
 
     # Lock the folder before opening anything: a second capture must not touch the stage or camera
     # (opening a GRBL's serial port resets it) while the first one drives them.
     lock = FolderLock(args.out_dir, what="capture")
+    fresh = not is_capture(args.out_dir)  # (not "the folder exists": the lock above has just created it)
     devices = Devices()
     try:
         open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm, devices=devices)
-        devices.camera, request = open_camera(args, devices, centre_mm=grid.centre_mm)
-        doubt = getattr(devices.stage, "machine_frame_doubt", lambda: None)()
-        from recon.lf.capture import is_capture
-
-        # (not "the folder exists": the lock above has just created it)
-        if args.no_home and doubt and not is_capture(args.out_dir):  # a resume is checked by the session
+        devices.camera, request = open_camera(_camera_options(args), devices, centre_mm=grid.centre_mm)
+        doubt = devices.stage.machine_frame_doubt() if isinstance(devices.stage, FrameAware) else None
+        if args.no_home and doubt and fresh:  # a resume is checked by the session
             print(f"lfrig: warning: {doubt}; without homing this capture is taken in GRBL's present frame, and a "
                   "resume without homing will be refused after any reset", file=sys.stderr)
         try:
@@ -178,14 +192,17 @@ def _capture(args: argparse.Namespace) -> int:
                     feed_mm_min=args.feed_mm_min, home=not args.no_home, limits_mm=limits,
                     tolerance_mm=args.tolerance_mm, camera_request=request, clock=devices.clock,
                     progress=bar, header_extra={"lfrig": {"stage": args.stage, "camera": args.camera}},
-                    lock=lock,
+                    lock=lock, retake_all=args.retake_all,
                 )
         except CaptureInterrupted as error:
             print(f"lfrig: {error}", file=sys.stderr)
             return 130
     finally:
-        devices.close()
-        lock.release(discard=True)  # a folder this command made and left empty (no device opened) goes
+        try:
+            devices.close()
+        finally:
+            # a capture refused before its first view leaves nothing: no journal, no lock, no folder
+            lock.release(discard=fresh and not is_capture(args.out_dir))
     if result.interrupted:
         print(
             f"lfrig: stopped with {result.completed} of {result.total} views in {result.path}; "
@@ -205,6 +222,15 @@ def _stage(args: argparse.Namespace) -> int:
             stage.home()
         elif args.action == "unlock":
             stage.unlock()
+            doubt = stage.machine_frame_doubt()
+            if doubt:
+                from rig.frames import witness
+
+                seen = witness(stage)
+                kept = f" (kept in {seen.record.file})" if seen is not None and seen.record is not None else ""
+                print(f"lfrig: warning: unlocked without homing: {doubt}. Positions are GRBL's present frame, and a "
+                      f"capture begun before cannot be resumed with --no-home{kept}: home it (`lfrig stage home`) or "
+                      "retake its views", file=sys.stderr)
         elif args.action == "move":
             if args.home:
                 stage.home()

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from rig.devices import FAKE_BINNING
+
 MARKER = "summary.json"
 
 #: Boards: intrinsics board 10x7 squares of 8 mm (inner corners 9x6), stage board 11x8 of 10 mm.
@@ -49,7 +51,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     demo.add_argument("-o", "--output", type=output_folder, default=Path("runs/demo"), metavar="DIR",
                       help="folder for everything the session writes (made afresh)")
-    demo.add_argument("--binning", type=int_range(1, MAX_BINNING), default=2, help="detector binning (1 = full 1280x980; slower)")
+    demo.add_argument("--binning", type=int_range(1, MAX_BINNING), default=FAKE_BINNING,
+                      help="detector binning (1 = full 1280x980; slower)")
     demo.add_argument("--boards", type=int_range(MIN_BOARDS, 200), default=12, help="board pictures for the intrinsics")
     demo.add_argument("--noise", type=float_range(0.0, 0.5), default=0.002, help="camera noise, standard deviation in full scale")
     demo.add_argument("--method", choices=list(METHODS), default="entropy", help="reconstruction method (see lfrig reconstruct --help)")
@@ -105,7 +108,7 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_demo(folder: Path, *, binning: int = 2, boards: int = 12, noise: float = 0.002, method: str = "entropy",
+def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noise: float = 0.002, method: str = "entropy",
              quiet: bool = False) -> dict[str, Any]:
     """Run the simulated session into ``folder``; returns (and writes) the summary."""
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture

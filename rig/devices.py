@@ -23,6 +23,7 @@ A new stage driver or camera is opened here: add its spec to :func:`open_stage` 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from rig.clock import SystemClock, VirtualClock
@@ -30,6 +31,9 @@ from rig.errors import RigError
 
 #: Grid centre used with the fake stage when none is given: well inside its 100 x 100 x 50 mm travel.
 FAKE_CENTRE_MM = (-50.0, -50.0, -10.0)
+#: The fake camera's binning when a command gives none (``lfrig capture``, ``lfrig demo``): the
+#: paper's 640x490 from the 1280x980 detector (``rig.fakecam.FakeCamera`` itself bins nothing unless told).
+FAKE_BINNING = 2
 
 
 class Devices:
@@ -43,10 +47,17 @@ class Devices:
         self.camera: Any = None
 
     def close(self) -> None:
-        if self.camera is not None:
-            self.camera.close()
-        if self.stage is not None:
-            self.stage.close()
+        try:
+            if self.camera is not None:
+                self.camera.close()
+        finally:
+            if self.stage is not None:
+                try:
+                    from rig.frames import witness
+
+                    witness(self.stage)  # what this connection saw (a reset, an alarm, a homing), for the next process
+                finally:
+                    self.stage.close()
         if self.url is not None:
             from rig.urlhandler.protocol_fakegrbl import unregister
 
@@ -82,56 +93,90 @@ def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, de
             raise RigError(f"--stage {spec!r}: give a device, e.g. grbl:///dev/ttyUSB0")
         devices.clock = SystemClock()
         devices.stage = GrblStage(url, baudrate=baud, clock=devices.clock, tolerance_mm=tolerance_mm)
+    from rig.frames import witness
+
+    try:
+        witness(devices.stage)  # a reset or alarm lock seen on opening outlives this process
+    except BaseException:
+        devices.stage.close()
+        devices.stage = None
+        raise
     return devices
 
 
-def open_camera(args: Any, devices: Devices, *, centre_mm: tuple[float, float, float]):
-    """Open the camera named by ``args.camera``; returns ``(camera, requested_settings)``.
+@dataclass(frozen=True)
+class CameraOptions:
+    """What ``lfrig capture`` asks of its camera (``--camera SPEC`` and the camera flags); each field
+    is used by the cameras the comments name, ``None`` keeps the device's own value."""
 
-    ``args`` carries the camera options of ``lfrig capture`` (``binning``, ``roi``, ``exposure``, ...:
-    see ``lfrig capture --help``) as attributes, e.g. an :class:`argparse.Namespace`.
-    """
-    spec = args.camera
+    spec: str = "fake"
+    # fake and aravis
+    binning: int | None = None  # fake: None = FAKE_BINNING
+    roi: tuple[int, int, int, int] | None = None  # X0, Y0, W, H in pixels of the binned detector
+    # fake
+    fake_rig: str = "default"  # default, ideal, misaligned
+    supersample: int = 2
+    noise_sigma: float = 0.0
+    bit_depth: int = 8
+    # opencv
+    width: int | None = None
+    height: int | None = None
+    exposure: float | None = None  # the backend's units (V4L2: 100 us)
+    gain: float | None = None
+    drop_frames: int | None = None
+    hw_trigger: bool = False  # opencv and aravis: pulse the stage's M8 output per frame
+    # aravis
+    pixel_format: str | None = None
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    trigger: str = "software"
+    frame_timeout_s: float = 5.0
+
+
+def open_camera(options: CameraOptions, devices: Devices, *, centre_mm: tuple[float, float, float]):
+    """Open the camera named by ``options.spec``; returns ``(camera, requested_settings)``."""
+    spec = options.spec
+    roi = tuple(options.roi) if options.roi else None
     if spec == "fake":
         from rig.fakecam import FakeCamera, FakeRig
 
-        base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[args.fake_rig]
+        base = {"default": FakeRig, "ideal": FakeRig.ideal, "misaligned": FakeRig.misaligned}[options.fake_rig]
         rig = base(ref_mm=tuple(centre_mm))  # the scene is centred on the grid's centre view
-        binning = 2 if args.binning is None else args.binning  # --binning is shared with aravis (None: the camera's)
+        binning = FAKE_BINNING if options.binning is None else options.binning
         if devices.controller is not None:
             position, moving = devices.controller.physical_position, devices.controller.is_moving
         else:
             position, moving = devices.stage.position, None
         try:
-            camera = FakeCamera(position, rig=rig, binning=binning, roi=tuple(args.roi) if args.roi else None,
-                                supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth,
-                                is_moving=moving)
+            camera = FakeCamera(position, rig=rig, binning=binning, roi=roi, supersample=options.supersample,
+                                noise_sigma=options.noise_sigma, bit_depth=options.bit_depth, is_moving=moving)
         except ValueError as error:
             raise RigError(f"--camera fake: {error}") from None
-        request = {"device": "fake", "rig": args.fake_rig, "binning": binning,
-                   "roi": list(args.roi) if args.roi else None, "supersample": args.supersample,
-                   "noise_sigma": args.noise, "bit_depth": args.bit_depth}
+        request = {"device": "fake", "rig": options.fake_rig, "binning": binning,
+                   "roi": list(roi) if roi else None, "supersample": options.supersample,
+                   "noise_sigma": options.noise_sigma, "bit_depth": options.bit_depth}
         return camera, request
     if spec.startswith("opencv:"):
         from rig.camera import OpenCVCamera, parse_source
 
         source = parse_source(spec[len("opencv:"):])
-        trigger = devices.stage.set_output if args.hw_trigger else None
-        camera = OpenCVCamera(source, width=args.width, height=args.height, exposure=args.exposure, gain=args.gain,
-                              drop_frames=args.drop_frames, hardware_trigger=trigger, clock=devices.clock)
-        request = {"device": spec, "width": args.width, "height": args.height, "exposure": args.exposure,
-                   "gain": args.gain, "hw_trigger": bool(args.hw_trigger)}
+        trigger = devices.stage.set_output if options.hw_trigger else None
+        camera = OpenCVCamera(source, width=options.width, height=options.height, exposure=options.exposure,
+                              gain=options.gain, drop_frames=options.drop_frames, hardware_trigger=trigger,
+                              clock=devices.clock)
+        request = {"device": spec, "width": options.width, "height": options.height, "exposure": options.exposure,
+                   "gain": options.gain, "hw_trigger": bool(options.hw_trigger)}
         return camera, request
     if spec.startswith("aravis:"):
         from rig.aravis import open_aravis
 
-        if args.hw_trigger and args.trigger in ("software", "free"):
+        if options.hw_trigger and options.trigger in ("software", "free"):
             raise RigError("--hw-trigger needs --trigger LINE: the camera input wired to the stage's M8 (e.g. Line1)")
         return open_aravis(
-            spec, pixel_format=args.pixel_format, roi=tuple(args.roi) if args.roi else None, binning=args.binning,
-            exposure_us=args.exposure_us, gain_db=args.gain_db, trigger=args.trigger,
-            hardware_trigger=devices.stage.set_output if args.hw_trigger else None,
-            timeout_s=args.frame_timeout_s, clock=devices.clock,
+            spec, pixel_format=options.pixel_format, roi=roi, binning=options.binning,
+            exposure_us=options.exposure_us, gain_db=options.gain_db, trigger=options.trigger,
+            hardware_trigger=devices.stage.set_output if options.hw_trigger else None,
+            timeout_s=options.frame_timeout_s, clock=devices.clock,
         )
     raise RigError(f"--camera {spec!r}: expected 'fake', 'opencv:INDEX' (e.g. opencv:0), 'opencv:/dev/videoN', "
                    "'aravis:' (first GenICam camera) or 'aravis:DEVICE_ID'")

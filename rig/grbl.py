@@ -458,6 +458,16 @@ def travel_limits_mm(settings: dict[int, float]) -> tuple[tuple[float, float], .
     return tuple(limits)
 
 
+#: The ``$$`` settings that place a motor step in the machine frame: report units (``$13``) and
+#: steps/mm (``$100..$102``) scale every position; homing on (``$22``), its direction (``$23``), its
+#: pull-off (``$27``) and the travel (``$130..$132``, where an axis homes to its minimum) fix where
+#: homing puts the origin.
+FRAME_SETTINGS = (13, 22, 23, 27, 100, 101, 102, 130, 131, 132)
+#: Alarms after which GRBL's position is no longer the frame it was: a hard limit's sudden halt, a
+#: reset in motion, and the homing failures (the cycle had begun to move).
+FRAME_LOSING_ALARMS = frozenset({1, 3, 6, 7, 8, 9})
+
+
 #: GRBL 1.1h's homing search runs up to 1.5 x the travel (``HOMING_AXIS_SEARCH_SCALAR``), the locate
 #: phase up to 5 x the pull-off (``HOMING_AXIS_LOCATE_SCALAR``).
 HOMING_SEARCH_SCALAR = 1.5
@@ -614,6 +624,8 @@ class GrblStage:
         self.homed = False
         self.homing_required: str | None = None
         self._homing_required_code = 0
+        #: An alarm after which the position may be lost (:data:`FRAME_LOSING_ALARMS`), seen on this connection.
+        self.frame_alarm: str | None = None
         self.open_state: str | None = None
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
         self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
@@ -699,6 +711,8 @@ class GrblStage:
                 return reply
             if isinstance(reply, Alarm):
                 self._target = None
+                if reply.code in FRAME_LOSING_ALARMS:
+                    self.frame_alarm = f"ALARM:{reply.code} ({describe_alarm(reply.code)})"
                 raise GrblAlarmError(reply.code, self.url, context)
             if isinstance(reply, Welcome):
                 self._target = None
@@ -869,6 +883,8 @@ class GrblStage:
         ``None`` when nothing says so (homed through this driver, or no reset and no lock seen)."""
         if self.homing_required:
             return f"GRBL raised {self.homing_required}"
+        if self.frame_alarm:
+            return f"GRBL raised {self.frame_alarm}"
         if self.homed:
             return None
         if self.reset_seen:
@@ -909,6 +925,10 @@ class GrblStage:
             "grbl_settings": {f"${k}": v for k, v in sorted(self.settings_values.items())},
         }
 
+    def frame_settings(self) -> dict[str, float]:
+        """The controller's :data:`FRAME_SETTINGS` as ``{"$N": value}`` (those it reported)."""
+        return {f"${n}": self.settings_values[n] for n in FRAME_SETTINGS if n in self.settings_values}
+
     # -- Stage protocol -----------------------------------------------------------------------
     @property
     def home_timeout_s(self) -> float:
@@ -932,6 +952,7 @@ class GrblStage:
         self.homed = True
         self.homing_required = None
         self._homing_required_code = 0
+        self.frame_alarm = None
         self.prepare()
 
     def _refuse_if_homing_required(self, action: str) -> None:

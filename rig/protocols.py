@@ -12,7 +12,7 @@ row 0 at the top, colour in RGB order, dtype ``uint8`` or ``uint16``.
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -55,3 +55,66 @@ class Camera(Protocol):
 
     def close(self) -> None:
         """Release the device."""
+
+
+# --------------------------------------------------------------------------------------------------
+# What a stage may offer beyond :class:`Stage` (bluesky's ``Preparable``/``Stageable`` pattern): each
+# a small protocol, checked with ``isinstance`` where it is used.
+
+
+@runtime_checkable
+class Preparable(Protocol):
+    """A stage that must be set up before moves when it was not homed (units, distance mode)."""
+
+    def prepare(self) -> None:
+        """Make the controller ready for absolute moves in mm."""
+
+
+@runtime_checkable
+class Configurable(Protocol):
+    """A device that reports its settings, recorded in the capture's header."""
+
+    def settings(self) -> dict[str, Any]:
+        """What is worth recording about the device, as plain JSON-able values."""
+
+
+@runtime_checkable
+class Bounded(Protocol):
+    """A stage that knows its travel."""
+
+    def limits_mm(self) -> tuple[tuple[float, float], ...] | None:
+        """Per-axis ``(min, max)`` machine coordinates in mm a move may target, or ``None`` if unknown."""
+
+
+@runtime_checkable
+class Toleranced(Protocol):
+    """A stage with a position tolerance of its own."""
+
+    #: Largest per-axis distance in mm between target and read-back accepted as "at the target".
+    tolerance_mm: float
+
+
+@runtime_checkable
+class FrameAware(Protocol):
+    """A stage that knows how its machine frame was established and what may have changed it."""
+
+    #: The port's URL or device path.
+    url: str
+    #: A homing cycle completed through this connection.
+    homed: bool
+    #: Why the stage must be homed before it moves again (e.g. a reset in motion), or ``None``.
+    homing_required: str | None
+
+    def machine_frame_doubt(self) -> str | None:
+        """Why the machine coordinates may not be the frame they were before this connection, or ``None``."""
+
+    def frame_settings(self) -> dict[str, float]:
+        """The controller settings that place a motor step in the machine frame, ``{"$N": value}``."""
+
+
+@runtime_checkable
+class WireLogged(Protocol):
+    """A stage that hands each line it sends or receives to a hook (for the session log)."""
+
+    #: ``on_line(direction, text)``, direction ``">"`` (sent) or ``"<"`` (received), or ``None``.
+    on_line: Callable[[str, str], None] | None

@@ -7,10 +7,11 @@ A frame is never taken while the stage moves.
 
 Resuming: the same command on the same folder takes only the views the journal does not have (whose
 files are on disk with the journalled checksum); with other settings the writer refuses and says
-which differ. A resume must continue in the machine frame the capture started in: it homes first
-(the default), or, without homing, proves the frame is unchanged (the controller did not reset or
-lock since, and the stage stands where the journal's last view was read back) and otherwise refuses
-(:class:`FrameNotProvenError`) before anything moves.
+which differ. A resume must continue in the machine frame the capture started in (:mod:`rig.frames`):
+the header records how the frame was set and the GRBL settings that place a step in it, and a resume
+that cannot prove the same frame refuses (:class:`FrameNotProvenError`) before anything moves, unless
+asked to retake every view in the present frame (``retake_all``). A capture refused before its first
+view leaves no journal behind.
 
 Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly; a second
 one stops the stage at once (feed hold, then soft reset) and raises :class:`CaptureInterrupted`.
@@ -31,13 +32,18 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
+from recon.errors import LfrigError
 from recon.progress import ProgressCallback, report
 from rig.errors import RigError
 from rig.clock import Clock, SystemClock
+from rig.frames import DOUBT, HOMED, FrameNotProvenError, check_resume, folder_doubt, present_frame, witness
 from rig.grid import GridSpec, Move, check_limits, plan_moves
-from recon.lf.capture import CaptureWriter
+from recon.lf.capture import CaptureWriter, is_capture
 from recon.lf.lock import FolderLock
-from rig.protocols import Camera, Stage
+from rig.protocols import Bounded, Camera, Configurable, FrameAware, Preparable, Stage, Toleranced, WireLogged
+
+__all__ = ["CaptureAborted", "CaptureInterrupted", "FrameNotProvenError", "SessionResult", "StageNotSettledError",
+           "build_header", "plan_summary", "run_capture"]
 
 LOG_NAME = "session.log"
 
@@ -52,41 +58,6 @@ class CaptureInterrupted(RigError):
 
 class StageNotSettledError(RigError):
     """The stage was not idle at the target when the frame was due."""
-
-
-class FrameNotProvenError(RigError):
-    """A resume without homing cannot show that the stage is in the capture's machine frame."""
-
-
-def check_machine_frame(
-    stage: Stage, completed: dict[tuple[int, int], dict[str, Any]], *, tolerance_mm: float, path: Path
-) -> None:
-    """Refuse to resume without homing unless the machine frame is proven: homed through this
-    connection (``stage.homed``), or unchanged: no reset or alarm lock seen by the driver
-    (``stage.machine_frame_doubt()``) and the stage at the position read back for the journal's last
-    view. Nothing to prove for a fresh capture."""
-    if not completed or getattr(stage, "homed", False):  # homed since power-up: the frame is the switches'
-        return
-    advice = (
-        "home it: run the same command without --no-home (with homing disabled, $22=0, enable it and home, or "
-        "capture into a new folder)"
-    )
-    doubt_of = getattr(stage, "machine_frame_doubt", None)
-    doubt = doubt_of() if callable(doubt_of) else None
-    if doubt:
-        raise FrameNotProvenError(
-            f"cannot prove the stage is in the machine frame {path} was captured in: {doubt}; "
-            f"resuming there would shift every new view. {advice[0].upper()}{advice[1:]}"
-        )
-    last = max(completed.values(), key=lambda record: str(record.get("time", "")))
-    readback = last.get("readback_mm")
-    here = stage.position()
-    if readback is None or max(abs(a - b) for a, b in zip(here, readback)) > tolerance_mm:
-        raise FrameNotProvenError(
-            f"cannot prove the stage is in the machine frame {path} was captured in: it is at {_fmt(here)}, but the "
-            f"last view was read back at {_fmt(readback)}, and GRBL cannot tell whether it moved or restarted its "
-            f"position since (a stopped move, a reset). {advice[0].upper()}{advice[1:]}"
-        )
 
 
 @dataclass
@@ -228,6 +199,7 @@ def run_capture(
     handle_sigint: bool = True,
     should_stop: Callable[[], bool] | None = None,
     lock: FolderLock | None = None,
+    retake_all: bool = False,
 ) -> SessionResult:
     """Capture (or resume) the grid into the folder ``path``.
 
@@ -243,6 +215,7 @@ def run_capture(
         ``None`` for rapid moves (``G0``), else the feed of ``G1`` moves.
     home
         Run the homing cycle first (recommended: a resumed session may follow an alarm or reset).
+        The capture's frame is then the switches'; without it, GRBL's frame as found.
     limits_mm
         Per-axis ``(min, max)`` travel; default ``stage.limits_mm()`` when the stage has it. Every
         move is checked before the first one starts.
@@ -257,6 +230,9 @@ def run_capture(
     lock
         The folder's lock (:class:`recon.lf.lock.FolderLock`) when the caller took it already (the
         command line takes it before it opens the devices); else it is taken here.
+    retake_all
+        On a folder being resumed: journal the present frame as the capture's new frame and take every
+        view again in it (the way forward when the old frame cannot be proven).
 
     Returns
     -------
@@ -276,45 +252,55 @@ def run_capture(
     CaptureInterrupted
         A second Ctrl-C: feed hold and soft reset were sent.
     FrameNotProvenError
-        ``home=False`` on a folder being resumed, and the machine frame is not proven unchanged
-        (:func:`check_machine_frame`). Nothing moved.
+        A folder being resumed whose machine frame this run cannot prove it is in
+        (:func:`rig.frames.check_resume`). Nothing moved.
     """
     _check_session_values(settle_s=settle_s, feed_mm_min=feed_mm_min, tolerance_mm=tolerance_mm)
     path = Path(path)
     clock = clock if clock is not None else SystemClock()
-    tolerance = tolerance_mm if tolerance_mm is not None else getattr(stage, "tolerance_mm", 0.005)
-    stage_settings = stage.settings() if hasattr(stage, "settings") else {}
+    if tolerance_mm is not None:
+        tolerance = tolerance_mm
+    else:
+        tolerance = stage.tolerance_mm if isinstance(stage, Toleranced) else 0.005
+    if limits_mm is None and isinstance(stage, Bounded):
+        limits_mm = stage.limits_mm()
+    present = present_frame(stage, homing=home)  # records what the connection saw in the port's record first
     header = build_header(
         grid,
         camera_request=camera_request,
         camera_settings=camera.settings(),
-        stage_settings=stage_settings,
-        extra=header_extra,
+        stage_settings=stage.settings() if isinstance(stage, Configurable) else {},
+        extra={**(header_extra or {}), **({"frame": present} if present is not None else {})},
     )
+    if not is_capture(path):  # refuse before the header is written: the corrected command starts afresh
+        check_limits(plan_moves(grid), limits_mm)
     writer = CaptureWriter(path, header=header, lock=lock)
+    log_was_there = (path / LOG_NAME).exists()
     log = SessionLog(path / LOG_NAME)
     interrupts = _Interrupts(log, sys.stderr)
     total = grid.rows * grid.cols
     started = clock.monotonic()
     taken = 0
+    failed = False
     try:
-        done_before = len(writer.completed)
-        remaining = [uv for uv in _all_views(grid) if uv not in writer.completed]
+        retake = retake_all and not writer.created
+        done_before = 0 if retake else len(writer.completed)
+        remaining = [uv for uv in _all_views(grid) if retake or uv not in writer.completed]
         log(
             f"session start: {path}, grid {grid.rows}x{grid.cols} at {grid.pitch_mm} mm, "
             f"{done_before} of {total} views already on disk, {len(remaining)} to take"
+            + (" (retaking every view in the present frame)" if retake else "")
         )
         if not remaining:
             _finish(writer, grid, camera, log, path)
             return SessionResult(path, total, total, 0, False, clock.monotonic() - started)
         moves = plan_moves(grid, views=remaining)
-        if limits_mm is None and hasattr(stage, "limits_mm"):
-            limits_mm = stage.limits_mm()
         check_limits(moves, limits_mm)
-        if not home:
-            check_machine_frame(stage, writer.completed, tolerance_mm=tolerance, path=path)
-            doubt_of = getattr(stage, "machine_frame_doubt", None)
-            doubt = doubt_of() if callable(doubt_of) else None
+        if not retake:
+            check_resume(path, stage=stage, captured=writer.frame, present=present, homing=home,
+                         events=writer.events, completed=writer.completed, tolerance_mm=tolerance)
+        if not home and isinstance(stage, FrameAware):
+            doubt = stage.machine_frame_doubt()
             if doubt:
                 log(f"warning: not homing although {doubt}; the views are in that frame")
         if handle_sigint:
@@ -326,8 +312,14 @@ def run_capture(
                 log("homing")
                 stage.home()
                 log(f"homed at {_fmt(stage.position())}")
-            elif hasattr(stage, "prepare"):
+                witness(stage)  # the port's record: homed
+                if writer.completed and not retake and folder_doubt(writer.events):
+                    writer.note(HOMED)  # the same frame again: the journal's doubt is answered
+            elif isinstance(stage, Preparable):
                 stage.prepare()
+            if present is not None and (retake or (not writer.completed and writer.frame != present)):
+                writer.new_frame(present)  # no view stands in the old frame any more
+                log(f"the capture's frame from here on: {present['origin']}")
             for move in moves:
                 if interrupts.stop_requested or (should_stop is not None and should_stop()):
                     break
@@ -366,7 +358,8 @@ def run_capture(
                 stage.stop()
             except RigError as error:
                 log(f"stopping the stage failed: {error}")
-            lost = getattr(stage, "homing_required", None)
+            lost = stage.homing_required if isinstance(stage, FrameAware) else None
+            _note_doubt(writer, stage, log)
             if lost:
                 log(f"the stage was still moving at the reset: {lost}")
             raise CaptureInterrupted(
@@ -377,6 +370,7 @@ def run_capture(
             ) from None
         except RigError as error:
             log(f"error: {error}")
+            _note_doubt(writer, stage, log)
             raise CaptureAborted(
                 f"{error} [capture stopped with {len(writer.completed)} of {total} views in {path}; "
                 "fix the cause and run the same command again to resume]"
@@ -390,9 +384,31 @@ def run_capture(
         else:
             _finish(writer, grid, camera, log, path)
         return SessionResult(path, total, completed, taken, interrupted, clock.monotonic() - started)
+    except BaseException:
+        failed = True
+        raise
     finally:
-        writer.close()
-        log.close()
+        try:
+            witness(stage)  # the port's record: a doubt or a homing seen during the run
+        finally:
+            # refused or failed before the first view of a capture this run began: leave no journal
+            discarded = failed and writer.discard()
+            log.close()
+            if discarded and not log_was_there:
+                (path / LOG_NAME).unlink(missing_ok=True)
+            writer.close()
+
+
+def _note_doubt(writer: CaptureWriter, stage: Stage, log: Callable[[str], None]) -> None:
+    """Journal the stage's doubt about its frame after a stop or an error (a reset, a frame-losing
+    alarm), so that a resume without homing in another process refuses."""
+    doubt = stage.machine_frame_doubt() if isinstance(stage, FrameAware) else None
+    if not doubt or not writer.completed or folder_doubt(writer.events) == doubt:
+        return
+    try:
+        writer.note(DOUBT, reason=doubt)
+    except LfrigError as error:  # a journal that cannot be written: the port's record still has it
+        log(f"could not journal the doubt about the frame: {error}")
 
 
 def _check_session_values(*, settle_s: float, feed_mm_min: float | None, tolerance_mm: float | None) -> None:
@@ -432,9 +448,9 @@ def _finish(writer: CaptureWriter, grid: GridSpec, camera: Camera, log: Callable
     log(f"capture complete: {grid.rows * grid.cols} views")
 
 
-def _attach_wire_log(stage: Any, log: Callable[[str], None]) -> None:
+def _attach_wire_log(stage: Stage, log: Callable[[str], None]) -> None:
     """Log the stage's line commands and non-routine replies (not the status polls)."""
-    if not hasattr(stage, "on_line"):
+    if not isinstance(stage, WireLogged):
         return
 
     def on_line(direction: str, text: str) -> None:

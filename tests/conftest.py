@@ -29,3 +29,10 @@ def require_hci_scene(path: Path = HCI_BACKGAMMON) -> Path:
 @pytest.fixture
 def hci_scene_dir() -> Path:
     return require_hci_scene()
+
+
+@pytest.fixture(autouse=True)
+def _own_state_home(tmp_path_factory, monkeypatch):
+    """lfrig keeps a small record per serial port under ``$XDG_STATE_HOME`` (``rig.frames``): each
+    test gets its own, so no test sees another's ports (pty paths are reused) or the user's."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state")))

@@ -153,3 +153,15 @@ def test_capture_without_homing_after_a_reset_warns(tmp_path, capsys):
     assert main(["capture", str(out), "--no-home", "--rows", "2", "--cols", "2", "--quiet", *SMALL]) == 2
     err = capsys.readouterr().err
     assert "warning: GRBL reset when the port opened" in err and "error:9" in err  # $22=1: locked as well
+
+
+def test_a_capture_that_fails_before_its_first_view_leaves_nothing(tmp_path, capsys):
+    """#21.10: a capture refused before its first view (here a camera that does not open) leaves no
+    folder, lock or journal, so the corrected command starts afresh."""
+    out = tmp_path / "new" / "cap"
+    assert main(["capture", str(out), "--camera", "opencv:/nonexistent/video9", "--quiet", *SMALL]) == 2
+    assert "cannot open camera" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()  # a folder the user made stays, empty
+    assert main(["capture", str(tmp_path / "mine"), "--camera", "opencv:/nonexistent/video9", "--quiet", *SMALL]) == 2
+    assert list((tmp_path / "mine").iterdir()) == []

@@ -327,3 +327,62 @@ def test_third_sigint_while_stopping_does_not_abort_the_stop(rig, tmp_path, caps
         assert b"!" in tail and tail.rindex(b"\x18") > tail.rindex(b"!")
     assert "already stopping the stage" in capsys.readouterr().err
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_frame_losing_alarm_is_journalled_and_only_homing_answers_it(rig, tmp_path):
+    """#21: the doubt an abort leaves is kept in the capture folder, so a resume without homing
+    refuses even where its own connection saw nothing (here: a controller that does not reset on
+    open, unlocked by another program and moved back to the last view); a resume that homes answers it."""
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=3, centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    controller.arm_fault("alarm_mid_move", after=4)
+    with open_stage(url, clock) as stage:
+        with pytest.raises(CaptureAborted, match="ALARM:1"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    records = [json.loads(line) for line in (tmp_path / "c" / "manifest.jsonl").read_text().splitlines()]
+    doubts = [r for r in records if r["kind"] == "doubt"]
+    assert len(doubts) == 1 and "ALARM:1" in doubts[0]["reason"], records
+    taken = len(view_lines(tmp_path / "c"))
+    last = view_lines(tmp_path / "c")[-1]["readback_mm"]
+    with open_stage(url, clock) as stage:
+        stage.reset_seen, stage.open_state = False, "Idle"  # what a controller that does not reset would show
+        stage.command("$X")
+        stage.prepare()
+        stage.move_to(last)
+        stage.wait_until_idle()
+        with pytest.raises(FrameNotProvenError, match="journal records it: GRBL raised ALARM:1"):
+            run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None, home=False)
+        assert len(view_lines(tmp_path / "c")) == taken
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None)
+    assert result.complete
+    kinds = [json.loads(line)["kind"] for line in (tmp_path / "c" / "manifest.jsonl").read_text().splitlines()]
+    assert kinds.index("homed") > kinds.index("doubt")
+    check_capture(tmp_path / "c", spec)
+
+
+def test_the_port_record_is_never_read_or_written_through_a_link(tmp_path):
+    """The per-port record (rig.frames.PortRecord) lives under $XDG_STATE_HOME (a folder of its own
+    per test, tests/conftest.py); a link planted there is neither followed nor written through."""
+    import shutil
+
+    from rig.frames import PortRecord, PortStateError, state_folder
+
+    record = PortRecord.open("/dev/ttyLFRIGTEST0")
+    assert json.loads(record.file.read_text())["epoch"] == record.epoch
+    victim = tmp_path / "victim"
+    victim.write_text("keep")
+    record.file.unlink()
+    record.file.symlink_to(victim)
+    with pytest.raises(PortStateError, match="symbolic link"):
+        PortRecord.open("/dev/ttyLFRIGTEST0")
+    record.note_doubt("a test")  # replaces the link (atomically), never writes through it
+    assert victim.read_text() == "keep" and not record.file.is_symlink()
+    assert json.loads(record.file.read_text())["event"].startswith("a test")
+    shutil.rmtree(state_folder())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    state_folder().symlink_to(elsewhere)
+    with pytest.raises(PortStateError, match="symbolic link"):
+        PortRecord.open("/dev/ttyLFRIGTEST0")
+    assert list(elsewhere.iterdir()) == []

@@ -181,7 +181,9 @@ def test_soft_limits_refuse_a_grid_outside_the_travel(make_device, tmp_path, cap
     out = tmp_path / "cap"
     assert main(capture_args(out, device, rows=3, cols=3, centre=(2.0, -10, -5))) == 2
     assert "outside the stage's travel" in capsys.readouterr().err
-    assert views_in(out) == []
+    assert not out.exists()  # no folder, no lock, no journal: the corrected command starts afresh
+    assert main(capture_args(out, device, rows=1, cols=2, centre=(-10, -10, -5))) == 0, capsys.readouterr().err
+    check_views(out, 2)
     with GrblStage(device.path) as stage:
         stage.home()
         with pytest.raises(GrblAlarmError, match=r"ALARM:2 .*soft limit"):
@@ -380,3 +382,98 @@ def test_ctrl_c_twice_during_a_long_slow_move(make_device, tmp_path):
         status = stage.status()
     assert status["state"] == "Idle", status  # stopped by a feed hold, not an abort
     assert -12.6 < status["mpos_mm"][0] < -3.0  # short of the first target, x = -12.7
+
+
+# -- the machine frame is part of a capture's identity ----------------------------------------------
+
+
+def stop_after(monkeypatch, out: Path, n: int) -> None:
+    """Make the next ``lfrig capture`` in this process stop cleanly (as on a first Ctrl-C) once ``n``
+    views are journalled."""
+    import rig.session
+
+    real = rig.session.run_capture
+
+    def run_capture(*args, **kwargs):
+        monkeypatch.setattr(rig.session, "run_capture", real)  # once
+        return real(*args, **kwargs, should_stop=lambda: len(views_in(out)) >= n)
+
+    monkeypatch.setattr(rig.session, "run_capture", run_capture)
+
+
+def current_views(out: Path) -> list[dict]:
+    """The view records after the journal's last new frame (the ones that count)."""
+    records = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    frames = [i for i, r in enumerate(records) if r.get("kind") == "frame"]
+    return [r for r in records[(frames[-1] + 1 if frames else 0):] if r.get("kind") == "view"]
+
+
+def test_homing_a_capture_taken_without_homing_is_refused(make_device, tmp_path, capsys, monkeypatch):
+    """#21.1: a capture with --no-home at $22=0, then "enable it and home" and resume: the homed frame
+    is not the power-up frame, so the resume refuses; --retake-all takes every view again in it."""
+    device = make_device({22: 0, 20: 0})
+    out = tmp_path / "cap"
+    no_home = capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-3.0, -3.0, -2.0))
+    homing = [a for a in no_home if a != "--no-home"]
+    stop_after(monkeypatch, out, 3)
+    assert main(no_home) == 130, capsys.readouterr().err
+    assert len(views_in(out)) == 3
+    device.configure({22: 1})  # enable homing: the controller restarts locked
+    assert main(homing) == 2
+    err = capsys.readouterr().err
+    assert "captured without homing" in err and "--retake-all" in err, err
+    assert main(["stage", "home", "--stage", device.url]) == 0  # homed by hand, then without homing
+    assert main(no_home) == 2
+    assert "cannot prove" in capsys.readouterr().err
+    assert len(views_in(out)) == 3 and device.status().startswith("<Idle")
+    assert main([*homing, "--retake-all"]) == 0, capsys.readouterr().err
+    views = current_views(out)
+    assert len(views) == 9 and len({(v["u"], v["v"]) for v in views}) == 9
+    assert all(close_to(v["readback_mm"], v["commanded_mm"]) for v in views)
+    assert close_to(device.carriage_mm(), views[-1]["readback_mm"])  # the switches' frame: carriage = MPos
+    from recon.lf.capture import read_capture
+
+    read = read_capture(out).metadata["views"]  # the reader takes the retaken views, not the old ones
+    assert {(v["u"], v["v"]): v["sha256"] for v in read} == {(v["u"], v["v"]): v["sha256"] for v in views}
+
+
+@pytest.mark.parametrize("change", [{100: 200}, {23: 1}, {130: 18}], ids=["steps-per-mm", "homing-dir", "travel"])
+def test_a_changed_frame_setting_is_refused(make_device, tmp_path, capsys, monkeypatch, change):
+    """#21.3: $100 250 -> 200 between runs put the resumed views at 0.8x their X; $23 and $130 move
+    the homed origin."""
+    device = make_device()
+    out = tmp_path / "cap"
+    args = capture_args(out, device, rows=3, cols=3)
+    stop_after(monkeypatch, out, 2)
+    assert main(args) == 130, capsys.readouterr().err
+    device.configure(change)
+    for extra in ([], ["--no-home"]):
+        assert main([*args, *extra]) == 2
+        err = capsys.readouterr().err
+        (key, value), = change.items()
+        assert "settings that place a step" in err and f"${key} was " in err and f"now {value}" in err, err
+    assert len(views_in(out)) == 2
+
+
+def test_unlock_and_a_move_do_not_fake_the_frame_proof(make_device, tmp_path, capsys, monkeypatch):
+    """#21.2: power cycle (carriage moved), `stage unlock` as error:9 advises, `stage move` to the
+    last view's readback, then a --no-home resume: refused, because the alarm lock seen when the port
+    opened is kept in the port's record; a homing clears it."""
+    device = make_device()
+    out = tmp_path / "cap"
+    args = capture_args(out, device, rows=3, cols=3)
+    stop_after(monkeypatch, out, 3)
+    assert main(args) == 130, capsys.readouterr().err
+    last = views_in(out)[-1]["readback_mm"]
+    device.restart(start_mm=tuple(c + d for c, d in zip(device.carriage_mm(), (3.0, 2.5, 0.8))))
+    assert main(["stage", "unlock", "--stage", device.url]) == 0
+    assert "unlocked without homing" in capsys.readouterr().err
+    assert main(["stage", "move", *(f"{c:g}" for c in last), "--stage", device.url]) == 0
+    capsys.readouterr()
+    assert main([*args, "--no-home"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot prove" in err and "Alarm when the port opened" in err, err
+    assert len(views_in(out)) == 3
+    assert main(args) == 0, capsys.readouterr().err
+    check_views(out, 9)
+    assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])

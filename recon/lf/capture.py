@@ -215,6 +215,12 @@ class CaptureWriter:
         if "settings" not in header or "grid" not in header:
             raise ValueError("the capture header needs 'grid' and 'settings'")
         self.completed: dict[tuple[int, int], dict[str, Any]] = {}
+        #: The journal's records other than views and ``complete`` (e.g. a capture session's notes
+        #: about its machine frame), in order.
+        self.events: list[dict[str, Any]] = []
+        #: Whether this writer wrote the header (the folder was not a capture before).
+        self.created = False
+        self._discarded = False
         #: Whether the journal ends with the "complete" record (no view was retaken after it).
         self.marked_complete = False
         # One writer per folder: the caller may have taken the lock earlier (before opening devices).
@@ -266,6 +272,7 @@ class CaptureWriter:
             write_bytes_atomic(manifest, (json.dumps(self.header, sort_keys=True) + "\n").encode("utf-8"))
             self.rows = int(self.header["grid"]["rows"])
             self.cols = int(self.header["grid"]["cols"])
+            self.created = True
         try:
             self._journal = _open_journal(manifest)
         except OSError as error:
@@ -286,6 +293,10 @@ class CaptureWriter:
     def _load_completed(self, records: list[dict[str, Any]]) -> None:
         self.marked_complete = _ends_complete(records)
         for record in records:
+            if record.get("kind") == "frame":
+                self.completed.clear()  # views before a new frame no longer count: all are taken again
+            if record.get("kind") not in ("view", "complete"):
+                self.events.append(record)
             if record.get("kind") != "view":
                 continue
             # A record outside the grid, or naming another file, counts for nothing (the grid's
@@ -353,6 +364,53 @@ class CaptureWriter:
             raise write_error(manifest, error) from None
 
     @property
+    def frame(self) -> Any:
+        """The frame the views stand in: the last ``frame`` record's, else the header's ``frame``."""
+        for event in reversed(self.events):
+            if event.get("kind") == "frame":
+                return event.get("frame")
+        return self.header.get("frame")
+
+    def note(self, kind: str, **fields: Any) -> dict[str, Any]:
+        """Journal a record that is not a view (``kind`` other than ``view``, ``frame``, ``complete``)."""
+        if kind in ("view", "frame", "complete", "header"):
+            raise ValueError(f"note() does not journal {kind!r} records")
+        record = {**fields, "kind": kind, "time": now_iso()}
+        self._append(record)
+        self.events.append(record)
+        return record
+
+    def new_frame(self, frame: Any) -> None:
+        """Journal a new ``frame``: the views journalled before it no longer count (they are taken again)."""
+        record = {"kind": "frame", "frame": frame, "time": now_iso()}
+        self._append(record)
+        self.events.append(record)
+        self.completed.clear()
+        self.marked_complete = False
+
+    def discard(self) -> bool:
+        """Remove the header this writer wrote and the empty ``views/`` folder, when no view was
+        written (not even one the journal missed): a capture refused before its first view leaves no
+        journal behind. Closes the journal; returns whether it removed them."""
+        if not self.created or self.completed or any(e.get("kind") == "frame" for e in self.events):
+            return False
+        views = self.path / VIEWS
+        try:
+            remove_stale_temporaries(views)
+            if any(views.iterdir()):  # a view written but not journalled: keep the capture, a resume takes it again
+                return False
+            if getattr(self, "_journal", None) is not None:
+                self._journal.close()
+                self._journal = None
+            (self.path / MANIFEST).unlink(missing_ok=True)
+            views.rmdir()
+        except OSError:
+            return False
+        self.created = False
+        self._discarded = True
+        return True
+
+    @property
     def is_complete(self) -> bool:
         return all((u, v) in self.completed for u in range(self.rows) for v in range(self.cols))
 
@@ -379,7 +437,7 @@ class CaptureWriter:
             self._journal.close()
             self._journal = None
         if self._own_lock:
-            self.lock.release()
+            self.lock.release(discard=self._discarded)
 
     def __enter__(self) -> "CaptureWriter":
         return self
@@ -409,6 +467,8 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
     rows, cols = header["grid"]["rows"], header["grid"]["cols"]
     entries: dict[tuple[int, int], dict[str, Any]] = {}
     for record in records:
+        if record.get("kind") == "frame":
+            entries.clear()  # views before a new frame do not count: every view was taken again after it
         if record.get("kind") != "view":
             continue
         key, _ = _view_key(record, rows=rows, cols=cols)

@@ -58,8 +58,12 @@ class FolderLock:
         self.folder = Path(folder)
         self.what = what
         lock_path = self.folder / LOCK_NAME
-        #: Whether this lock made the folder (then :meth:`release` with ``discard`` may remove it).
-        self.created_folder = not os.path.lexists(self.folder)
+        #: The folders the lock created (the folder and missing parents), deepest first.
+        self.created: list[Path] = []
+        missing = self.folder
+        while not missing.exists() and not missing.is_symlink() and missing != missing.parent:
+            self.created.append(missing)
+            missing = missing.parent
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
             self._fd: int | None = os.open(
@@ -97,20 +101,22 @@ class FolderLock:
         return self._fd is not None
 
     def release(self, *, discard: bool = False) -> None:
-        """Drop the lock. With ``discard``, a folder this lock created and that holds nothing but the
-        lock file (the command failed before writing anything, e.g. its stage could not be opened) is
-        removed again, so a failed command leaves no folder behind."""
-        if self._fd is None:
-            return
-        if discard and self.created_folder:
-            try:
-                if [entry.name for entry in os.scandir(self.folder)] == [LOCK_NAME]:
-                    os.unlink(self.folder / LOCK_NAME)
-                    os.rmdir(self.folder)
-            except OSError:
-                pass  # something else appeared: the folder stays
-        os.close(self._fd)  # closing the last descriptor drops the flock
-        self._fd = None
+        """Drop the lock. With ``discard`` (a command that wrote nothing), also remove the lock file
+        and the folders the lock created, those that are empty."""
+        if self._fd is not None:
+            if discard:
+                try:
+                    os.unlink(self.folder / LOCK_NAME)  # while held: no other writer is inside
+                except OSError:
+                    pass
+            os.close(self._fd)  # closing the last descriptor drops the flock
+            self._fd = None
+            if discard:
+                for folder in self.created:
+                    try:
+                        folder.rmdir()  # only when empty
+                    except OSError:
+                        break
 
     def __enter__(self) -> "FolderLock":
         return self
