@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
                            positive_float, positive_int)
@@ -48,28 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     motion.add_argument("--no-home", action="store_true", help="do not run the homing cycle first")
     motion.add_argument("--limits-mm", type=finite_float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
                         help="travel to check against (default: from the controller's $130-$132 settings)")
-    camera = cap.add_argument_group("camera (opencv)")
-    camera.add_argument("--width", type=positive_int, help="requested frame width in pixels")
-    camera.add_argument("--height", type=positive_int, help="requested frame height in pixels")
-    camera.add_argument("--exposure", type=positive_float, help="exposure in the backend's units (V4L2: 100 us)")
-    camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
-    camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
-    camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
-    gen = cap.add_argument_group("camera (aravis)")
-    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
-    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
-    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
-    gen.add_argument("--trigger", default="software", metavar="MODE",
-                     help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
-    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
-    fake = cap.add_argument_group("camera (fake; --binning and --roi also for aravis)")
-    fake.add_argument("--binning", type=positive_int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
-    fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
-    fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
-    fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
-    fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
-    fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
-                      help="true geometry of the simulated camera and stage")
+    camera_options(cap, hw_trigger=True)
     cap.add_argument("--quiet", action="store_true", help="no progress bar")
     cap.set_defaults(handler=_capture)
 
@@ -94,6 +74,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     for parser in (home, move, status, unlock):
         parser.set_defaults(handler=_stage)
     _register_camera(subparsers)
+
+
+def camera_options(parser: argparse.ArgumentParser, *, hw_trigger: bool) -> None:
+    """The camera options of ``lfrig capture`` (read by :func:`rig.devices.open_camera`); ``camera snap`` and
+    ``camera preview`` take the same ones, without ``--hw-trigger`` (they run without a stage)."""
+    camera = parser.add_argument_group("camera (opencv)")
+    camera.add_argument("--width", type=positive_int, help="requested frame width in pixels")
+    camera.add_argument("--height", type=positive_int, help="requested frame height in pixels")
+    camera.add_argument("--exposure", type=positive_float, help="exposure in the backend's units (V4L2: 100 us)")
+    camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
+    camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
+    if hw_trigger:
+        camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
+    else:
+        parser.set_defaults(hw_trigger=False)
+    gen = parser.add_argument_group("camera (aravis)")
+    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
+    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
+    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
+    gen.add_argument("--trigger", default="software", metavar="MODE",
+                     help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
+    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
+    fake = parser.add_argument_group("camera (fake; --binning and --roi also for aravis)")
+    fake.add_argument("--binning", type=positive_int, help="detector binning (fake: default 2; 1: 1280x980, 2: 640x490, ...)")
+    fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
+    fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
+    fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
+    fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
+                      help="true geometry of the simulated camera and stage")
 
 
 def _stage_argument(parser: argparse.ArgumentParser) -> None:
@@ -229,42 +239,81 @@ def _stage(args: argparse.Namespace) -> int:
 def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     camera = subparsers.add_parser(
         "camera",
-        help="list GenICam cameras (Aravis) and show one's features",
-        description="GigE Vision / USB3 Vision cameras through Aravis: what is connected, and what a camera offers.",
+        help="list cameras, show one's features, take one frame, or serve a live view",
+        description="The cameras lfrig drives: GigE Vision / USB3 Vision cameras through Aravis and V4L2 devices "
+                    "(/dev/video*) through OpenCV; one frame (snap) or a live view in a browser (preview).",
     )
     actions = camera.add_subparsers(dest="action", metavar="ACTION", required=True)
-    listing = actions.add_parser("list", help="the cameras Aravis finds, with the ids --camera aravis:ID takes")
+    listing = actions.add_parser("list", help="the cameras found (Aravis and /dev/video*), with the specs --camera takes")
     listing.add_argument("--fake", action="store_true", help="include Aravis's simulated camera Fake_1")
+    listing.add_argument("--dev-dir", type=Path, default=Path("/dev"), metavar="DIR",
+                         help="where to look for video* device nodes")
     listing.add_argument("--json", action="store_true", help="print JSON")
     listing.set_defaults(handler=_camera_list)
     info = actions.add_parser("info", help="identity, sensor, pixel formats, ROI/binning/exposure/gain ranges, triggers")
-    info.add_argument("spec", metavar="SPEC", help="aravis: (first camera) or aravis:DEVICE_ID, e.g. aravis:Fake_1")
-    info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value")
+    info.add_argument("spec", metavar="SPEC",
+                      help="aravis: (first camera), aravis:DEVICE_ID (e.g. aravis:Fake_1), or opencv:INDEX|PATH")
+    info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value (aravis)")
     info.add_argument("--json", action="store_true", help="print JSON")
     info.set_defaults(handler=_camera_info)
+    snap = actions.add_parser(
+        "snap", help="take one frame and write it as PNG, with its size, range and clipping",
+        description="Take one frame with the camera options of lfrig capture and write it atomically as PNG "
+                    "(16-bit when the camera gives more than 8 bits); print its size, min/max and clipped fraction.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    snap.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
+    snap.add_argument("-o", "--output", required=True, type=Path, metavar="FILE", help="the PNG to write")
+    camera_options(snap, hw_trigger=False)
+    snap.set_defaults(handler=_camera_snap)
 
 
 def _camera_list(args: argparse.Namespace) -> int:
     import json
 
     from rig.aravis import list_devices
+    from rig.v4l2 import describe_line, list_opencv_devices
 
-    devices = list_devices(include_fake=args.fake)
+    if not args.dev_dir.is_dir():
+        raise RigError(f"--dev-dir {args.dev_dir}: not a folder; give the folder holding the video* device nodes")
+    genicam = list_devices(include_fake=args.fake)
+    video = list_opencv_devices(dev_dir=args.dev_dir)
     if args.json:
-        print(json.dumps(devices, indent=2))
+        print(json.dumps({"aravis": genicam, "opencv": video}, indent=2))
         return 0
-    if not devices:
+    if not genicam:
         print("no GenICam camera found (GigE: check the network and the camera's IP; USB3: check the cable and "
               "udev permissions; --fake lists Aravis's simulated camera)")
-        return 0
-    for d in devices:
+    for d in genicam:
         print(f"aravis:{d['id']}  {d['vendor']} {d['model']}  serial {d['serial']}  {d['protocol']}"
               + (f"  {d['address']}" if d.get("address") else ""))
+    if not video:
+        print(f"no video device found ({args.dev_dir}/video*: a USB camera needs its cable and the uvcvideo driver; "
+              "inside a container, pass the device through)")
+    for entry in video:
+        print(describe_line(entry))
     return 0
 
 
 def _camera_info(args: argparse.Namespace) -> int:
     import json
+
+    if args.spec.startswith("opencv:"):
+        from rig.camera import parse_source
+        from rig.v4l2 import describe_line, probe
+
+        source = parse_source(args.spec[len("opencv:"):])
+        if source == "":
+            raise RigError(f"camera {args.spec!r}: give a device index or path, e.g. opencv:0 or opencv:/dev/video0")
+        reading = probe(source)
+        if not reading["opens"]:
+            raise RigError(f"camera {args.spec!r}: OpenCV cannot open it; check the index or path "
+                           "(lfrig camera list) and that no other program uses it")
+        if args.json:
+            print(json.dumps(reading, indent=2))
+        else:
+            print(describe_line(reading))
+        return 0
 
     from rig.aravis import AravisCamera, describe, parse_spec
 
@@ -300,4 +349,24 @@ def _camera_info(args: argparse.Namespace) -> int:
                 else:
                     print("  " * depth + f"{key} = {value}")
         show(info.get("features", {}), 1)
+    return 0
+
+
+def _open_bench_camera(args: argparse.Namespace) -> Devices:
+    """The camera named by ``args.camera`` without a stage (the fake camera sees the scene from its centre)."""
+    devices = Devices()
+    devices.camera, _ = open_camera(args, devices, centre_mm=FAKE_CENTRE_MM)
+    return devices
+
+
+def _camera_snap(args: argparse.Namespace) -> int:
+    from rig.snap import check_snap_path, snap
+
+    path = check_snap_path(args.output)
+    devices = _open_bench_camera(args)
+    try:
+        stats = snap(devices.camera, path)
+    finally:
+        devices.close()
+    print(f"{path}: {stats.line()}")
     return 0

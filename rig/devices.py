@@ -100,8 +100,10 @@ def open_camera(args: Any, devices: Devices, *, centre_mm: tuple[float, float, f
         binning = 2 if args.binning is None else args.binning  # --binning is shared with aravis (None: the camera's)
         if devices.controller is not None:
             position, moving = devices.controller.physical_position, devices.controller.is_moving
-        else:
+        elif devices.stage is not None:
             position, moving = devices.stage.position, None
+        else:  # no stage (camera snap, camera preview): the view from the centre
+            position, moving = None, None
         try:
             camera = FakeCamera(position, rig=rig, binning=binning, roi=tuple(args.roi) if args.roi else None,
                                 supersample=args.supersample, noise_sigma=args.noise, bit_depth=args.bit_depth,
