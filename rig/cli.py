@@ -266,6 +266,28 @@ def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     snap.add_argument("-o", "--output", required=True, type=Path, metavar="FILE", help="the PNG to write")
     camera_options(snap, hw_trigger=False)
     snap.set_defaults(handler=_camera_snap)
+    preview = actions.add_parser(
+        "preview", help="a live view in the browser: focus measure, clipping overlay, histogram",
+        description="Serve a live view of the camera on http://127.0.0.1:PORT/ (over SSH: ssh -L PORT:127.0.0.1:PORT "
+                    "HOST, then open that address on your machine): the image with clipped pixels painted (red: at "
+                    "the top of the range, blue: at 0), the focus measure (variance of the Laplacian) on a region "
+                    "dragged on the image or given as --focus-roi, min/max, clipped fractions and the histogram. "
+                    "Ctrl-C stops it.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    preview.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
+    preview.add_argument("--port", type=int_range(0, 65535), default=8000, help="TCP port (0: a free one)")
+    preview.add_argument("--host", default="127.0.0.1",
+                         help="address to listen on; other than 127.0.0.1/localhost/::1 only with --allow-remote")
+    preview.add_argument("--allow-remote", action="store_true",
+                         help="listen on --host even if other machines can reach it (the page has no password)")
+    preview.add_argument("--focus-roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"),
+                         help="region of the frame (px) for the focus measure (default: the whole frame)")
+    preview.add_argument("--fps-max", type=positive_float, default=10.0, help="highest frame rate grabbed")
+    preview.add_argument("--view-max-px", type=int_range(64, 16384), default=1024,
+                         help="longest side of the displayed image (shrunk by an integer factor)")
+    camera_options(preview, hw_trigger=False)
+    preview.set_defaults(handler=_camera_preview)
 
 
 def _camera_list(args: argparse.Namespace) -> int:
@@ -369,4 +391,35 @@ def _camera_snap(args: argparse.Namespace) -> int:
     finally:
         devices.close()
     print(f"{path}: {stats.line()}")
+    return 0
+
+
+def _camera_preview(args: argparse.Namespace) -> int:
+    from rig.preview import LOCAL_HOSTS, Preview
+
+    if args.host not in LOCAL_HOSTS and not args.allow_remote:
+        raise RigError(f"--host {args.host}: the preview has no password, so it listens on 127.0.0.1 only; "
+                       "forward the port over SSH (ssh -L PORT:127.0.0.1:PORT HOST), or add --allow-remote")
+    if args.focus_roi is not None and (args.focus_roi[2] < 3 or args.focus_roi[3] < 3):
+        raise RigError(f"--focus-roi {' '.join(map(str, args.focus_roi))}: width and height must be at least 3 px")
+    devices = _open_bench_camera(args)
+    try:
+        preview = Preview(devices.camera, roi=tuple(args.focus_roi) if args.focus_roi else None,
+                          fps_max=args.fps_max, view_max_px=args.view_max_px)
+        server = preview.bind(host=args.host, port=args.port)
+        if args.host not in LOCAL_HOSTS:
+            print(f"lfrig: warning: listening on {args.host}: anyone who reaches this address sees the camera",
+                  file=sys.stderr)
+        try:
+            preview.serve(server, on_ready=lambda url: print(f"preview of {args.camera} on {url} (Ctrl-C stops it)",
+                                                             flush=True))
+        except KeyboardInterrupt:
+            interrupted = True
+        else:
+            interrupted = False
+    finally:
+        devices.close()
+    if interrupted:
+        print(f"lfrig: preview stopped (Ctrl-C); camera closed, port {server.server_address[1]} freed", file=sys.stderr)
+        return 130
     return 0
