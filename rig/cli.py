@@ -73,6 +73,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _stage_argument(unlock)
     for parser in (home, move, status, unlock):
         parser.set_defaults(handler=_stage)
+    jog = actions.add_parser(
+        "jog", help="move the stage from the keyboard; c prints the --centre-mm for lfrig capture",
+        description="Keyboard jogging in the terminal (GRBL 1.1 $J= jogs): arrow keys move X/Y, Page Up/Down Z, "
+                    "+/- change the step, f/s the feed, c waits until the stage stands still and prints the "
+                    "--centre-mm X Y Z to use with lfrig capture, space stops, q or Ctrl-C stops and quits. The "
+                    "position shown is the controller's report. The fake stage runs in real time here.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    jog.add_argument("--step-mm", type=positive_float, default=0.1,
+                     help="first step (the nearest of 0.001 0.01 0.05 0.1 0.5 1 5 10)")
+    jog.add_argument("--feed-mm-min", type=positive_float, default=500.0,
+                     help="first feed (the nearest of 10 50 100 200 500 1000 2000)")
+    jog.add_argument("--home", action="store_true", help="home first")
+    _stage_argument(jog)
+    jog.set_defaults(handler=_stage_jog)
     _register_camera(subparsers)
 
 
@@ -233,6 +248,40 @@ def _stage(args: argparse.Namespace) -> int:
         print(f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version})")
     finally:
         devices.close()
+    return 0
+
+
+def _stage_jog(args: argparse.Namespace) -> int:
+    from rig.jog import HELP, JogSettings, centre_option, keyboard, run_jog
+
+    fd = sys.stdin.fileno()
+    with keyboard(fd):  # refuses a non-terminal before the stage is opened
+        spec = args.stage
+        if is_fake_stage(spec) and "clock=" not in spec:  # an interactive fake moves in real time
+            spec = spec + ("&" if "?" in spec else "?") + "clock=real"
+        devices = open_stage(spec, baud=args.baud)
+        stage = devices.stage
+        try:
+            if args.home:
+                stage.home()
+            else:
+                doubt = stage.machine_frame_doubt()
+                if doubt:
+                    print(f"lfrig: warning: {doubt}; the positions shown are in GRBL's present frame (use --home for "
+                          "positions from the switches)", file=sys.stderr)
+                stage.prepare()
+            print(f"jogging {stage.url} (GRBL {stage.version}); {HELP}", flush=True)
+
+            def write(text: str) -> None:
+                sys.stdout.write(text)
+                sys.stdout.flush()
+
+            centre = run_jog(stage, fd=fd, write=write,
+                             settings=JogSettings.nearest(step_mm=args.step_mm, feed_mm_min=args.feed_mm_min))
+        finally:
+            devices.close()
+    if centre is not None:
+        print(f"grid centre for lfrig capture: {centre_option(centre)}")
     return 0
 
 
