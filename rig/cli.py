@@ -1,5 +1,6 @@
-"""``lfrig capture`` and ``lfrig stage``: parse, open the devices (:mod:`rig.devices`, which lists the
-``--stage`` and ``--camera`` specs), call :mod:`rig.session`.
+"""``lfrig capture``, ``lfrig stage`` and ``lfrig camera``: parse, open the devices (:mod:`rig.devices`,
+which lists the ``--stage`` and ``--camera`` specs), call :mod:`rig.session`, :mod:`rig.snap`,
+:mod:`rig.preview`, :mod:`rig.jog` or :mod:`rig.v4l2`.
 """
 
 from __future__ import annotations
