@@ -37,10 +37,9 @@ def probe(source: int | str) -> dict[str, Any]:
     size (px), frame rate (Hz), FourCC, exposure and gain (backend units), and one frame's shape and dtype."""
     import cv2
 
-    logging = cv2.utils.logging
-    previous = logging.getLogLevel()
-    logging.setLogLevel(logging.LOG_LEVEL_ERROR)  # a node OpenCV cannot open is reported below, not as its warnings
-    try:
+    from rig.camera import quiet_opencv
+
+    with quiet_opencv():
         cap = cv2.VideoCapture(source)
         try:
             if not cap.isOpened():
@@ -61,8 +60,6 @@ def probe(source: int | str) -> dict[str, Any]:
             return info
         finally:
             cap.release()
-    finally:
-        logging.setLogLevel(previous)
 
 
 def sysfs_name(device: Path, sysfs_dir: Path = SYSFS_DIR) -> str | None:

@@ -138,3 +138,16 @@ def test_camera_list_says_when_there_is_no_video_device(tmp_path, capsys):
     assert main(["camera", "info", "opencv:7"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "OpenCV cannot open it" in err[0]
+
+
+def test_a_missing_opencv_device_is_one_line_on_stderr(tmp_path):
+    """Also at the file-descriptor level: OpenCV's own warnings about the device are not printed."""
+    import subprocess
+    import sys
+
+    for argv in (["camera", "snap", "opencv:9", "-o", str(tmp_path / "a.png")], ["camera", "info", "opencv:9"]):
+        done = subprocess.run([sys.executable, "-m", "rig.main", *argv], cwd=Path(__file__).resolve().parents[1],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("lfrig: error: ") and "opencv" in lines[0].lower(), lines
