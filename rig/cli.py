@@ -232,14 +232,8 @@ def _stage(args: argparse.Namespace) -> int:
         elif args.action == "unlock":
             stage.unlock()
         elif args.action == "move":
-            if args.home:
-                stage.home()
-            else:
-                doubt = stage.machine_frame_doubt()
-                if doubt:
-                    print(f"lfrig: warning: {doubt}; X Y Z are taken in GRBL's present frame, which need not be the "
-                          "machine frame of earlier sessions (use --home for positions from the switches)", file=sys.stderr)
-                stage.prepare()
+            _home_or_prepare(stage, home=args.home, frame="X Y Z are taken in GRBL's present frame, which need not be "
+                                                          "the machine frame of earlier sessions")
             stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
             stage.wait_until_idle()
         status = stage.status()
@@ -250,6 +244,17 @@ def _stage(args: argparse.Namespace) -> int:
     finally:
         devices.close()
     return 0
+
+
+def _home_or_prepare(stage, *, home: bool, frame: str) -> None:
+    """Home (``--home``), or warn with ``frame`` when the machine frame is in doubt and set the modes."""
+    if home:
+        stage.home()
+        return
+    doubt = stage.machine_frame_doubt()
+    if doubt:
+        print(f"lfrig: warning: {doubt}; {frame} (use --home for positions from the switches)", file=sys.stderr)
+    stage.prepare()
 
 
 def _stage_jog(args: argparse.Namespace) -> int:
@@ -263,14 +268,7 @@ def _stage_jog(args: argparse.Namespace) -> int:
         devices = open_stage(spec, baud=args.baud)
         stage = devices.stage
         try:
-            if args.home:
-                stage.home()
-            else:
-                doubt = stage.machine_frame_doubt()
-                if doubt:
-                    print(f"lfrig: warning: {doubt}; the positions shown are in GRBL's present frame (use --home for "
-                          "positions from the switches)", file=sys.stderr)
-                stage.prepare()
+            _home_or_prepare(stage, home=args.home, frame="the positions shown are in GRBL's present frame")
             print(f"jogging {stage.url} (GRBL {stage.version}); {HELP}", flush=True)
 
             def write(text: str) -> None:

@@ -413,13 +413,17 @@ class FakeGrbl:
         if motion is None:
             self.state, self.substate = "Idle", None
             return
-        s, v = motion.profile.at(self._t)
+        _, v = motion.profile.at(self._t)
         here = self._counter_at(self._t)
         if v <= 0:
             self._motion = None
             self._counter = here
             self.state, self.substate = "Idle", None
             return
+        self._decelerate(motion, here, v)
+
+    def _decelerate(self, motion: _Motion, here: tuple[float, float, float], v: float) -> None:
+        """Replace ``motion`` (at ``here``, ``v`` mm/s) by a stop along its direction at its acceleration."""
         stop = v * v / (2 * motion.profile.accel)
         decel = _Profile(self._t, stop, v, motion.profile.accel, v0=v)
         end = tuple(p + d * stop for p, d in zip(here, motion.direction))
@@ -443,10 +447,7 @@ class FakeGrbl:
             self._counter = here
             self.state, self.substate = "Hold", 0
             return
-        stop = v * v / (2 * motion.profile.accel)
-        decel = _Profile(self._t, stop, v, motion.profile.accel, v0=v)
-        end = tuple(p + d * stop for p, d in zip(here, motion.direction))
-        self._motion = _Motion(here, self._quantise(end), motion.direction, decel, motion.line_id)  # type: ignore[arg-type]
+        self._decelerate(motion, here, v)
         self.state, self.substate = "Hold", 1
 
     def _cycle_start(self) -> None:
