@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -200,3 +201,34 @@ def test_bad_preview_input_is_one_line(capsys):
         assert len(err) == 1 and err[0].startswith("lfrig: error:") and words in err[0], err
     assert main(["camera", "preview", "nocam"]) == 2
     assert "expected 'fake'" in capsys.readouterr().err
+
+
+def test_a_camera_that_stops_ends_the_preview_with_one_error_and_frees_the_port():
+    """The fake camera refuses frames while its stage moves: after 3 frames the stage 'starts moving'."""
+    from rig.errors import RigError
+    from rig.fakecam import FakeCamera
+    from rig.preview import Preview
+
+    camera = FakeCamera(None, binning=8, supersample=1, is_moving=lambda: camera.frames_taken >= 3)
+    preview = Preview(camera, fps_max=50)
+    server = preview.bind(host="127.0.0.1", port=0)
+    port = server.server_address[1]
+    raised: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            preview.serve(server, on_ready=lambda url: None)
+        except BaseException as error:  # noqa: BLE001 (checked below)
+            raised.append(error)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(timeout=15)
+    if thread.is_alive():
+        server.shutdown()
+        raise AssertionError("the preview kept serving after the camera stopped")
+    assert len(raised) == 1 and isinstance(raised[0], RigError), raised
+    assert str(raised[0]).startswith("the camera stopped delivering frames: fake camera triggered while the stage is moving")
+    assert preview.frame_number == 3
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()
