@@ -312,6 +312,7 @@ def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     )
     snap.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
     snap.add_argument("-o", "--output", required=True, type=Path, metavar="FILE", help="the PNG to write")
+    snap.add_argument("--json", action="store_true", help="print the frame's statistics as JSON")
     camera_options(snap, hw_trigger=False)
     snap.set_defaults(handler=_camera_snap)
     preview = actions.add_parser(
@@ -438,7 +439,13 @@ def _camera_snap(args: argparse.Namespace) -> int:
         stats = snap(devices.camera, path)
     finally:
         devices.close()
-    print(f"{path}: {stats.line()}")
+    if args.json:
+        import json
+        from dataclasses import asdict
+
+        print(json.dumps({"path": str(path), **asdict(stats)}, indent=2))
+    else:
+        print(f"{path}: {stats.line()}")
     return 0
 
 
@@ -453,7 +460,7 @@ def _camera_preview(args: argparse.Namespace) -> int:
     devices = _open_bench_camera(args)
     try:
         preview = Preview(devices.camera, roi=tuple(args.focus_roi) if args.focus_roi else None,
-                          fps_max=args.fps_max, view_max_px=args.view_max_px)
+                          fps_max=args.fps_max, view_max_px=args.view_max_px, any_host=args.allow_remote)
         server = preview.bind(host=args.host, port=args.port)
         if args.host not in LOCAL_HOSTS:
             print(f"lfrig: warning: listening on {args.host}: anyone who reaches this address sees the camera",

@@ -13,7 +13,8 @@ A small HTTP server (standard library, one thread per client) serves the page ``
 ``/stream.mjpg`` (``multipart/x-mixed-replace``), the latest frame ``/frame.jpg`` (for polling), the
 readouts ``/stats.json``, and takes the focus region as ``POST /roi`` (JSON ``{"roi": [x0, y0, w, h]}``
 in frame pixels, or ``{"roi": null}`` for the whole frame). It listens on 127.0.0.1 only unless told
-otherwise: over SSH, forward the port (``ssh -L 8000:127.0.0.1:8000 bench-pc``) and open
+otherwise, and then answers only requests addressed to 127.0.0.1 or localhost (a ``Host`` header of
+another name is refused, so a web page cannot reach it by pointing its own name at 127.0.0.1): over SSH, forward the port (``ssh -L 8000:127.0.0.1:8000 bench-pc``) and open
 ``http://127.0.0.1:8000/`` on your machine.
 
 Ctrl-C (SIGINT) stops the server and the grabber, closes the camera and frees the port.
@@ -64,6 +65,20 @@ def histogram(image: np.ndarray, *, top: int) -> list[list[int]]:
     return [np.bincount(c.ravel(), minlength=256).tolist() for c in channels]
 
 
+def local_host_header(value: str | None) -> bool:
+    """Whether an HTTP ``Host`` header names this machine's loopback (any port: an SSH forward may
+    use another). Pages from other sites that resolve their name to 127.0.0.1 (DNS rebinding) send
+    their own name and are refused."""
+    if not value:
+        return False
+    host = value.strip().lower()
+    if host.startswith("["):
+        host = host[1:].partition("]")[0]
+    else:
+        host = host.rpartition(":")[0] if ":" in host else host
+    return host in LOCAL_HOSTS
+
+
 def check_roi(roi: Any, *, width: int, height: int) -> tuple[int, int, int, int] | None:
     """A focus region ``[x0, y0, w, h]`` in frame pixels, clipped to the frame; ``None``: the whole frame."""
     if roi is None:
@@ -81,8 +96,9 @@ class Preview:
     """The grabber and the shared latest frame; :meth:`serve` runs the HTTP server until Ctrl-C."""
 
     def __init__(self, camera: Any, *, roi: tuple[int, int, int, int] | None = None, fps_max: float = 10.0,
-                 view_max_px: int = 1024, jpeg_quality: int = 85) -> None:
+                 view_max_px: int = 1024, jpeg_quality: int = 85, any_host: bool = False) -> None:
         self.camera = camera
+        self.any_host = any_host  # answer requests whatever their Host header (--allow-remote)
         self.roi = roi
         self.fps_max = fps_max
         self.view_max_px = view_max_px
@@ -206,7 +222,15 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
+    def _refused(self) -> bool:
+        if self.owner.any_host or local_host_header(self.headers.get("Host")):
+            return False
+        self._send(b"this preview answers requests for 127.0.0.1 or localhost only", "text/plain", HTTPStatus.FORBIDDEN)
+        return True
+
     def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        if self._refused():
+            return
         path = self.path.split("?", 1)[0]
         owner = self.owner
         if path == "/":
@@ -249,6 +273,8 @@ class _Handler(BaseHTTPRequestHandler):
             pass  # the browser went away
 
     def do_POST(self) -> None:  # noqa: N802
+        if self._refused():
+            return
         if self.path != "/roi":
             self._send(b"not found", "text/plain", HTTPStatus.NOT_FOUND)
             return

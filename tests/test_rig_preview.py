@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -171,6 +172,15 @@ def test_ctrl_c_stops_cleanly_and_frees_the_port(tmp_path):
     except BaseException:
         proc.kill()
         raise
+    for host, allowed in (("127.0.0.1:9000", True), ("localhost", True), ("[::1]:80", True),
+                          ("evil.example:8000", False), ("127.0.0.1.evil.example", False)):
+        request = urllib.request.Request(url + "stats.json", headers={"Host": host})
+        try:
+            with urllib.request.urlopen(request, timeout=10) as reply:
+                answered = reply.status == 200
+        except urllib.error.HTTPError as error:
+            answered = error.code != 403
+        assert answered == allowed, host
     status, err = stop(proc)
     stream.close()
     assert status == 130

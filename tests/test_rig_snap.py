@@ -45,6 +45,10 @@ def test_snap_fake_writes_the_frame_it_reports(tmp_path, capsys, bits):
     assert (got["w"], got["h"]) == (image.shape[1], image.shape[0]) == (160, 122)
     assert (got["min"], got["max"]) == (image.min(), image.max()) and got["max"] > got["min"]
     assert not list(tmp_path.glob(".*tmp*"))  # written through a temporary file, renamed into place
+    assert main(["camera", "snap", "fake", "-o", str(out), "--bit-depth", str(bits), *SMALL, "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert (record["path"], record["width"], record["min"], record["max"]) == (str(out), 160, got["min"], got["max"])
+    assert record["top"] == (255 if bits == 8 else 65535) and record["clipped_high"] == 0.0
 
 
 def test_snap_aravis_fake_1_mono16(tmp_path, capsys):
