@@ -155,3 +155,14 @@ def test_jog_without_a_terminal_is_a_one_line_error():
     assert done.stderr.strip().splitlines() == [
         "lfrig: error: stage jog reads keys from a terminal, and its input is not one; run it in a terminal "
         "(over SSH: ssh -t), or move with lfrig stage move X Y Z"]
+
+
+def test_jog_on_the_command_lines_fake_stage():
+    """``--stage fake``: the simulated controller in the same process, moving in real time."""
+    session = Session("--stage", "fake", "--home", "--step-mm", "1", "--feed-mm-min", "2000")
+    session.position((-1.0, -1.0, -1.0), timeout_s=60)
+    session.keys(LEFT, LEFT, PGDN, b"c")
+    session.read_until(b"grid centre: --centre-mm -3.000 -1.000 -2.000")
+    session.keys(b"q")
+    status, text = session.finish()
+    assert status == 0 and "grid centre for lfrig capture: --centre-mm -3.000 -1.000 -2.000" in text, text
