@@ -790,7 +790,7 @@ class FakeGrbl:
             self._error(22)
             return "done"
         if not any(a in words for a in "XYZ"):
-            self._error(26)
+            self._ok(line_id)  # GRBL 1.1h accepts a jog without axis words and moves nothing
             return "done"
         if len(self._planner) >= PLANNER_BLOCKS:
             return "blocked"
