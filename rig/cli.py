@@ -386,6 +386,9 @@ def _camera_info(args: argparse.Namespace) -> int:
             print(describe_line(reading))
         return 0
 
+    if not args.spec.startswith("aravis:"):
+        raise RigError(f"camera {args.spec!r}: expected aravis:, aravis:DEVICE_ID or opencv:INDEX|PATH "
+                       "(lfrig camera list shows them)")
     from rig.aravis import AravisCamera, describe, parse_spec
 
     with AravisCamera(parse_spec(args.spec), acquire=False) as camera:
