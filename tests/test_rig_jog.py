@@ -134,7 +134,7 @@ def test_jog_moves_by_steps_sets_the_centre_and_quits_cleanly(device):
 def test_quitting_mid_jog_stops_the_motion(device):
     session = Session("--stage", device.url, "--home", "--step-mm", "10", "--feed-mm-min", "50")
     session.position((-1.0, -1.0, -1.0))
-    session.keys(LEFT)  # 10 mm at 50 mm/min: 12 s
+    session.keys(LEFT)  # 10 mm at 50 mm/min: 12 s; quit after about 0.5 s, so it stops far short of -11
     session.read_until(re.compile(rb"Jog"))
     time.sleep(0.5)
     started = time.monotonic()
@@ -143,7 +143,7 @@ def test_quitting_mid_jog_stops_the_motion(device):
     assert status == 0 and time.monotonic() - started < 5, text
     stopped = re.findall(r"stopped at X\s+(-?\d+\.\d+)", text)
     x = device.carriage_mm()[0]
-    assert -2.0 < x < -1.2 and abs(float(stopped[-1]) - x) < 0.0041, (x, text)
+    assert -6.0 < x < -1.05 and abs(float(stopped[-1]) - x) < 0.0041, (x, text)
     time.sleep(1.0)
     assert abs(device.carriage_mm()[0] - x) < 0.0041  # and it stays stopped
 
