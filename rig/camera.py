@@ -23,7 +23,8 @@ Frames are returned as ``(H, W, 3)`` RGB (OpenCV delivers BGR) or ``(H, W)`` gre
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -35,6 +36,21 @@ log = logging.getLogger(__name__)
 
 class CameraError(RigError):
     """The camera could not be opened, configured or read."""
+
+
+@contextmanager
+def quiet_opencv() -> Iterator[None]:
+    """OpenCV's own warnings off while opening a capture (a device it cannot open is reported by
+    lfrig as one line, not as OpenCV's log lines on stderr); errors still show."""
+    import cv2
+
+    logging_ = cv2.utils.logging
+    previous = logging_.getLogLevel()
+    logging_.setLogLevel(logging_.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        logging_.setLogLevel(previous)
 
 
 def parse_source(text: str) -> int | str:
@@ -89,7 +105,10 @@ class OpenCVCamera:
             raise ValueError(f"drop_frames must be >= 0; got {drop_frames}")
         self.clock = clock if clock is not None else SystemClock()
         self.requested = {"width": width, "height": height, "exposure": exposure, "gain": gain}
-        self._cap = capture if capture is not None else cv2.VideoCapture(source)
+        if capture is None:
+            with quiet_opencv():
+                capture = cv2.VideoCapture(source)
+        self._cap = capture
         if not self._cap.isOpened():
             raise CameraError(
                 f"cannot open camera {source!r} with OpenCV; check the index or path (ls /dev/video*) "

@@ -1,11 +1,13 @@
-"""``lfrig capture`` and ``lfrig stage``: parse, open the devices (:mod:`rig.devices`, which lists the
-``--stage`` and ``--camera`` specs), call :mod:`rig.session`.
+"""``lfrig capture``, ``lfrig stage`` and ``lfrig camera``: parse, open the devices (:mod:`rig.devices`,
+which lists the ``--stage`` and ``--camera`` specs), call :mod:`rig.session`, :mod:`rig.snap`,
+:mod:`rig.preview`, :mod:`rig.jog` or :mod:`rig.v4l2`.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
                            positive_float, positive_int)
@@ -52,28 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "present frame")
     motion.add_argument("--limits-mm", type=finite_float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
                         help="travel to check against (default: from the controller's $130-$132 settings)")
-    camera = cap.add_argument_group("camera (opencv)")
-    camera.add_argument("--width", type=positive_int, help="requested frame width in pixels")
-    camera.add_argument("--height", type=positive_int, help="requested frame height in pixels")
-    camera.add_argument("--exposure", type=positive_float, help="exposure in the backend's units (V4L2: 100 us)")
-    camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
-    camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
-    camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
-    gen = cap.add_argument_group("camera (aravis)")
-    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
-    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
-    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
-    gen.add_argument("--trigger", default="software", metavar="MODE",
-                     help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
-    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
-    fake = cap.add_argument_group("camera (fake; --binning and --roi also for aravis)")
-    fake.add_argument("--binning", type=positive_int, help=f"detector binning (fake: default {FAKE_BINNING}; 1: 1280x980, 2: 640x490, ...)")
-    fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
-    fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
-    fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
-    fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
-    fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
-                      help="true geometry of the simulated camera and stage")
+    camera_options(cap, hw_trigger=True)
     cap.add_argument("--quiet", action="store_true", help="no progress bar")
     cap.set_defaults(handler=_capture)
 
@@ -97,7 +78,52 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _stage_argument(unlock)
     for parser in (home, move, status, unlock):
         parser.set_defaults(handler=_stage)
+    jog = actions.add_parser(
+        "jog", help="move the stage from the keyboard; c prints the --centre-mm for lfrig capture",
+        description="Keyboard jogging in the terminal (GRBL 1.1 $J= jogs): arrow keys move X/Y, Page Up/Down Z, "
+                    "+/- change the step, f/s the feed, c waits until the stage stands still and prints the "
+                    "--centre-mm X Y Z to use with lfrig capture, space stops, q or Ctrl-C stops and quits. The "
+                    "position shown is the controller's report. The fake stage runs in real time here.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    jog.add_argument("--step-mm", type=positive_float, default=0.1,
+                     help="first step (the nearest of 0.001 0.01 0.05 0.1 0.5 1 5 10)")
+    jog.add_argument("--feed-mm-min", type=positive_float, default=500.0,
+                     help="first feed (the nearest of 10 50 100 200 500 1000 2000)")
+    jog.add_argument("--home", action="store_true", help="home first")
+    _stage_argument(jog)
+    jog.set_defaults(handler=_stage_jog)
     _register_camera(subparsers)
+
+
+def camera_options(parser: argparse.ArgumentParser, *, hw_trigger: bool) -> None:
+    """The camera options of ``lfrig capture`` (read by :func:`rig.devices.open_camera`); ``camera snap`` and
+    ``camera preview`` take the same ones, without ``--hw-trigger`` (they run without a stage)."""
+    camera = parser.add_argument_group("camera (opencv)")
+    camera.add_argument("--width", type=positive_int, help="requested frame width in pixels")
+    camera.add_argument("--height", type=positive_int, help="requested frame height in pixels")
+    camera.add_argument("--exposure", type=positive_float, help="exposure in the backend's units (V4L2: 100 us)")
+    camera.add_argument("--gain", type=nonnegative_float, help="gain in the backend's units")
+    camera.add_argument("--drop-frames", type=nonnegative_int, help="buffered frames dropped per trigger (default 4)")
+    if hw_trigger:
+        camera.add_argument("--hw-trigger", action="store_true", help="pulse the stage's M8 output to trigger each frame")
+    else:
+        parser.set_defaults(hw_trigger=False)
+    gen = parser.add_argument_group("camera (aravis)")
+    gen.add_argument("--pixel-format", help="GenICam pixel format, e.g. Mono8, Mono12, BayerRG8 (None: keep the camera's)")
+    gen.add_argument("--exposure-us", type=positive_float, help="exposure time in microseconds (auto exposure off)")
+    gen.add_argument("--gain-db", type=finite_float, help="gain in dB (auto gain off)")
+    gen.add_argument("--trigger", default="software", metavar="MODE",
+                     help="software, free (free-running), or a trigger line such as Line1 (with --hw-trigger: the stage's M8)")
+    gen.add_argument("--frame-timeout-s", type=positive_float, default=5.0, help="longest wait for a frame after the trigger")
+    fake = parser.add_argument_group("camera (fake; --binning and --roi also for aravis)")
+    fake.add_argument("--binning", type=positive_int, help=f"detector binning (fake: default {FAKE_BINNING}; 1: 1280x980, 2: 640x490, ...)")
+    fake.add_argument("--roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"), help="region of the binned detector")
+    fake.add_argument("--supersample", type=int_range(1, 16), default=2, help="samples per pixel along each axis")
+    fake.add_argument("--noise", type=float_range(0.0, 1.0), default=0.0, help="Gaussian noise sigma, fraction of full scale")
+    fake.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    fake.add_argument("--fake-rig", choices=("default", "ideal", "misaligned"), default="default",
+                      help="true geometry of the simulated camera and stage")
 
 
 def _stage_argument(parser: argparse.ArgumentParser) -> None:
@@ -232,14 +258,8 @@ def _stage(args: argparse.Namespace) -> int:
                       f"capture begun before cannot be resumed with --no-home{kept}: home it (`lfrig stage home`) or "
                       "retake its views", file=sys.stderr)
         elif args.action == "move":
-            if args.home:
-                stage.home()
-            else:
-                doubt = stage.machine_frame_doubt()
-                if doubt:
-                    print(f"lfrig: warning: {doubt}; X Y Z are taken in GRBL's present frame, which need not be the "
-                          "machine frame of earlier sessions (use --home for positions from the switches)", file=sys.stderr)
-                stage.prepare()
+            _home_or_prepare(stage, home=args.home, frame="X Y Z are taken in GRBL's present frame, which need not be "
+                                                          "the machine frame of earlier sessions")
             stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
             stage.wait_until_idle()
         status = stage.status()
@@ -252,46 +272,149 @@ def _stage(args: argparse.Namespace) -> int:
     return 0
 
 
+def _home_or_prepare(stage, *, home: bool, frame: str) -> None:
+    """Home (``--home``), or warn with ``frame`` when the machine frame is in doubt and set the modes."""
+    if home:
+        stage.home()
+        return
+    doubt = stage.machine_frame_doubt()
+    if doubt:
+        print(f"lfrig: warning: {doubt}; {frame} (use --home for positions from the switches)", file=sys.stderr)
+    stage.prepare()
+
+
+def _stage_jog(args: argparse.Namespace) -> int:
+    from rig.jog import HELP, JogSettings, centre_option, keyboard, run_jog
+
+    fd = sys.stdin.fileno()
+    with keyboard(fd):  # refuses a non-terminal before the stage is opened
+        spec = args.stage
+        if is_fake_stage(spec) and "clock=" not in spec:  # an interactive fake moves in real time
+            spec = spec + ("&" if "?" in spec else "?") + "clock=real"
+        devices = open_stage(spec, baud=args.baud)
+        stage = devices.stage
+        try:
+            _home_or_prepare(stage, home=args.home, frame="the positions shown are in GRBL's present frame")
+            print(f"jogging {stage.url} (GRBL {stage.version}); {HELP}", flush=True)
+
+            def write(text: str) -> None:
+                sys.stdout.write(text)
+                sys.stdout.flush()
+
+            centre = run_jog(stage, fd=fd, write=write,
+                             settings=JogSettings.nearest(step_mm=args.step_mm, feed_mm_min=args.feed_mm_min))
+        finally:
+            devices.close()
+    if centre is not None:
+        print(f"grid centre for lfrig capture: {centre_option(centre)}")
+    return 0
+
+
 def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     camera = subparsers.add_parser(
         "camera",
-        help="list GenICam cameras (Aravis) and show one's features",
-        description="GigE Vision / USB3 Vision cameras through Aravis: what is connected, and what a camera offers.",
+        help="list cameras, show one's features, take one frame, or serve a live view",
+        description="The cameras lfrig drives: GigE Vision / USB3 Vision cameras through Aravis and V4L2 devices "
+                    "(/dev/video*) through OpenCV; one frame (snap) or a live view in a browser (preview).",
     )
     actions = camera.add_subparsers(dest="action", metavar="ACTION", required=True)
-    listing = actions.add_parser("list", help="the cameras Aravis finds, with the ids --camera aravis:ID takes")
+    listing = actions.add_parser("list", help="the cameras found (Aravis and /dev/video*), with the specs --camera takes")
     listing.add_argument("--fake", action="store_true", help="include Aravis's simulated camera Fake_1")
+    listing.add_argument("--dev-dir", type=Path, default=Path("/dev"), metavar="DIR",
+                         help="where to look for video* device nodes")
     listing.add_argument("--json", action="store_true", help="print JSON")
     listing.set_defaults(handler=_camera_list)
     info = actions.add_parser("info", help="identity, sensor, pixel formats, ROI/binning/exposure/gain ranges, triggers")
-    info.add_argument("spec", metavar="SPEC", help="aravis: (first camera) or aravis:DEVICE_ID, e.g. aravis:Fake_1")
-    info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value")
+    info.add_argument("spec", metavar="SPEC",
+                      help="aravis: (first camera), aravis:DEVICE_ID (e.g. aravis:Fake_1), or opencv:INDEX|PATH")
+    info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value (aravis)")
     info.add_argument("--json", action="store_true", help="print JSON")
     info.set_defaults(handler=_camera_info)
+    snap = actions.add_parser(
+        "snap", help="take one frame and write it as PNG, with its size, range and clipping",
+        description="Take one frame with the camera options of lfrig capture and write it atomically as PNG "
+                    "(16-bit when the camera gives more than 8 bits); print its size, min/max and clipped fraction.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    snap.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
+    snap.add_argument("-o", "--output", required=True, type=Path, metavar="FILE", help="the PNG to write")
+    snap.add_argument("--json", action="store_true", help="print the frame's statistics as JSON")
+    camera_options(snap, hw_trigger=False)
+    snap.set_defaults(handler=_camera_snap)
+    preview = actions.add_parser(
+        "preview", help="a live view in the browser: focus measure, clipping overlay, histogram",
+        description="Serve a live view of the camera on http://127.0.0.1:PORT/ (over SSH: ssh -L PORT:127.0.0.1:PORT "
+                    "HOST, then open that address on your machine): the image with clipped pixels painted (red: at "
+                    "the top of the range, blue: at 0), the focus measure (variance of the Laplacian) on a region "
+                    "dragged on the image or given as --focus-roi, min/max, clipped fractions and the histogram. "
+                    "Ctrl-C stops it.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    preview.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
+    preview.add_argument("--port", type=int_range(0, 65535), default=8000, help="TCP port (0: a free one)")
+    preview.add_argument("--host", default="127.0.0.1",
+                         help="address to listen on; other than 127.0.0.1/localhost/::1 only with --allow-remote")
+    preview.add_argument("--allow-remote", action="store_true",
+                         help="listen on --host even if other machines can reach it (the page has no password)")
+    preview.add_argument("--focus-roi", type=nonnegative_int, nargs=4, metavar=("X0", "Y0", "W", "H"),
+                         help="region of the frame (px) for the focus measure (default: the whole frame)")
+    preview.add_argument("--fps-max", type=positive_float, default=10.0, help="highest frame rate grabbed")
+    preview.add_argument("--view-max-px", type=int_range(64, 16384), default=1024,
+                         help="longest side of the displayed image (shrunk by an integer factor)")
+    camera_options(preview, hw_trigger=False)
+    preview.set_defaults(handler=_camera_preview)
 
 
 def _camera_list(args: argparse.Namespace) -> int:
     import json
 
     from rig.aravis import list_devices
+    from rig.v4l2 import describe_line, list_opencv_devices
 
-    devices = list_devices(include_fake=args.fake)
+    if not args.dev_dir.is_dir():
+        raise RigError(f"--dev-dir {args.dev_dir}: not a folder; give the folder holding the video* device nodes")
+    genicam = list_devices(include_fake=args.fake)
+    video = list_opencv_devices(dev_dir=args.dev_dir)
     if args.json:
-        print(json.dumps(devices, indent=2))
+        print(json.dumps({"aravis": genicam, "opencv": video}, indent=2))
         return 0
-    if not devices:
+    if not genicam:
         print("no GenICam camera found (GigE: check the network and the camera's IP; USB3: check the cable and "
               "udev permissions; --fake lists Aravis's simulated camera)")
-        return 0
-    for d in devices:
+    for d in genicam:
         print(f"aravis:{d['id']}  {d['vendor']} {d['model']}  serial {d['serial']}  {d['protocol']}"
               + (f"  {d['address']}" if d.get("address") else ""))
+    if not video:
+        print(f"no video device found ({args.dev_dir}/video*: a USB camera needs its cable and the uvcvideo driver; "
+              "inside a container, pass the device through)")
+    for entry in video:
+        print(describe_line(entry))
     return 0
 
 
 def _camera_info(args: argparse.Namespace) -> int:
     import json
 
+    if args.spec.startswith("opencv:"):
+        from rig.camera import parse_source
+        from rig.v4l2 import describe_line, probe
+
+        source = parse_source(args.spec[len("opencv:"):])
+        if source == "":
+            raise RigError(f"camera {args.spec!r}: give a device index or path, e.g. opencv:0 or opencv:/dev/video0")
+        reading = probe(source)
+        if not reading["opens"]:
+            raise RigError(f"camera {args.spec!r}: OpenCV cannot open it; check the index or path "
+                           "(lfrig camera list) and that no other program uses it")
+        if args.json:
+            print(json.dumps(reading, indent=2))
+        else:
+            print(describe_line(reading))
+        return 0
+
+    if not args.spec.startswith("aravis:"):
+        raise RigError(f"camera {args.spec!r}: expected aravis:, aravis:DEVICE_ID or opencv:INDEX|PATH "
+                       "(lfrig camera list shows them)")
     from rig.aravis import AravisCamera, describe, parse_spec
 
     with AravisCamera(parse_spec(args.spec), acquire=False) as camera:
@@ -326,4 +449,61 @@ def _camera_info(args: argparse.Namespace) -> int:
                 else:
                     print("  " * depth + f"{key} = {value}")
         show(info.get("features", {}), 1)
+    return 0
+
+
+def _open_bench_camera(args: argparse.Namespace) -> Devices:
+    """The camera named by ``args.camera`` without a stage (the fake camera sees the scene from its centre)."""
+    devices = Devices()
+    devices.camera, _ = open_camera(_camera_options(args), devices, centre_mm=FAKE_CENTRE_MM)
+    return devices
+
+
+def _camera_snap(args: argparse.Namespace) -> int:
+    from rig.snap import check_snap_path, snap
+
+    path = check_snap_path(args.output)
+    devices = _open_bench_camera(args)
+    try:
+        stats = snap(devices.camera, path)
+    finally:
+        devices.close()
+    if args.json:
+        import json
+        from dataclasses import asdict
+
+        print(json.dumps({"path": str(path), **asdict(stats)}, indent=2))
+    else:
+        print(f"{path}: {stats.line()}")
+    return 0
+
+
+def _camera_preview(args: argparse.Namespace) -> int:
+    from rig.preview import LOCAL_HOSTS, Preview
+
+    if args.host not in LOCAL_HOSTS and not args.allow_remote:
+        raise RigError(f"--host {args.host}: the preview has no password, so it listens on 127.0.0.1 only; "
+                       "forward the port over SSH (ssh -L PORT:127.0.0.1:PORT HOST), or add --allow-remote")
+    if args.focus_roi is not None and (args.focus_roi[2] < 3 or args.focus_roi[3] < 3):
+        raise RigError(f"--focus-roi {' '.join(map(str, args.focus_roi))}: width and height must be at least 3 px")
+    devices = _open_bench_camera(args)
+    try:
+        preview = Preview(devices.camera, roi=tuple(args.focus_roi) if args.focus_roi else None,
+                          fps_max=args.fps_max, view_max_px=args.view_max_px, any_host=args.allow_remote)
+        server = preview.bind(host=args.host, port=args.port)
+        if args.host not in LOCAL_HOSTS:
+            print(f"lfrig: warning: listening on {args.host}: anyone who reaches this address sees the camera",
+                  file=sys.stderr)
+        try:
+            preview.serve(server, on_ready=lambda url: print(f"preview of {args.camera} on {url} (Ctrl-C stops it)",
+                                                             flush=True))
+        except KeyboardInterrupt:
+            interrupted = True
+        else:
+            interrupted = False
+    finally:
+        devices.close()
+    if interrupted:
+        print(f"lfrig: preview stopped (Ctrl-C); camera closed, port {server.server_address[1]} freed", file=sys.stderr)
+        return 130
     return 0

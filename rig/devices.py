@@ -145,8 +145,10 @@ def open_camera(options: CameraOptions, devices: Devices, *, centre_mm: tuple[fl
         binning = FAKE_BINNING if options.binning is None else options.binning
         if devices.controller is not None:
             position, moving = devices.controller.physical_position, devices.controller.is_moving
-        else:
+        elif devices.stage is not None:
             position, moving = devices.stage.position, None
+        else:  # no stage (camera snap, camera preview): the view from the centre
+            position, moving = None, None
         try:
             camera = FakeCamera(position, rig=rig, binning=binning, roi=roi, supersample=options.supersample,
                                 noise_sigma=options.noise_sigma, bit_depth=options.bit_depth, is_moving=moving)

@@ -367,6 +367,8 @@ class FakeGrbl:
                 self._feed_hold()
             elif byte == ord("~"):
                 self._cycle_start()
+            elif byte == 0x85:
+                self._jog_cancel()
             elif byte >= 0x80:
                 continue  # overrides: accepted, not simulated
             elif byte in (ord("\n"), ord("\r")):
@@ -402,7 +404,35 @@ class FakeGrbl:
         self._reports += 1
         self._emit("<" + "|".join(fields) + ">")
 
+    def _jog_cancel(self) -> None:
+        """0x85 in the Jog state: drop the queued jogs and decelerate to a stop, then Idle."""
+        if self.state != "Jog":
+            return
+        self._planner.clear()
+        motion = self._motion
+        if motion is None:
+            self.state, self.substate = "Idle", None
+            return
+        _, v = motion.profile.at(self._t)
+        here = self._counter_at(self._t)
+        if v <= 0:
+            self._motion = None
+            self._counter = here
+            self.state, self.substate = "Idle", None
+            return
+        self._decelerate(motion, here, v)
+
+    def _decelerate(self, motion: _Motion, here: tuple[float, float, float], v: float) -> None:
+        """Replace ``motion`` (at ``here``, ``v`` mm/s) by a stop along its direction at its acceleration."""
+        stop = v * v / (2 * motion.profile.accel)
+        decel = _Profile(self._t, stop, v, motion.profile.accel, v0=v)
+        end = tuple(p + d * stop for p, d in zip(here, motion.direction))
+        self._motion = _Motion(here, self._quantise(end), motion.direction, decel, motion.line_id)  # type: ignore[arg-type]
+
     def _feed_hold(self) -> None:
+        if self.state == "Jog":  # GRBL: a feed hold during a jog cancels it
+            self._jog_cancel()
+            return
         if self.state == "Idle":
             self.state, self.substate = "Hold", 0
             return
@@ -417,10 +447,7 @@ class FakeGrbl:
             self._counter = here
             self.state, self.substate = "Hold", 0
             return
-        stop = v * v / (2 * motion.profile.accel)
-        decel = _Profile(self._t, stop, v, motion.profile.accel, v0=v)
-        end = tuple(p + d * stop for p, d in zip(here, motion.direction))
-        self._motion = _Motion(here, self._quantise(end), motion.direction, decel, motion.line_id)  # type: ignore[arg-type]
+        self._decelerate(motion, here, v)
         self.state, self.substate = "Hold", 1
 
     def _cycle_start(self) -> None:
@@ -545,7 +572,7 @@ class FakeGrbl:
         if self._motion is not None:
             return
         if not self._planner:
-            if self.state == "Run":
+            if self.state in ("Run", "Jog"):
                 self.state, self.substate = "Idle", None
             return
         target, rate_mm_min, line_id = self._planner.popleft()
@@ -671,6 +698,8 @@ class FakeGrbl:
         return "".join(out)
 
     def _system_command(self, line_id: int, text: str) -> str:
+        if text.startswith("$J="):
+            return self._jog(line_id, text[3:])
         if text == "$$":
             for key in sorted(self.settings):
                 self._emit(f"${key}={_setting_text(key, self.settings[key])}")
@@ -738,6 +767,51 @@ class FakeGrbl:
             self._ok(line_id)
             return "done"
         self._error(3)
+        return "done"
+
+    def _jog(self, line_id: int, text: str) -> str:
+        """``$J=``: a jog block (GRBL 1.1). Allowed: G20/G21, G90/G91, G53, axis words and a feed F
+        (required); the block's modes do not persist. Beyond the travel with soft limits on: error:15,
+        nothing moves. Runs in the Jog state; 0x85 or a feed hold cancels it."""
+        if self.state not in ("Idle", "Jog"):
+            self._error(8)
+            return "done"
+        try:
+            block = self._parse_block(text)
+        except _ParseError as error:
+            self._error(error.code)
+            return "done"
+        groups, words = block["groups"], block["words"]
+        if (block["coolant"] is not None or "motion" in groups or groups.get("nonmodal") not in (None, 53)
+                or any(k in words for k in "PLSTN")):
+            self._error(16)
+            return "done"
+        if "F" not in words:
+            self._error(22)
+            return "done"
+        if not any(a in words for a in "XYZ"):
+            self._ok(line_id)  # GRBL 1.1h accepts a jog without axis words and moves nothing
+            return "done"
+        if len(self._planner) >= PLANNER_BLOCKS:
+            return "blocked"
+        scale = 1.0 if groups.get("units", 21 if self._modal["mm"] else 20) == 21 else 25.4
+        absolute = groups.get("distance", 90 if self._modal["absolute"] else 91) == 90
+        machine = groups.get("nonmodal") == 53
+        base = self._planned_end()
+        target = list(base)
+        for i, a in enumerate("XYZ"):
+            if a in words:
+                value = words[a] * scale
+                target[i] = value if machine else (value + self._wco[i] if absolute else base[i] + value)
+        target_q = self._quantise(target)
+        if int(self.settings.get(20, 0)) and not self._within_travel(target_q):
+            self._error(15)
+            return "done"
+        self._planner.append((target_q, words["F"] * scale, line_id))
+        if self.state == "Idle":
+            self.state, self.substate = "Jog", None
+            self._start_next_block()
+        self._ok(line_id)
         return "done"
 
     def _start_homing(self, line_id: int) -> None:

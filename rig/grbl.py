@@ -176,6 +176,9 @@ STATUS_QUERY = b"?"
 FEED_HOLD = b"!"
 CYCLE_START = b"~"
 SOFT_RESET = b"\x18"
+#: GRBL 1.1's jog cancel: stops a ``$J=`` jog with a controlled deceleration and drops the queued
+#: jogs; the position is kept (no reset, no alarm). Ignored outside the Jog state.
+JOG_CANCEL = b"\x85"
 REALTIME_BYTES = frozenset(b"?!~\x18") | frozenset(range(0x80, 0x100))
 #: GRBL's wake-up: blank lines, then wait for it to initialise and flush what it printed.
 WAKE = b"\r\n\r\n"
@@ -223,6 +226,23 @@ def encode_move(position_mm: Sequence[float], *, feed_mm_min: float | None = Non
     if not (feed_mm_min > 0 and math.isfinite(feed_mm_min)):
         raise ValueError(f"feed_mm_min must be a positive number; got {feed_mm_min!r}")
     return encode_line(f"G53 G1 X{x} Y{y} Z{z} F{feed_mm_min:.1f}")
+
+
+def encode_jog(delta_mm: Sequence[float], *, feed_mm_min: float) -> bytes:
+    """A relative jog by ``delta_mm = (dx, dy, dz)`` in mm at ``feed_mm_min``: ``$J=G91 G21 X.. F..``.
+
+    GRBL 1.1 runs it in its Jog state: it answers ``error:15`` instead of moving when the target is
+    beyond the travel (soft limits on), and :data:`JOG_CANCEL` stops it. Axes with a zero step are
+    left out; the modal state (``G90``/``G91``) of later lines is not changed.
+    """
+    if len(delta_mm) != 3:
+        raise ValueError(f"delta must be (dx, dy, dz) in mm; got {delta_mm!r}")
+    if not (feed_mm_min > 0 and math.isfinite(feed_mm_min)):
+        raise ValueError(f"feed_mm_min must be a positive number; got {feed_mm_min!r}")
+    words = [f"{axis}{format_mm(float(d))}" for axis, d in zip("XYZ", delta_mm) if format_mm(float(d)) != "0.000"]
+    if not words:
+        raise ValueError(f"a jog needs a non-zero step of at least 0.001 mm; got {delta_mm!r}")
+    return encode_line(f"$J=G91 G21 {' '.join(words)} F{feed_mm_min:.1f}")
 
 
 def encode_modes() -> bytes:
@@ -1004,6 +1024,17 @@ class GrblStage:
         self.command(data.decode("ascii").rstrip("\n"))
         self._target = position  # type: ignore[assignment]
         self._move_estimate_s = self._estimate_s(start, position, feed_mm_min)
+
+    def jog(self, delta_mm: Sequence[float], *, feed_mm_min: float) -> None:
+        """Start a relative jog (:func:`encode_jog`); returns once GRBL has queued it. A target beyond
+        the travel is refused by GRBL (:class:`GrblCommandError` ``error:15``) and nothing moves."""
+        self._refuse_if_homing_required("jogging")
+        self._target = None
+        self.command(encode_jog(delta_mm, feed_mm_min=feed_mm_min).decode("ascii").rstrip("\n"))
+
+    def jog_cancel(self) -> None:
+        """Stop jogging: :data:`JOG_CANCEL` (decelerate, drop queued jogs, keep the position)."""
+        self._write(JOG_CANCEL)
 
     def _estimate_s(self, start, end, feed_mm_min) -> float:
         s = self.settings_values

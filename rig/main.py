@@ -2,7 +2,7 @@
 
 Each package contributes its subcommands through the ``register(subparsers)`` of its ``cli`` module:
 :mod:`rig.demo` (``demo``), :mod:`recon.cli` (``info``, ``reconstruct``, ``evaluate``, ``export``,
-``batch``), :mod:`rig.cli` (``capture``, ``stage``) and :mod:`calib.cli` (``calibrate``, ``rectify``).
+``batch``), :mod:`rig.cli` (``capture``, ``stage``, ``camera``) and :mod:`calib.cli` (``calibrate``, ``rectify``).
 A handler receives the parsed arguments and returns an exit code (``None`` means 0). Errors a user
 can cause are :class:`recon.errors.LfrigError`; they are printed as one line, without a traceback,
 and the command exits with status 2. So are usage errors (a flag's value is checked by the types of

@@ -321,8 +321,8 @@ def test_camera_commands(aravis, capsys):
     assert main(["camera", "info", f"aravis:{FAKE}", "--all", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["features"]["AcquisitionControl"]["ExposureTimeAbs"] == "10000"
-    assert main(["camera", "info", "opencv:0"]) == 2
-    assert "expected aravis: or aravis:DEVICE_ID" in capsys.readouterr().err
+    assert main(["camera", "info", "fake"]) == 2
+    assert "expected aravis:, aravis:DEVICE_ID or opencv:INDEX|PATH" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------------------
