@@ -414,3 +414,17 @@ def test_fake_work_offsets_g53_and_23(fake):
         stage.move_to((-20.0, -20.0, -20.0))  # G53: machine coordinates
         assert stage.wait_until_idle() == (-20.0, -20.0, -20.0)
         assert Message("G54", "5.000,6.000,7.000") in stage.command("$#")
+
+
+def test_fake_survives_resets_while_homing():
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock)
+    controller.power_on()
+    controller.take_output()
+    controller.receive(b"$H\n")
+    clock.sleep(0.5)
+    assert controller.state == "Home"
+    controller.receive(b"\x18")  # Ctrl-C twice in `lfrig stage home`: a reset, then another
+    controller.receive(b"\x18")
+    out = controller.take_output().decode()
+    assert "ALARM:6" in out and out.count("Grbl 1.1h") == 2 and controller.state == "Alarm"
