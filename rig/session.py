@@ -12,8 +12,10 @@ which differ. A resume must continue in the machine frame the capture started in
 lock since, and the stage stands where the journal's last view was read back) and otherwise refuses
 (:class:`FrameNotProvenError`) before anything moves.
 
-Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly; a second
-one stops the stage at once (feed hold, then soft reset) and raises :class:`CaptureInterrupted`.
+Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly (during a
+backlash take-up move, the view it leads to: the stage stops on the journal's last view, where a
+resume without homing looks for it); a second one stops the stage at once (feed hold, then soft reset)
+and raises :class:`CaptureInterrupted`.
 
 Progress goes to ``progress(fraction, message)`` (:mod:`recon.progress`); a human-readable log is
 appended to ``OUT_DIR/session.log``.
@@ -311,6 +313,9 @@ def run_capture(
         if limits_mm is None and hasattr(stage, "limits_mm"):
             limits_mm = stage.limits_mm()
         check_limits(moves, limits_mm)
+        check_steps = getattr(stage, "check_step_grid", None)
+        if callable(check_steps):  # a target between two motor steps would fail its position check mid-capture
+            check_steps([m.target_mm for m in moves], tolerance_mm=tolerance)
         if not home:
             check_machine_frame(stage, writer.completed, tolerance_mm=tolerance, path=path)
             doubt_of = getattr(stage, "machine_frame_doubt", None)
@@ -328,9 +333,13 @@ def run_capture(
                 log(f"homed at {_fmt(stage.position())}")
             elif hasattr(stage, "prepare"):
                 stage.prepare()
+            taking_up = False  # the last move was a backlash take-up: its view comes next
             for move in moves:
-                if interrupts.stop_requested or (should_stop is not None and should_stop()):
+                # a stop request waits for the view a take-up leads to: stopping on the overshoot would
+                # leave the stage off the journal's last view, and a resume without homing must find it there
+                if not taking_up and (interrupts.stop_requested or (should_stop is not None and should_stop())):
                     break
+                taking_up = move.view is None
                 stage.move_to(move.target_mm, feed_mm_min=feed_mm_min)
                 readback = stage.wait_until_idle()
                 if move.view is None:

@@ -22,6 +22,7 @@ from rig.grbl import (
     Message,
     Ok,
     Setting,
+    StartupLine,
     Unknown,
     Welcome,
     describe_alarm,
@@ -40,7 +41,9 @@ from rig.grbl import (
     parse_status,
     feed_hold_time_s,
     homing_time_bound_s,
+    step_grid_offsets_mm,
     travel_limits_mm,
+    GrblProtocolError,
 )
 
 # -- encoding: exact bytes -------------------------------------------------------------------------
@@ -107,6 +110,8 @@ def test_parse_status_wpos_uses_wco_now_or_remembered():
         ("<Idel|MPos:1,2,3>", Unknown("<Idel|MPos:1,2,3>")),
         ("<Idle|MPos:1,2,3|FS>", Unknown("<Idle|MPos:1,2,3|FS>")),
         ("error:x", Unknown("error:x")),
+        (">G54:ok", StartupLine("G54", "ok")),  # a startup block ($N0) echoed after a reset
+        (">G20 G91:error:20", StartupLine("G20 G91", "error:20")),
         ("ok\r", Ok()),
     ],
 )
@@ -414,6 +419,36 @@ def test_fake_work_offsets_g53_and_23(fake):
         stage.move_to((-20.0, -20.0, -20.0))  # G53: machine coordinates
         assert stage.wait_until_idle() == (-20.0, -20.0, -20.0)
         assert Message("G54", "5.000,6.000,7.000") in stage.command("$#")
+
+
+def test_step_grid_offsets_are_the_distance_to_grbls_nearest_step():
+    settings = {100: 40.0, 101: 250.0, 102: 800.0}
+    offsets = step_grid_offsets_mm((-9.69, -9.69, -9.69), settings)
+    assert offsets == pytest.approx((0.010, 0.002, 0.0000), abs=1e-9)  # 0.025, 0.004, 0.00125 mm steps
+    assert step_grid_offsets_mm((-9.7, 0.0, -1.0), settings) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert max(step_grid_offsets_mm((-1.2345, 2, 3), {})) == 0.0  # steps/mm unknown: nothing to say
+
+
+def test_status_is_asked_again_after_a_garbled_report(fake, monkeypatch):
+    clock, controller, url = fake
+    with GrblStage(url, clock=clock) as stage:
+        stage.home()
+        real = controller._status_report
+        garble = {"left": 2}
+
+        def noisy() -> None:
+            if garble["left"]:
+                garble["left"] -= 1
+                controller._emit("<Idle|MPos:-1.0#0,-1.000,-1.000|FS:0,0>")
+            else:
+                real()
+
+        monkeypatch.setattr(controller, "_status_report", noisy)
+        assert stage.position() == (-1.0, -1.0, -1.0)
+        assert controller.rx_log.endswith(b"???")  # asked three times
+        garble["left"] = GrblStage.STATUS_ATTEMPTS
+        with pytest.raises(GrblProtocolError, match=r"garbled status reports in a row .*check the cable"):
+            stage.position()
 
 
 def test_fake_survives_resets_while_homing():
