@@ -419,8 +419,8 @@ def test_ctrl_c_stops_a_stage_move_and_says_where(make_device):
 
 
 def test_ctrl_c_stops_stage_home_by_a_reset(make_device):
-    # seek at 2 mm/s from far off the switches: Z 8 mm first (4 s), then X and Y 15 mm
-    device = make_device({25: 120}, start_mm=(-15.0, -15.0, -8.0))
+    # seek at 2 mm/s from off the switches: Z 8 mm first (4 s), then X and Y 9 mm
+    device = make_device({25: 120}, start_mm=(-9.0, -9.0, -8.0))
     process = start_capture(["stage", "home", "--stage", device.url])
     wait_until_open(process, device)
     time.sleep(2.5)
@@ -429,12 +429,12 @@ def test_ctrl_c_stops_stage_home_by_a_reset(make_device):
     assert process.returncode == 130, err
     assert "homing stopped" in err and "ALARM:6" in err and "home it" in err, err
     here = standing_still(device)
-    assert here[0] < -10 and here[2] < -1.5, here  # short of the switches: the cycle did not go on
+    assert here[2] < -1.5, here  # Z, homed first, is short of its switch: the cycle did not go on
 
 
 def test_stage_status_does_not_stop_a_homing_cycle(make_device, capsys):
     """`stage status` only looks: a homing cycle left running by a killed process goes on."""
-    device = make_device({25: 120}, start_mm=(-15.0, -15.0, -8.0))
+    device = make_device({25: 120}, start_mm=(-15.0, -15.0, -8.0))  # at least 11 s of homing
     process = start_capture(["stage", "home", "--stage", device.url])
     wait_until_open(process, device)
     time.sleep(2.0)
@@ -459,7 +459,7 @@ def take_up_before_a_view(rows: int, cols: int, after_views: int) -> tuple[int, 
     views = 0
     for i, move in enumerate(moves):
         if move.view is None and views >= after_views:
-            return views, encode_move(move.target_mm, feed_mm_min=30).decode().strip()
+            return views, encode_move(move.target_mm, feed_mm_min=60).decode().strip()
         views += move.view is not None
     raise AssertionError("no take-up move")
 
@@ -467,7 +467,7 @@ def take_up_before_a_view(rows: int, cols: int, after_views: int) -> tuple[int, 
 def test_ctrl_c_during_a_backlash_take_up_still_resumes_without_homing(make_device, tmp_path, capsys):
     device = make_device()
     out = tmp_path / "cap"
-    args = capture_args(out, device, "--feed-mm-min", "30", rows=3, cols=3)  # 0.5 mm/s: a take-up lasts 1.4 s
+    args = capture_args(out, device, "--feed-mm-min", "60", rows=3, cols=3)  # 1 mm/s: a take-up lasts 0.7 s
     views_before, line = take_up_before_a_view(3, 3, after_views=3)
     process = start_capture(args)
     deadline = time.monotonic() + 120
