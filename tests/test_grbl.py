@@ -463,3 +463,41 @@ def test_fake_survives_resets_while_homing():
     controller.receive(b"\x18")
     out = controller.take_output().decode()
     assert "ALARM:6" in out and out.count("Grbl 1.1h") == 2 and controller.state == "Alarm"
+
+
+def test_read_only_connection_sends_no_reset(fake):
+    clock, controller, url = fake
+    mark = len(controller.rx_log)
+    with GrblStage(url, clock=clock, read_only=True) as stage:
+        assert stage.status()["state"] == "Alarm" and stage.reset_seen  # the fake resets on open, like an Arduino
+        assert stage.limits_mm() == ((-100.0, -1.0), (-100.0, -1.0), (-50.0, -1.0))
+    assert b"\x18" not in wire_since(controller, mark) and b"!" not in wire_since(controller, mark)
+
+
+def test_ctrl_c_while_homing_stops_the_cycle_by_a_reset():
+    class CtrlCWhileHoming(VirtualClock):
+        armed = True
+
+        def sleep(self, seconds: float) -> None:
+            super().sleep(seconds)
+            if self.armed and controller.state == "Home" and self.monotonic() > homing_from + 1.0:
+                self.armed = False
+                raise KeyboardInterrupt
+
+    clock = CtrlCWhileHoming()
+    controller = FakeGrbl(clock=clock)
+    url = register(controller)
+    try:
+        with GrblStage(url, clock=clock) as stage:
+            homing_from = clock.monotonic()
+            with pytest.raises(KeyboardInterrupt):
+                stage.home()
+            mark = len(controller.rx_log)
+            done = stage.interrupt()
+            assert wire_since(controller, mark) == b"\x18"  # no feed hold: GRBL ignores one while homing
+            assert "homing stopped" in done and "ALARM:6" in done
+            assert stage.homing_required and not stage.homed
+            with pytest.raises(GrblAlarmError, match="home"):
+                stage.move_to((-5.0, -5.0, -5.0))
+    finally:
+        unregister(url)
