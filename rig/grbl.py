@@ -741,6 +741,9 @@ class GrblStage:
         self._homing = False  # a $H sent and not yet answered
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
         self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
+        note = self._holders_note() if port is None else ""
+        if note:  # opened before lfrig, so the exclusive mode does not keep it out
+            log.warning("%s: the port is shared%s", self.url, note)
         try:
             self._connect(wake_s=wake_s, reset=reset_on_connect and not read_only)
         except BaseException:
