@@ -1341,8 +1341,8 @@ class GrblStage:
         """Stop whatever lfrig started, after a Ctrl-C that may have come in the middle of a reply:
         a homing cycle only by a soft reset (GRBL ignores a feed hold while homing; the reset raises
         ``ALARM:6`` and the position is lost), a motion by :meth:`stop` (feed hold, then reset, so
-        the position is kept). Returns what was done, for the user."""
-        self._rx.clear()
+        the position is kept). Returns what was done, for the user. Bytes already read stay: a
+        line cut by the Ctrl-C is completed by what follows."""
         if self._homing:
             self._homing = False
             self.homed = False
