@@ -293,6 +293,7 @@ class FakeOnPty(_PtyDevice):
         if start_mm is None:
             start_mm = tuple(-float(self.settings.get(130 + i, 100.0)) / 2 for i in range(3))
         with self.lock:
+            self._boot_at = None  # on again (after power_off or during a power_cycle's boot)
             self.controller.power_on(start_mm=None if start_mm == "keep" else start_mm)
             out = self.controller.take_output()
         os.write(self.master, out)
@@ -300,7 +301,7 @@ class FakeOnPty(_PtyDevice):
         self.drain()
 
     def power_off(self) -> None:
-        """Switch the controller off: it hears and says nothing from now on."""
+        """Switch the controller off: it hears and says nothing until :meth:`restart`."""
         with self.lock:
             self._boot_at = float("inf")
 
