@@ -61,7 +61,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     stage = subparsers.add_parser(
         "stage",
         help="home, jog or query the stage",
-        description="Talk to the stage by hand: home it, move it to an absolute machine position, or show its status.",
+        description=(
+            "Talk to the stage by hand: home it, move it to an absolute machine position, or show its status. "
+            "Ctrl-C stops a move (feed hold, then soft reset) or a homing cycle (soft reset: home again) and "
+            "prints where the stage is; status only looks and stops nothing."
+        ),
     )
     actions = stage.add_subparsers(dest="action", metavar="ACTION", required=True)
     home = actions.add_parser("home", help="run the homing cycle ($H)")
@@ -182,12 +186,18 @@ def _capture(args: argparse.Namespace) -> int:
         print(plan_summary(moves))
         extent = grid_extent_mm(moves)
         print("extent: " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", extent)) + " mm")
+        off_grid: list[str] = []
         if limits is None:
-            devices = open_stage(args.stage, baud=args.baud)
+            devices = open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm)
             try:
                 limits = devices.stage.limits_mm()
+                off_grid = devices.stage.off_step_grid([m.target_mm for m in moves])
             finally:
                 devices.close()
+        for problem in off_grid[:3]:
+            print(f"lfrig: warning: {problem}; a capture with this plan is refused", file=sys.stderr)
+        if len(off_grid) > 3:
+            print(f"lfrig: warning: {len(off_grid) - 3} more targets lie between motor steps", file=sys.stderr)
         if limits is None:
             print("travel limits unknown (soft limits off on the controller): not checked; pass --limits-mm")
         else:
@@ -241,32 +251,33 @@ def _capture(args: argparse.Namespace) -> int:
 
 
 def _stage(args: argparse.Namespace) -> int:
-    devices = open_stage(args.stage, baud=args.baud)
+    # `status` only looks: no soft reset (it would abort a homing cycle with ALARM:6 or a move with ALARM:3)
+    devices = open_stage(args.stage, baud=args.baud, read_only=args.action == "status")
     stage = devices.stage
     try:
-        if args.action == "home":
-            stage.home()
-        elif args.action == "unlock":
-            stage.unlock()
-            doubt = stage.machine_frame_doubt()
-            if doubt:
-                from rig.frames import witness
+        try:
+            if args.action == "home":
+                stage.home()
+            elif args.action == "unlock":
+                stage.unlock()
+                doubt = stage.machine_frame_doubt()
+                if doubt:
+                    from rig.frames import witness
 
-                seen = witness(stage)
-                kept = f" (kept in {seen.record.file})" if seen is not None and seen.record is not None else ""
-                print(f"lfrig: warning: unlocked without homing: {doubt}. Positions are GRBL's present frame, and a "
-                      f"capture begun before cannot be resumed with --no-home{kept}: home it (`lfrig stage home`) or "
-                      "retake its views", file=sys.stderr)
-        elif args.action == "move":
-            _home_or_prepare(stage, home=args.home, frame="X Y Z are taken in GRBL's present frame, which need not be "
-                                                          "the machine frame of earlier sessions")
-            stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
-            stage.wait_until_idle()
-        status = stage.status()
-        position = status.get("mpos_mm")
-        where = "unknown" if position is None else ", ".join(f"{a}={c:.3f}" for a, c in zip("XYZ", position))
-        state = status["state"] + (f":{status['substate']}" if status.get("substate") is not None else "")
-        print(f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version})")
+                    seen = witness(stage)
+                    kept = f" (kept in {seen.record.file})" if seen is not None and seen.record is not None else ""
+                    print(f"lfrig: warning: unlocked without homing: {doubt}. Positions are GRBL's present frame, and "
+                          f"a capture begun before cannot be resumed with --no-home{kept}: home it (`lfrig stage home`) "
+                          "or retake its views", file=sys.stderr)
+            elif args.action == "move":
+                _home_or_prepare(stage, home=args.home, frame="X Y Z are taken in GRBL's present frame, which need "
+                                                              "not be the machine frame of earlier sessions")
+                stage.check_step_grid([(args.x, args.y, args.z)])
+                stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
+                stage.wait_until_idle()
+        except KeyboardInterrupt:
+            return _stop_on_ctrl_c(stage)
+        print(_status_line(stage))
     finally:
         devices.close()
     return 0
@@ -308,6 +319,38 @@ def _stage_jog(args: argparse.Namespace) -> int:
     if centre is not None:
         print(f"grid centre for lfrig capture: {centre_option(centre)}")
     return 0
+
+
+def _status_line(stage) -> str:
+    status = stage.status()
+    position = status.get("mpos_mm")
+    where = "unknown" if position is None else ", ".join(f"{a}={c:.3f}" for a, c in zip("XYZ", position))
+    state = status["state"] + (f":{status['substate']}" if status.get("substate") is not None else "")
+    return f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version or '(version not read)'})"
+
+
+def _stop_on_ctrl_c(stage) -> int:
+    """Ctrl-C during `stage home` or `stage move`: stop the stage (homing by a soft reset, a move by a
+    feed hold and then a reset) and say where it is. Further Ctrl-Cs wait for the stop."""
+    import signal
+
+    def wait(signum, frame):
+        print("lfrig: already stopping the stage, please wait", file=sys.stderr)
+
+    previous = signal.signal(signal.SIGINT, wait)
+    try:
+        print("lfrig: Ctrl-C: stopping the stage", file=sys.stderr)
+        try:
+            done = stage.interrupt()
+            where = _status_line(stage)
+        except RigError as error:
+            print(f"lfrig: error: Ctrl-C: stopping the stage failed: {error}", file=sys.stderr)
+            return 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    advice = "; home it before moving (`lfrig stage home`)" if stage.homing_required else ""
+    print(f"lfrig: interrupted: {done}{advice}; the stage now reports {where}", file=sys.stderr)
+    return 130
 
 
 def _register_camera(subparsers: argparse._SubParsersAction) -> None:

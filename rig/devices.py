@@ -68,8 +68,10 @@ def is_fake_stage(spec: str) -> bool:
     return spec == "fake" or spec.startswith("fake?")
 
 
-def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, devices: Devices | None = None):
-    """Open the stage named by ``spec`` (see the module docstring); returns the :class:`Devices`."""
+def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, devices: Devices | None = None,
+               read_only: bool = False):
+    """Open the stage named by ``spec`` (see the module docstring); returns the :class:`Devices`.
+    ``read_only``: look without resetting or stopping the controller (:class:`rig.grbl.GrblStage`)."""
     from rig.grbl import GrblStage
 
     devices = devices if devices is not None else Devices()
@@ -86,13 +88,15 @@ def open_stage(spec: str, *, baud: int = 115200, tolerance_mm: float = 0.005, de
         if options.fault is not None:
             devices.controller.arm_fault(options.fault, after=options.after)
         devices.url = register(devices.controller)
-        devices.stage = GrblStage(devices.url, clock=devices.clock, wake_s=0.05, tolerance_mm=tolerance_mm)
+        devices.stage = GrblStage(devices.url, clock=devices.clock, wake_s=0.05, tolerance_mm=tolerance_mm,
+                                   read_only=read_only)
     else:
         url = spec[len("grbl://"):] if spec.startswith("grbl://") else spec
         if not url:
             raise RigError(f"--stage {spec!r}: give a device, e.g. grbl:///dev/ttyUSB0")
         devices.clock = SystemClock()
-        devices.stage = GrblStage(url, baudrate=baud, clock=devices.clock, tolerance_mm=tolerance_mm)
+        devices.stage = GrblStage(url, baudrate=baud, clock=devices.clock, tolerance_mm=tolerance_mm,
+                                   read_only=read_only)
     from rig.frames import witness
 
     try:

@@ -502,7 +502,7 @@ class FakeGrbl:
     # -- time stepping ------------------------------------------------------------------------
     def _counter_at(self, t: float) -> tuple[float, float, float]:
         if self._busy is not None and self._busy[0] == "home":
-            _, end, (start, goal, t0) = self._busy
+            _, end, (start, goal, t0, _line_id) = self._busy
             f = min(max((t - t0) / max(end - t0, 1e-9), 0.0), 1.0)
             return tuple(a + (b - a) * f for a, b in zip(start, goal))  # type: ignore[return-value]
         if self._motion is None:

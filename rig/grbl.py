@@ -83,6 +83,14 @@ class GrblLimitError(GrblError):
     """A commanded position lies outside the machine's travel; nothing was sent."""
 
 
+class GrblSettingsError(GrblError):
+    """The controller's ``$$`` settings are ones lfrig cannot work with (nothing was moved)."""
+
+
+class GrblStepError(GrblError):
+    """A commanded position lies between two motor steps, farther than the tolerance; nothing was sent."""
+
+
 class GrblProtocolError(GrblError):
     """A reply that GRBL's interface does not allow in that place."""
 
@@ -316,6 +324,15 @@ class Setting:
 
 
 @dataclass(frozen=True)
+class StartupLine:
+    """GRBL's echo of a startup block (``$N0``/``$N1``) it ran after a reset: ``>G54:ok`` or
+    ``>G20:error:N``."""
+
+    line: str
+    result: str
+
+
+@dataclass(frozen=True)
 class Unknown:
     text: str
 
@@ -352,9 +369,10 @@ class Status:
         }
 
 
-Reply = Ok | Error | Alarm | Welcome | Message | Setting | Status | Unknown
+Reply = Ok | Error | Alarm | Welcome | Message | Setting | Status | StartupLine | Unknown
 
 _WELCOME = re.compile(r"^Grbl (\S+) \[.*\]$")
+_STARTUP = re.compile(r"^>(.*):(ok|error:\d+)$")
 _SETTING = re.compile(r"^\$(\d+)=(-?[0-9.]+)$")
 STATES = ("Idle", "Run", "Hold", "Jog", "Alarm", "Door", "Check", "Home", "Sleep")
 
@@ -449,6 +467,9 @@ def parse_line(text: str, *, wco_mm: Sequence[float] | None = None) -> Reply:
     match = _SETTING.match(text)
     if match:
         return Setting(int(match[1]), float(match[2]))
+    match = _STARTUP.match(text)
+    if match:
+        return StartupLine(match[1], match[2])
     return Unknown(text)
 
 
@@ -486,6 +507,22 @@ FRAME_SETTINGS = (13, 22, 23, 27, 100, 101, 102, 130, 131, 132)
 #: Alarms after which GRBL's position is no longer the frame it was: a hard limit's sudden halt, a
 #: reset in motion, and the homing failures (the cycle had begun to move).
 FRAME_LOSING_ALARMS = frozenset({1, 3, 6, 7, 8, 9})
+
+
+def step_grid_offsets_mm(position_mm: Sequence[float], settings: dict[int, float]) -> tuple[float, ...]:
+    """Per axis, how far the machine position ``position_mm = (x, y, z)`` (mm) lies from the nearest
+    whole motor step of ``$100..$102`` (steps/mm): GRBL rounds every target to a step, and reports
+    that step. The target is taken as it is sent (:func:`format_mm`, 3 decimals). Shape ``(3,)``, mm,
+    each in ``[0, 0.5 / steps_per_mm]``; 0 for an axis without a steps/mm setting."""
+    offsets = []
+    for axis, value in enumerate(position_mm):
+        steps_per_mm = abs(float(settings.get(100 + axis, 0.0)))
+        sent = float(format_mm(float(value)))
+        if steps_per_mm <= 0:
+            offsets.append(0.0)
+            continue
+        offsets.append(abs(sent - round(sent * steps_per_mm) / steps_per_mm))
+    return tuple(offsets)
 
 
 #: GRBL 1.1h's homing search runs up to 1.5 x the travel (``HOMING_AXIS_SEARCH_SCALAR``), the locate
@@ -549,14 +586,20 @@ URL_HANDLERS = "rig.urlhandler"
 
 def open_port(url: str, *, baudrate: int = 115200, poll_s: float = 0.05):
     """Open a pyserial port by URL or device path (``/dev/ttyUSB0``, ``socket://host:port``,
-    ``fakegrbl://name``). Raises :class:`GrblConnectionError` naming the URL on failure."""
+    ``fakegrbl://name``). Raises :class:`GrblConnectionError` naming the URL on failure.
+
+    The port is opened exclusively twice over: pyserial's ``exclusive=True`` (an advisory lock that
+    stops programs taking the same lock, such as a second lfrig) and, on a terminal device, the
+    kernel's exclusive mode ``TIOCEXCL``, under which the system refuses every further open of the
+    device (``EBUSY``) to programs without administrator rights (``cat``, a serial monitor, a modem
+    manager's probe) until :func:`release_port`."""
     import serial  # local: keeps `lfrig --help` fast
 
     if URL_HANDLERS not in serial.protocol_handler_packages:  # fakegrbl:// (rig/urlhandler/)
         serial.protocol_handler_packages.append(URL_HANDLERS)
     try:
         # exclusive: a second process (or a second lfrig) cannot drive the same controller
-        return serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0, exclusive=True)
+        port = serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=2.0, exclusive=True)
     except (serial.SerialException, ValueError, OSError) as error:
         if "exclusively lock" in str(error):
             raise GrblConnectionError(
@@ -567,6 +610,73 @@ def open_port(url: str, *, baudrate: int = 115200, poll_s: float = 0.05):
             f"cannot open the GRBL port {url!r}: {error}; check the device path or URL "
             "(e.g. /dev/ttyUSB0, socket://host:port) and that no other program holds it"
         ) from None
+    _terminal_exclusive(port, True)
+    return port
+
+
+def release_port(port: Any) -> None:
+    """Leave the kernel's exclusive mode (if :func:`open_port` set it) and close the port. The mode
+    belongs to the device, not to lfrig's descriptor: left set, it would outlive the close while
+    another descriptor keeps the device open."""
+    _terminal_exclusive(port, False)
+    port.close()
+
+
+def _terminal_exclusive(port: Any, on: bool) -> None:
+    import fcntl
+    import os
+    import termios
+
+    fd = getattr(port, "fd", None)
+    if not isinstance(fd, int) or fd < 0:
+        return  # not a local device (socket://, rfc2217://, fakegrbl://)
+    try:
+        if os.isatty(fd):
+            fcntl.ioctl(fd, termios.TIOCEXCL if on else termios.TIOCNXCL)
+    except OSError as error:  # a terminal without the ioctl: the advisory lock still holds
+        log.debug("TIOC%sEXCL on fd %d: %s", "" if on else "N", fd, error)
+
+
+def port_holders(url: str) -> list[tuple[int, str]]:
+    """Other processes that have the device ``url`` open, as ``(pid, command name)`` (Linux, from
+    ``/proc``; empty elsewhere, for URLs that are not device paths, or when ``/proc`` cannot be read).
+    A program that opened the port before lfrig reads GRBL's replies as well, and whichever reads a
+    reply first takes it."""
+    import os
+
+    path = url[len("grbl://"):] if url.startswith("grbl://") else url
+    if not path.startswith("/") or not os.path.isdir("/proc"):
+        return []
+    try:
+        device = os.stat(path).st_rdev
+    except OSError:
+        return []
+    if not device:
+        return []
+    holders = []
+    me = os.getpid()
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit() or int(entry.name) == me:
+            continue
+        try:
+            fds = os.listdir(f"/proc/{entry.name}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                # stat of /proc/PID/fd/N describes the open file itself (no path is looked up)
+                info = os.stat(f"/proc/{entry.name}/fd/{fd}")
+            except OSError:
+                continue
+            if info.st_rdev == device and (info.st_mode & 0o170000) == 0o020000:  # the same character device
+                try:
+                    with open(f"/proc/{entry.name}/comm", encoding="utf-8", errors="replace") as f:
+                        name = f.read().strip()
+                except OSError:
+                    name = "?"
+                holders.append((int(entry.name), name))
+                break
+    return holders
 
 
 class GrblStage:
@@ -588,13 +698,20 @@ class GrblStage:
         Largest per-axis distance between the commanded and the reported position accepted as
         "at the target".
     wake_s
-        How long to wait after opening the port for GRBL to answer a status query (``?``): boards
-        that reset when the port opens (Arduino) need about 2 s to start; a controller that did not
-        reset answers at once and the wait ends there.
+        How long to keep asking GRBL for a status report (``?`` every 0.25 s) after opening the port.
+        A controller that did not reset answers at once and the wait ends there; a board that resets
+        when the port opens (Arduino) answers once its bootloader has handed over, after 0.5-3 s,
+        printing its welcome line first (``reset_seen``). No answer at all within ``wake_s`` leaves
+        the frame in doubt (``silent_on_open``): a reset cannot be ruled out.
     reset_on_connect
         Send a soft reset (``0x18``) and wait for the welcome line, so the controller starts from a
         known state. A motion still running (a previous process died mid-move) is waited for first:
         a reset in motion would raise ``ALARM:3`` and lose the position.
+    read_only
+        Only look: no soft reset, no waiting for a running motion, the ``$$`` settings read only
+        when GRBL is ``Idle`` or in ``Alarm`` (it refuses ``$`` commands otherwise), and an error
+        when no status report comes within ``wake_s`` (GRBL sends none while it homes or after a
+        hard or soft limit). Nothing is sent that could stop or change what the controller does.
 
     Attributes
     ----------
@@ -609,6 +726,9 @@ class GrblStage:
         Moves and ``unlock`` are refused until :meth:`home`.
     open_state
         The controller's state when the port was opened (``Idle``, ``Alarm``, ...).
+    silent_on_open
+        GRBL sent no status report within ``wake_s`` of the port opening (still booting, homing for
+        a program that died, halted by a limit, or not connected): whether it reset is not known.
     """
 
     def __init__(
@@ -622,8 +742,9 @@ class GrblStage:
         home_timeout_s: float | None = None,
         move_timeout_margin_s: float = 5.0,
         tolerance_mm: float = 0.005,
-        wake_s: float = 2.0,
+        wake_s: float = 5.0,
         reset_on_connect: bool = True,
+        read_only: bool = False,
         poll_s: float = 0.05,
     ) -> None:
         self.url = url or getattr(port, "port", "") or "<port>"
@@ -647,10 +768,16 @@ class GrblStage:
         #: An alarm after which the position may be lost (:data:`FRAME_LOSING_ALARMS`), seen on this connection.
         self.frame_alarm: str | None = None
         self.open_state: str | None = None
+        self.silent_on_open = False
+        self.read_only = read_only
+        self._homing = False  # a $H sent and not yet answered
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
         self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
+        note = self._holders_note() if port is None else ""
+        if note:  # opened before lfrig, so the exclusive mode does not keep it out
+            log.warning("%s: the port is shared%s", self.url, note)
         try:
-            self._connect(wake_s=wake_s, reset=reset_on_connect)
+            self._connect(wake_s=wake_s, reset=reset_on_connect and not read_only)
         except BaseException:
             self._close_port()
             raise
@@ -670,7 +797,7 @@ class GrblStage:
         if not self._closed:
             self._closed = True
             try:
-                self._port.close()
+                release_port(self._port)
             except Exception:  # closing a dead port must not hide the original error
                 pass
 
@@ -738,11 +865,18 @@ class GrblStage:
                 self._target = None
                 self.reset_seen = True
                 self.homed = False
+                self.version = reply.version
                 raise GrblConnectionError(
-                    f"GRBL on {self.url} reset itself during {context} (it printed its welcome line); "
-                    "a power dip or a reset button? Home the stage and run again"
+                    f"GRBL on {self.url} restarted during {context}: it printed its welcome line without being "
+                    "asked, so its power, its USB connection or its reset line dropped, and its position restarted "
+                    "at 0 wherever the carriage stood. Check the supply and cable, home the stage and run again"
                 )
+            if isinstance(reply, StartupLine):
+                log.info("%s: GRBL ran its startup line %r: %s", self.url, reply.line, reply.result)
+                continue
             if isinstance(reply, Unknown):
+                if reply.text.startswith("<"):
+                    return reply  # a garbled status report: the caller asks again
                 log.warning("%s: ignoring unrecognised line %r from GRBL", self.url, text)
                 continue
             if isinstance(reply, Message) and reply.kind == "MSG":
@@ -769,16 +903,29 @@ class GrblStage:
             reply = self._next_reply(deadline, context=repr(line))
             if reply is None:
                 raise GrblTimeoutError(
-                    f"GRBL on {self.url} did not answer {line!r} within {timeout:g} s; the line may or may "
-                    "not have been executed, so it is not sent again. Check the stage, then home it and "
-                    "run again (a capture resumes where it stopped)"
+                    f"GRBL on {self.url} did not answer {line!r} within {timeout:g} s{self._silence_cause()}; "
+                    "the line may or may not have been executed, so it is not sent again. Check the stage, then "
+                    "home it and run again (a capture resumes where it stopped)"
                 )
             if isinstance(reply, Ok):
                 return collected
             if isinstance(reply, Error):
                 raise GrblCommandError(reply.code, line, self.url)
-            if not isinstance(reply, Status):
+            if not isinstance(reply, (Status, Unknown)):
                 collected.append(reply)
+
+    def _silence_cause(self) -> str:
+        """Why GRBL may have gone quiet, for a message: whether it still answers ``?``, and the other
+        programs that have the port open (they may have read the reply)."""
+        parts = []
+        try:
+            status = self._query_status(timeout_s=min(self.reply_timeout_s, 1.0), attempts=1)
+        except GrblError:
+            status = None
+        parts.append("; it does not answer a status query either (power, cable?)" if status is None
+                     else f"; it reports {_describe(status)}")
+        parts.append(self._holders_note())
+        return "".join(parts)
 
     def _connect(self, *, wake_s: float, reset: bool) -> None:
         # GRBL's interface: wake it up with blank lines and let it initialise. Then ask for a status
@@ -786,7 +933,17 @@ class GrblStage:
         # line first (kept as evidence of the reset), one that did not answers at once.
         self._write(WAKE)
         status = self._wake(wake_s)
-        if status is not None and _is_moving(status):
+        if status is None:
+            self.silent_on_open = True
+            if self.read_only:
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} sent no status report within {wake_s:g} s of the port opening: it sends "
+                    "none while it runs a homing cycle or after a hard or soft limit (ALARM:1/2, waiting for a "
+                    "reset), and none when it is off, still starting, or at another baud rate (115200)"
+                    f"{self._holders_note()}; lfrig sent nothing that would stop it"
+                )
+            log.info("%s: no status report within %g s of opening the port; resetting it", self.url, wake_s)
+        elif _is_moving(status) and not self.read_only:
             # A previous process left a motion running (killed mid-move): let it end, since a soft
             # reset in motion aborts it with ALARM:3 and the position is lost.
             log.info("%s: GRBL is still moving (%s); waiting for it to stop before the reset", self.url, status.state)
@@ -796,15 +953,40 @@ class GrblStage:
         else:  # GRBL answers the wake's blank lines with "ok"s that may trail the status report
             self.clock.sleep(0.1)
             self._flush_input()
+        if self.read_only and status is not None and status.state not in ("Idle", "Alarm"):
+            self.open_state = status.state  # GRBL answers '$$' only when Idle or in Alarm
+            return
         self.settings_values = self.read_settings()
+        self._check_units()
+        if self.version is None:  # no welcome line read: ask for the build info, [VER:1.1h.20190830:]
+            for reply in self.command("$I"):
+                if isinstance(reply, Message) and reply.kind == "VER":
+                    self.version = reply.text.split(":")[0] or None
         try:
             self.open_state = self.status_report().state
         except GrblTimeoutError:  # a critical alarm without the reset: GRBL answers nothing but 0x18
             self.open_state = None
 
+    def _holders_note(self) -> str:
+        holders = port_holders(self.url)
+        if not holders:
+            return ""
+        names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
+        return f"; {names} also has the port open and may be reading GRBL's replies: close it"
+
+    def _check_units(self) -> None:
+        """Refuse a controller that reports inches (``$13=1``): every position lfrig reads, checks and
+        journals is in mm."""
+        if int(self.settings_values.get(13, 0)) & 1:
+            raise GrblSettingsError(
+                f"GRBL on {self.url} reports positions in inches ($13=1), and lfrig reads, checks and records "
+                "them as millimetres; set $13=0 (send `$13=0` from a serial terminal), then run again"
+            )
+
     def _wake(self, wake_s: float) -> Status | None:
-        """Read what GRBL sends for up to ``wake_s``, querying its status every 0.25 s; returns the
-        first status report (``None`` if none came). Notes a welcome line (``reset_seen``)."""
+        """Read what GRBL sends for up to ``wake_s``, asking for a status report every 0.25 s; return
+        the first one (``None`` if none came). A welcome line seen on the way means the controller
+        reset when the port opened (``reset_seen``), however long its bootloader took."""
         deadline = self.clock.monotonic() + wake_s
         next_query = self.clock.monotonic()
         while True:
@@ -876,9 +1058,10 @@ class GrblStage:
         while True:
             text = self._read_line(deadline)
             if text is None:
+                silent = " nor to status queries for the first seconds after the port opened" if self.silent_on_open else ""
                 raise GrblTimeoutError(
-                    f"no welcome line from GRBL on {self.url} within {self.reply_timeout_s:g} s after a soft reset; "
-                    "is this a GRBL controller, at the right baud rate (115200)?"
+                    f"GRBL on {self.url} did not answer a soft reset within {self.reply_timeout_s:g} s{silent}: is the "
+                    f"controller powered and connected, is it GRBL, at the right baud rate (115200)?{self._holders_note()}"
                 )
             reply = parse_line(text)
             if isinstance(reply, Alarm):
@@ -911,6 +1094,11 @@ class GrblStage:
             return (
                 "GRBL reset when the port opened (it printed its welcome line; Arduino boards reset on open), "
                 "so its machine position restarted at 0 wherever the carriage stood"
+            )
+        if self.silent_on_open:
+            return (
+                "GRBL did not answer for the first seconds after the port opened (still starting after a reset, "
+                "or halted), so lfrig cannot tell whether its machine position restarted"
             )
         if self.open_state == "Alarm":
             return (
@@ -968,7 +1156,13 @@ class GrblStage:
         """``$H`` (wait for the cycle to finish), then ``G90 G21``."""
         self._target = None
         self.homed = False
-        self.command("$H", timeout_s=self.home_timeout_s)
+        self._homing = True  # stays set when a Ctrl-C interrupts the wait: interrupt() must reset
+        try:
+            self.command("$H", timeout_s=self.home_timeout_s)
+        except GrblError:
+            self._homing = False
+            raise
+        self._homing = False
         self.homed = True
         self.homing_required = None
         self._homing_required_code = 0
@@ -1009,6 +1203,33 @@ class GrblStage:
                     f"target {'XYZ'[axis]}={value:.3f} mm is outside the machine travel [{lo:.3f}, {hi:.3f}] mm "
                     f"of {self.url}; nothing was sent. Move the grid centre or shrink the grid"
                 )
+
+    def check_step_grid(self, targets_mm: Sequence[Sequence[float]], *, tolerance_mm: float | None = None) -> None:
+        """Refuse targets that GRBL cannot reach within ``tolerance_mm`` (default :attr:`tolerance_mm`)
+        because they lie between two motor steps (``$100..$102`` steps/mm): GRBL would stop on the
+        nearest step and the move would fail its position check. Raises :class:`GrblStepError` for the
+        first such target, before anything moves; :meth:`off_step_grid` lists them all."""
+        problems = self.off_step_grid(targets_mm, tolerance_mm=tolerance_mm)
+        if problems:
+            raise GrblStepError(problems[0] + (f" (and {len(problems) - 1} more targets)" if len(problems) > 1 else ""))
+
+    def off_step_grid(self, targets_mm: Sequence[Sequence[float]], *, tolerance_mm: float | None = None) -> list[str]:
+        """One message per target (``(x, y, z)`` in mm) that lies farther than ``tolerance_mm`` from
+        GRBL's nearest motor step on some axis (:func:`step_grid_offsets_mm`)."""
+        tolerance = self.tolerance_mm if tolerance_mm is None else tolerance_mm
+        problems = []
+        for target in targets_mm:
+            for axis, offset in enumerate(step_grid_offsets_mm(target, self.settings_values)):
+                if offset > tolerance + 1e-9:
+                    steps = float(self.settings_values[100 + axis])
+                    problems.append(
+                        f"target {'XYZ'[axis]}={float(target[axis]):.3f} mm lies {offset:.4f} mm from the nearest motor "
+                        f"step of {self.url} (${100 + axis}={steps:g} steps/mm: steps of {1 / steps:.4f} mm), more than "
+                        f"the tolerance {tolerance:g} mm; GRBL would stop on the step and the move fail its check. "
+                        f"Choose a pitch and centre on multiples of {1 / steps:.4f} mm, or raise --tolerance-mm"
+                    )
+                    break
+        return problems
 
     def move_to(self, position_mm: Sequence[float], *, feed_mm_min: float | None = None) -> None:
         """Start an absolute move (``G0``, or ``G1`` at ``feed_mm_min``). Returns once GRBL has
@@ -1057,11 +1278,22 @@ class GrblStage:
         try:
             self.command("G4 P0", timeout_s=timeout_s)
         except GrblTimeoutError:
-            status = self._try_status()
+            target = self._target
+            try:
+                status: Status | None = self._query_status(timeout_s=min(self.reply_timeout_s, 1.0), attempts=2)
+            except GrblError:
+                status = None
+            if status is None:
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} stopped answering during the move to {_fmt(target)}: no reply to 'G4 P0' "
+                    f"within {timeout_s:.1f} s and none to a status query{self._holders_note()}. Check its power "
+                    "and cable; then home the stage and run again"
+                ) from None
+            stopped = self._stop_quietly() if _is_moving(status) else ""
             raise GrblTimeoutError(
-                f"the stage on {self.url} did not finish its move to {_fmt(self._target)} within {timeout_s:.1f} s "
-                f"(last report: {_describe(status)}); an axis may be stalled or blocked. Stop it "
-                "(Ctrl-C twice, or `lfrig stage status`), check the mechanics, home and run again"
+                f"the stage on {self.url} did not finish its move to {_fmt(target)} within {timeout_s:.1f} s: "
+                f"GRBL reports {_describe(status)}{stopped}{self._holders_note()}; an axis may be stalled or "
+                "blocked. Check the mechanics, home the stage and run again"
             ) from None
         remaining = max(timeout_s - (self.clock.monotonic() - start), self.reply_timeout_s)
         deadline = self.clock.monotonic() + remaining
@@ -1089,31 +1321,58 @@ class GrblStage:
                 )
             self.clock.sleep(self.poll_s)
 
-    def _try_status(self) -> Status | None:
+    def _stop_quietly(self) -> str:
+        """:meth:`stop`, for an error path: what to add to the message."""
         try:
-            return self.status_report()
-        except GrblError:
-            return self._last_status
+            self.stop()
+        except GrblError as error:
+            return f"; stopping it failed ({error})"
+        return "; lfrig stopped it (feed hold, then soft reset)"
+
+    #: How many times a status query is sent when the reports come back garbled (noise on the line).
+    STATUS_ATTEMPTS = 4
+
+    def _query_status(self, *, timeout_s: float, attempts: int) -> Status | None:
+        """Send ``?`` and return the next status report with a machine position; ask again, up to
+        ``attempts`` times in all, after a garbled report. ``None`` when no report came in time."""
+        garbled: list[str] = []
+        for _ in range(attempts):
+            self._write(STATUS_QUERY)
+            deadline = self.clock.monotonic() + timeout_s
+            while True:
+                reply = self._next_reply(deadline, context="a status query")
+                if reply is None:
+                    return None
+                if isinstance(reply, Unknown):  # a garbled report: ask again
+                    log.warning("%s: garbled status report %r; asking again", self.url, reply.text)
+                    garbled.append(reply.text)
+                    break
+                if isinstance(reply, Status):
+                    if reply.mpos_mm is None:
+                        # WPos without a known WCO yet: ask again, GRBL sends WCO within a few reports.
+                        self._write(STATUS_QUERY)
+                        continue
+                    return reply
+                if isinstance(reply, Error):
+                    log.warning("%s: late error:%d (%s) while waiting for a status report", self.url, reply.code,
+                                describe_error(reply.code))
+                elif isinstance(reply, Ok):  # the answer to a blank line of the wake-up, or a late one
+                    log.debug("%s: ok while waiting for a status report", self.url)
+        raise GrblProtocolError(
+            f"GRBL on {self.url} sent {len(garbled)} garbled status reports in a row (last: {garbled[-1]!r}); "
+            "check the cable, its shielding and the baud rate (115200), then run again"
+        )
 
     def status_report(self) -> Status:
-        """Send ``?`` and return the next status report."""
-        self._write(STATUS_QUERY)
-        deadline = self.clock.monotonic() + self.reply_timeout_s
-        while True:
-            reply = self._next_reply(deadline, context="a status query")
-            if reply is None:
-                raise GrblTimeoutError(
-                    f"GRBL on {self.url} sent no status report within {self.reply_timeout_s:g} s of '?'; "
-                    "it may be homing, in a critical alarm awaiting reset, or disconnected"
-                )
-            if isinstance(reply, Status):
-                if reply.mpos_mm is None:
-                    # WPos without a known WCO yet: ask again, GRBL sends WCO within a few reports.
-                    self._write(STATUS_QUERY)
-                    continue
-                return reply
-            if isinstance(reply, (Ok, Error)):
-                log.warning("%s: stray %r while waiting for a status report (a late reply?)", self.url, reply)
+        """Send ``?`` and return the next status report (asked again after a garbled one)."""
+        status = self._query_status(timeout_s=self.reply_timeout_s, attempts=self.STATUS_ATTEMPTS)
+        if status is None:
+            raise GrblTimeoutError(
+                f"GRBL on {self.url} sent no status report within {self.reply_timeout_s:g} s of '?'; it sends none "
+                "while homing or after a hard or soft limit (waiting for a reset), or it is off or disconnected"
+                f"{self._holders_note()}"
+            )
+        return status
 
     def status(self) -> dict[str, Any]:
         """The controller's state as a dict (``state``, ``mpos_mm``, ``wpos_mm``, ...)."""
@@ -1129,6 +1388,29 @@ class GrblStage:
         """Switch the flood-coolant output (``M8``/``M9``), e.g. wired to a camera trigger input.
         GRBL synchronises coolant changes with motion, so this waits for running moves."""
         self.command("M8" if on else "M9")
+
+    def interrupt(self) -> str:
+        """Stop whatever lfrig started, after a Ctrl-C that may have come in the middle of a reply:
+        a homing cycle only by a soft reset (GRBL ignores a feed hold while homing; the reset raises
+        ``ALARM:6`` and the position is lost), a motion by :meth:`stop` (feed hold, then reset, so
+        the position is kept). Returns what was done, for the user. Bytes already read stay: a
+        line cut by the Ctrl-C is completed by what follows."""
+        if self._homing:
+            self._homing = False
+            self.homed = False
+            try:
+                alarms = self.reset()
+            except GrblTimeoutError:
+                alarms = []
+            self.homing_required = self.homing_required or "ALARM:6 (homing fail: the homing cycle was reset)"
+            self._homing_required_code = self._homing_required_code or 6
+            return ("homing stopped by a soft reset"
+                    + (f" (GRBL raised {', '.join(f'ALARM:{c}' for c in alarms)})" if alarms else "")
+                    + "; the position is lost")
+        self.stop()
+        if self.homing_required:
+            return f"stopped by a feed hold and a soft reset, but GRBL raised {self.homing_required}"
+        return "stopped by a feed hold, then a soft reset (the position is kept)"
 
     def stop(self) -> None:
         """Stop at once: feed hold (``!``), wait until GRBL reports the hold complete (``Hold:0``;

@@ -113,6 +113,14 @@ class FrameAware(Protocol):
 
 
 @runtime_checkable
+class StepGridded(Protocol):
+    """A stage whose positions are whole motor steps: it can tell which targets it cannot reach."""
+
+    def check_step_grid(self, targets_mm, *, tolerance_mm: float | None = None) -> None:
+        """Raise (a :class:`rig.errors.RigError`) for a target that lies between two motor steps, before anything moves."""
+
+
+@runtime_checkable
 class WireLogged(Protocol):
     """A stage that hands each line it sends or receives to a hook (for the session log)."""
 

@@ -13,8 +13,10 @@ that cannot prove the same frame refuses (:class:`FrameNotProvenError`) before a
 asked to retake every view in the present frame (``retake_all``). A capture refused before its first
 view leaves no journal behind.
 
-Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly; a second
-one stops the stage at once (feed hold, then soft reset) and raises :class:`CaptureInterrupted`.
+Interrupting: the first Ctrl-C (SIGINT) lets the current view finish and then stops cleanly (during a
+backlash take-up move, the view it leads to: the stage stops on the journal's last view, where a
+resume without homing looks for it); a second one stops the stage at once (feed hold, then soft reset)
+and raises :class:`CaptureInterrupted`.
 
 Progress goes to ``progress(fraction, message)`` (:mod:`recon.progress`); a human-readable log is
 appended to ``OUT_DIR/session.log``.
@@ -40,7 +42,8 @@ from rig.frames import DOUBT, HOMED, FrameNotProvenError, check_resume, folder_d
 from rig.grid import GridSpec, Move, check_limits, plan_moves
 from recon.lf.capture import CaptureWriter, is_capture
 from recon.lf.lock import FolderLock
-from rig.protocols import Bounded, Camera, Configurable, FrameAware, Preparable, Stage, Toleranced, WireLogged
+from rig.protocols import (Bounded, Camera, Configurable, FrameAware, Preparable, Stage, StepGridded, Toleranced,
+                           WireLogged)
 
 __all__ = ["CaptureAborted", "CaptureInterrupted", "FrameNotProvenError", "SessionResult", "StageNotSettledError",
            "build_header", "plan_summary", "run_capture"]
@@ -296,6 +299,8 @@ def run_capture(
             return SessionResult(path, total, total, 0, False, clock.monotonic() - started)
         moves = plan_moves(grid, views=remaining)
         check_limits(moves, limits_mm)
+        if isinstance(stage, StepGridded):  # a target between two motor steps would fail its position check mid-capture
+            stage.check_step_grid([m.target_mm for m in moves], tolerance_mm=tolerance)
         if not retake:
             check_resume(path, stage=stage, captured=writer.frame, present=present, homing=home,
                          events=writer.events, completed=writer.completed, tolerance_mm=tolerance)
@@ -320,9 +325,13 @@ def run_capture(
             if present is not None and (retake or (not writer.completed and writer.frame != present)):
                 writer.new_frame(present)  # no view stands in the old frame any more
                 log(f"the capture's frame from here on: {present['origin']}")
+            taking_up = False  # the last move was a backlash take-up: its view comes next
             for move in moves:
-                if interrupts.stop_requested or (should_stop is not None and should_stop()):
+                # a stop request waits for the view a take-up leads to: stopping on the overshoot would
+                # leave the stage off the journal's last view, and a resume without homing must find it there
+                if not taking_up and (interrupts.stop_requested or (should_stop is not None and should_stop())):
                     break
+                taking_up = move.view is None
                 stage.move_to(move.target_mm, feed_mm_min=feed_mm_min)
                 readback = stage.wait_until_idle()
                 if move.view is None:

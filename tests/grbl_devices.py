@@ -11,6 +11,11 @@ carriage physically is in the machine frame homing defines (the firmware's ``%``
 fake's physical position), ``raw`` talks to the controller directly while lfrig does not hold it.
 Neither resets when the port opens (a real Arduino does: ``fakegrbl://`` models that).
 
+Two faults of the world between them, on both: ``power_cycle(boot_s=...)`` restarts the controller
+like a board whose bootloader runs first (bytes sent meanwhile are lost, the welcome line comes after
+``boot_s``), and ``garble_reports = N`` corrupts the next N status reports on their way to lfrig
+(the firmware's output then passes through a relay thread: ``make(relay=True)``).
+
 The test process keeps the slave side open (in raw mode) for the controller's whole life, so the
 controller never sees a hang-up between two lfrig runs; pyserial flushes what arrived meanwhile when
 it opens the port, as it does with a USB serial adapter.
@@ -62,6 +67,9 @@ class _PtyDevice:
 
     def __init__(self, settings: dict[int, float]) -> None:
         self.settings = dict(settings)
+        self.garble_reports = 0
+        self.garbled: list[bytes] = []
+        self._out_line = b""
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)  # no echo: the controller must not read back its own output
         self.path = os.ttyname(self.slave)
@@ -84,6 +92,21 @@ class _PtyDevice:
             if ready:
                 out += os.read(self.slave, 4096)
         raise TimeoutError(f"{self.kind}: no {until!r} after {data!r} within {timeout_s} s; got {out!r}")
+
+    def _garble(self, data: bytes) -> bytes:
+        """What reaches lfrig of ``data`` from the controller: whole lines, the next
+        ``garble_reports`` status reports with a digit of their position replaced by ``#``."""
+        self._out_line += data
+        *lines, self._out_line = self._out_line.split(b"\n")
+        out = b""
+        for line in lines:
+            if self.garble_reports and line.startswith(b"<") and b"Pos:" in line:
+                self.garble_reports -= 1
+                at = line.index(b"Pos:") + 5
+                line = line[:at] + b"#" + line[at + 1:]
+                self.garbled.append(line)
+            out += line + b"\n"
+        return out
 
     def drain(self) -> bytes:
         out = b""
@@ -117,21 +140,29 @@ class Firmware(_PtyDevice):
     kind = "firmware"
 
     def __init__(self, exe: Path, workdir: Path, settings: dict[int, float] = FAST,
-                 start_mm: Sequence[float] | None = None) -> None:
+                 start_mm: Sequence[float] | None = None, relay: bool = False) -> None:
         super().__init__({})
         self.exe = exe
         self.workdir = workdir
+        self.relay = relay
+        self._relay_thread: threading.Thread | None = None
         workdir.mkdir(parents=True, exist_ok=True)
         self.process: subprocess.Popen | None = None
         self._start(None)
         self.configure(dict(settings), start_mm=start_mm)
 
-    def _start(self, start_mm: Sequence[float] | None) -> None:
+    def _start(self, start_mm: Sequence[float] | None, *, wait: bool = True) -> None:
         command = [str(self.exe), "-n", "-s", "/dev/null", "-b", "/dev/null"]
         if start_mm is not None:
             command += ["-p", ",".join(f"{c:.4f}" for c in start_mm)]
-        self.process = subprocess.Popen(command, cwd=self.workdir, stdin=self.master, stdout=self.master,
+        stdout = subprocess.PIPE if self.relay else self.master
+        self.process = subprocess.Popen(command, cwd=self.workdir, stdin=self.master, stdout=stdout,
                                         stderr=subprocess.DEVNULL, start_new_session=True)
+        if self.relay:
+            self._relay_thread = threading.Thread(target=self._relay, args=(self.process,), daemon=True)
+            self._relay_thread.start()
+        if not wait:
+            return
         out = b""
         deadline = time.monotonic() + 10
         while b"['$' for help]" not in out:
@@ -141,10 +172,45 @@ class Firmware(_PtyDevice):
                 out += os.read(self.slave, 4096)
         self.drain()
 
+    def _relay(self, process: subprocess.Popen) -> None:
+        """The firmware's output to the port, through :meth:`_garble`."""
+        pipe = process.stdout
+        assert pipe is not None
+        while True:
+            data = os.read(pipe.fileno(), 4096)
+            if not data:
+                return
+            out = self._garble(data)
+            if out:
+                os.write(self.master, out)
+
+    def power_cycle(self, *, boot_s: float) -> None:
+        """Power off now and on again ``boot_s`` later with the carriage where it is, like a board that
+        resets when its port opens and runs its bootloader first: what the port sends meanwhile is
+        lost. Returns at once (lfrig may open the port meanwhile)."""
+        start_mm = self.carriage_mm()
+        self._stop()
+
+        def boot() -> None:
+            time.sleep(boot_s)
+            while select.select([self.master], [], [], 0)[0]:
+                os.read(self.master, 4096)  # the bootloader swallows it
+            self._start(start_mm, wait=False)
+
+        self._boot_thread = threading.Thread(target=boot, daemon=True)
+        self._boot_thread.start()
+
+    def power_off(self) -> None:
+        """Switch the controller off (the port stays, silent), until :meth:`restart`."""
+        self._stop()
+
     def _stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
             os.kill(self.process.pid, signal.SIGKILL)
             self.process.wait(timeout=10)
+        if self._relay_thread is not None:
+            self._relay_thread.join(timeout=5)
+            self._relay_thread = None
         self.process = None
         time.sleep(0.05)
         self.drain()
@@ -172,6 +238,9 @@ class Firmware(_PtyDevice):
         return tuple(s / self.settings.get(100 + i, 250.0) for i, s in enumerate(carriage))  # type: ignore[return-value]
 
     def close(self) -> None:
+        thread = getattr(self, "_boot_thread", None)
+        if thread is not None:
+            thread.join(timeout=30)
         self._stop()
         super().close()
 
@@ -191,6 +260,7 @@ class FakeOnPty(_PtyDevice):
         self.controller = FakeGrbl(clock=SystemClock(), settings=dict(settings), start_mm=start)
         self.start_mm = start
         self.lock = threading.Lock()
+        self._boot_at: float | None = None
         self._stopped = threading.Event()
         self.controller.power_on()
         self.controller.take_output()
@@ -208,9 +278,14 @@ class FakeOnPty(_PtyDevice):
                 time.sleep(0.01)
                 continue
             with self.lock:
+                if self._boot_at is not None:
+                    if time.monotonic() < self._boot_at:
+                        continue  # powered off, then the bootloader: what arrives is lost
+                    self._boot_at = None
+                    self.controller.power_on()
                 if data:
                     self.controller.receive(data)
-                out = self.controller.take_output()
+                out = self._garble(self.controller.take_output())
             if out:
                 os.write(self.master, out)
 
@@ -218,11 +293,23 @@ class FakeOnPty(_PtyDevice):
         if start_mm is None:
             start_mm = tuple(-float(self.settings.get(130 + i, 100.0)) / 2 for i in range(3))
         with self.lock:
+            self._boot_at = None  # on again (after power_off or during a power_cycle's boot)
             self.controller.power_on(start_mm=None if start_mm == "keep" else start_mm)
             out = self.controller.take_output()
         os.write(self.master, out)
         time.sleep(0.05)
         self.drain()
+
+    def power_off(self) -> None:
+        """Switch the controller off: it hears and says nothing until :meth:`restart`."""
+        with self.lock:
+            self._boot_at = float("inf")
+
+    def power_cycle(self, *, boot_s: float) -> None:
+        """As :meth:`Firmware.power_cycle`: off now, on with the welcome line ``boot_s`` later."""
+        with self.lock:
+            self.controller.advance()
+            self._boot_at = time.monotonic() + boot_s
 
     def carriage_mm(self) -> tuple[float, float, float]:
         with self.lock:

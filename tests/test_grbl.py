@@ -22,6 +22,7 @@ from rig.grbl import (
     Message,
     Ok,
     Setting,
+    StartupLine,
     Unknown,
     Welcome,
     describe_alarm,
@@ -40,7 +41,9 @@ from rig.grbl import (
     parse_status,
     feed_hold_time_s,
     homing_time_bound_s,
+    step_grid_offsets_mm,
     travel_limits_mm,
+    GrblProtocolError,
 )
 
 # -- encoding: exact bytes -------------------------------------------------------------------------
@@ -107,6 +110,8 @@ def test_parse_status_wpos_uses_wco_now_or_remembered():
         ("<Idel|MPos:1,2,3>", Unknown("<Idel|MPos:1,2,3>")),
         ("<Idle|MPos:1,2,3|FS>", Unknown("<Idle|MPos:1,2,3|FS>")),
         ("error:x", Unknown("error:x")),
+        (">G54:ok", StartupLine("G54", "ok")),  # a startup block ($N0) echoed after a reset
+        (">G20 G91:error:20", StartupLine("G20 G91", "error:20")),
         ("ok\r", Ok()),
     ],
 )
@@ -414,3 +419,85 @@ def test_fake_work_offsets_g53_and_23(fake):
         stage.move_to((-20.0, -20.0, -20.0))  # G53: machine coordinates
         assert stage.wait_until_idle() == (-20.0, -20.0, -20.0)
         assert Message("G54", "5.000,6.000,7.000") in stage.command("$#")
+
+
+def test_step_grid_offsets_are_the_distance_to_grbls_nearest_step():
+    settings = {100: 40.0, 101: 250.0, 102: 800.0}
+    offsets = step_grid_offsets_mm((-9.69, -9.69, -9.69), settings)
+    assert offsets == pytest.approx((0.010, 0.002, 0.0000), abs=1e-9)  # 0.025, 0.004, 0.00125 mm steps
+    assert step_grid_offsets_mm((-9.7, 0.0, -1.0), settings) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert max(step_grid_offsets_mm((-1.2345, 2, 3), {})) == 0.0  # steps/mm unknown: nothing to say
+
+
+def test_status_is_asked_again_after_a_garbled_report(fake, monkeypatch):
+    clock, controller, url = fake
+    with GrblStage(url, clock=clock) as stage:
+        stage.home()
+        real = controller._status_report
+        garble = {"left": 2}
+
+        def noisy() -> None:
+            if garble["left"]:
+                garble["left"] -= 1
+                controller._emit("<Idle|MPos:-1.0#0,-1.000,-1.000|FS:0,0>")
+            else:
+                real()
+
+        monkeypatch.setattr(controller, "_status_report", noisy)
+        assert stage.position() == (-1.0, -1.0, -1.0)
+        assert controller.rx_log.endswith(b"???")  # asked three times
+        garble["left"] = GrblStage.STATUS_ATTEMPTS
+        with pytest.raises(GrblProtocolError, match=r"garbled status reports in a row .*check the cable"):
+            stage.position()
+
+
+def test_fake_survives_resets_while_homing():
+    clock = VirtualClock()
+    controller = FakeGrbl(clock=clock)
+    controller.power_on()
+    controller.take_output()
+    controller.receive(b"$H\n")
+    clock.sleep(0.5)
+    assert controller.state == "Home"
+    controller.receive(b"\x18")  # Ctrl-C twice in `lfrig stage home`: a reset, then another
+    controller.receive(b"\x18")
+    out = controller.take_output().decode()
+    assert "ALARM:6" in out and out.count("Grbl 1.1h") == 2 and controller.state == "Alarm"
+
+
+def test_read_only_connection_sends_no_reset(fake):
+    clock, controller, url = fake
+    mark = len(controller.rx_log)
+    with GrblStage(url, clock=clock, read_only=True) as stage:
+        assert stage.status()["state"] == "Alarm" and stage.reset_seen  # the fake resets on open, like an Arduino
+        assert stage.limits_mm() == ((-100.0, -1.0), (-100.0, -1.0), (-50.0, -1.0))
+    assert b"\x18" not in wire_since(controller, mark) and b"!" not in wire_since(controller, mark)
+
+
+def test_ctrl_c_while_homing_stops_the_cycle_by_a_reset():
+    class CtrlCWhileHoming(VirtualClock):
+        armed = True
+
+        def sleep(self, seconds: float) -> None:
+            super().sleep(seconds)
+            if self.armed and controller.state == "Home" and self.monotonic() > homing_from + 1.0:
+                self.armed = False
+                raise KeyboardInterrupt
+
+    clock = CtrlCWhileHoming()
+    controller = FakeGrbl(clock=clock)
+    url = register(controller)
+    try:
+        with GrblStage(url, clock=clock) as stage:
+            homing_from = clock.monotonic()
+            with pytest.raises(KeyboardInterrupt):
+                stage.home()
+            mark = len(controller.rx_log)
+            done = stage.interrupt()
+            assert wire_since(controller, mark) == b"\x18"  # no feed hold: GRBL ignores one while homing
+            assert "homing stopped" in done and "ALARM:6" in done
+            assert stage.homing_required and not stage.homed
+            with pytest.raises(GrblAlarmError, match="home"):
+                stage.move_to((-5.0, -5.0, -5.0))
+    finally:
+        unregister(url)

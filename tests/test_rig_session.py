@@ -27,8 +27,9 @@ from rig.grbl import (
     GrblConnectionError,
     GrblStage,
     GrblTimeoutError,
+    encode_move,
 )
-from rig.grid import GridError, GridSpec, view_position
+from rig.grid import GridError, GridSpec, plan_moves, view_position
 from recon.lf.capture import read_capture
 from rig.session import CaptureAborted, CaptureInterrupted, FrameNotProvenError, run_capture
 
@@ -386,3 +387,34 @@ def test_the_port_record_is_never_read_or_written_through_a_link(tmp_path):
     with pytest.raises(PortStateError, match="symbolic link"):
         PortRecord.open("/dev/ttyLFRIGTEST0")
     assert list(elsewhere.iterdir()) == []
+
+
+def test_a_stop_during_a_backlash_take_up_finishes_its_view(rig, tmp_path, monkeypatch):
+    """Stopping on the take-up's overshoot would leave the stage 0.2 mm off the journal's last view,
+    where a resume without homing looks for it."""
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=3, centre_mm=CENTRE)
+    camera = PositionCamera(controller)
+    take_ups = {encode_move(m.target_mm).decode().strip() for m in plan_moves(spec) if m.view is None}
+
+    asked = []
+    receive = controller.receive
+
+    def receive_and_ask_to_stop(data: bytes) -> None:  # a Ctrl-C the moment a take-up line arrives
+        receive(data)
+        if camera.triggers >= 3 and controller.lines_received and controller.lines_received[-1] in take_ups:
+            asked.append(controller.lines_received[-1])
+
+    monkeypatch.setattr(controller, "receive", receive_and_ask_to_stop)
+
+    def after_a_take_up() -> bool:
+        return bool(asked)
+
+    with open_stage(url, clock) as stage:
+        result = run_capture(tmp_path / "c", stage=stage, camera=camera, grid=spec, clock=clock, progress=None,
+                             should_stop=after_a_take_up)
+        # (0, 2) -> (1, 2) goes +y only; (1, 1), reached going -x, is the first view after a take-up
+        assert result.interrupted and result.completed == 5
+        assert (view_lines(tmp_path / "c")[-1]["u"], view_lines(tmp_path / "c")[-1]["v"]) == (1, 1)
+        last = view_lines(tmp_path / "c")[-1]["readback_mm"]
+        assert max(abs(a - b) for a, b in zip(stage.position(), last)) <= 0.005

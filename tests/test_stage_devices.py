@@ -23,7 +23,7 @@ import pytest
 
 from grbl_devices import FAST, GRBL_SIM, FakeOnPty, Firmware, build_firmware
 from rig.main import main
-from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, travel_limits_mm
+from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, port_holders, travel_limits_mm
 
 pytestmark = pytest.mark.slow  # real-time motion: about 3 min on the firmware, 2 on the fake
 
@@ -52,11 +52,11 @@ def make_device(request, tmp_path):
     """``make_device(settings=..., start_mm=...)``: a controller on a pty (stopped at teardown)."""
     made = []
 
-    def make(settings: dict | None = None, start_mm=None):
+    def make(settings: dict | None = None, start_mm=None, relay: bool = False):
         merged = {**FAST, **(settings or {})}
         if request.param == "firmware":
             exe = request.getfixturevalue("firmware_exe")
-            device = Firmware(exe, tmp_path / f"grbl{len(made)}", settings=merged, start_mm=start_mm)
+            device = Firmware(exe, tmp_path / f"grbl{len(made)}", settings=merged, start_mm=start_mm, relay=relay)
         else:
             device = FakeOnPty(settings=merged, start_mm=start_mm)
         made.append(device)
@@ -477,3 +477,200 @@ def test_unlock_and_a_move_do_not_fake_the_frame_proof(make_device, tmp_path, ca
     assert main(args) == 0, capsys.readouterr().err
     check_views(out, 9)
     assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+
+
+# -- Ctrl-C on the stage commands, resets on open, noise, other programs on the port, settings -----
+
+
+def wait_until_open(process: subprocess.Popen, device, timeout_s: float = 60) -> None:
+    """Wait until the lfrig process ``process`` has the controller's port open."""
+    deadline = time.monotonic() + timeout_s
+    while process.pid not in [pid for pid, _ in port_holders(device.path)]:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "lfrig did not open the port"
+        time.sleep(0.02)
+
+
+def standing_still(device) -> tuple[float, float, float]:
+    here = device.carriage_mm()
+    time.sleep(0.5)
+    assert device.carriage_mm() == here, "the carriage is still moving"
+    return here
+
+
+def test_ctrl_c_stops_a_stage_move_and_says_where(make_device):
+    device = make_device({22: 0, 20: 0})
+    start = device.carriage_mm()
+    # 15 mm at 1 mm/s from the power-up position
+    process = start_capture(["stage", "move", "-15", "0", "0", "--feed-mm-min", "60", "--stage", device.url])
+    wait_until_open(process, device)
+    time.sleep(3.0)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 130, err
+    assert "stopped by a feed hold" in err and "ALARM" not in err, err
+    reported = float(re.search(r"MPos X=(-?[0-9.]+)", err)[1])
+    moved = standing_still(device)[0] - start[0]
+    assert -13.0 < moved < -0.5, moved  # stopped on the way
+    assert abs(moved - reported) <= TOL, (moved, reported)  # and where it says
+
+
+def test_ctrl_c_stops_stage_home_by_a_reset(make_device):
+    # seek at 2 mm/s from off the switches: Z 8 mm first (4 s), then X and Y 9 mm
+    device = make_device({25: 120}, start_mm=(-9.0, -9.0, -8.0))
+    process = start_capture(["stage", "home", "--stage", device.url])
+    wait_until_open(process, device)
+    time.sleep(2.5)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 130, err
+    assert "homing stopped" in err and "ALARM:6" in err and "home it" in err, err
+    here = standing_still(device)
+    assert here[2] < -1.5, here  # Z, homed first, is short of its switch: the cycle did not go on
+
+
+def test_stage_status_does_not_stop_a_homing_cycle(make_device, capsys):
+    """`stage status` only looks: a homing cycle left running by a killed process goes on."""
+    device = make_device({25: 120}, start_mm=(-15.0, -15.0, -8.0))  # at least 11 s of homing
+    process = start_capture(["stage", "home", "--stage", device.url])
+    wait_until_open(process, device)
+    time.sleep(2.0)
+    process.kill()
+    process.communicate(timeout=30)
+    assert main(["stage", "status", "--stage", device.url]) == 2
+    err = capsys.readouterr().err
+    assert "no status report" in err and "homing" in err and "nothing that would stop it" in err, err
+    deadline = time.monotonic() + 40
+    while not close_to(device.carriage_mm(), (-1.0, -1.0, -1.0), tol=0.01):
+        assert time.monotonic() < deadline, device.carriage_mm()
+        time.sleep(0.5)
+
+
+def take_up_before_a_view(rows: int, cols: int, after_views: int) -> tuple[int, str]:
+    """The first backlash take-up move of a grid after ``after_views`` views, as the index of its
+    view among the views and the line lfrig sends for it (at the test feed)."""
+    from rig.grbl import encode_move
+    from rig.grid import GridSpec, plan_moves
+
+    moves = plan_moves(GridSpec(rows=rows, cols=cols, pitch_mm=0.5, centre_mm=CENTRE))
+    views = 0
+    for i, move in enumerate(moves):
+        if move.view is None and views >= after_views:
+            return views, encode_move(move.target_mm, feed_mm_min=60).decode().strip()
+        views += move.view is not None
+    raise AssertionError("no take-up move")
+
+
+def test_ctrl_c_during_a_backlash_take_up_still_resumes_without_homing(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    args = capture_args(out, device, "--feed-mm-min", "60", rows=3, cols=3)  # 1 mm/s: a take-up lasts 0.7 s
+    views_before, line = take_up_before_a_view(3, 3, after_views=3)
+    process = start_capture(args)
+    deadline = time.monotonic() + 120
+    log = out / "session.log"
+    while line not in (log.read_text() if log.exists() else ""):
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the take-up move was not sent"
+        time.sleep(0.01)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    assert len(views_in(out)) == views_before + 1  # the view the take-up led to was taken
+    assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
+    assert main(args + ["--no-home"]) == 0, capsys.readouterr().err
+    check_views(out, 9)
+
+
+@pytest.mark.parametrize("boot_s", [2.0, 2.8])
+def test_a_reset_on_open_is_seen_however_long_the_board_boots(make_device, boot_s):
+    device = make_device()
+    device.power_cycle(boot_s=boot_s)  # like an Arduino whose bootloader runs when the port opens
+    with GrblStage(device.path) as stage:
+        assert stage.reset_seen
+        assert "reset when the port opened" in stage.machine_frame_doubt()
+        assert stage.status()["state"] == "Alarm"  # $22=1: locked after power-up
+
+
+def test_garbled_status_reports_are_asked_again(make_device, tmp_path):
+    device = make_device(relay=True)
+    out = tmp_path / "cap"
+    process = start_capture(capture_args(out, device, rows=3, cols=3))
+    wait_for_views(process, out, 2)
+    device.garble_reports = 2  # two reports in a row lose a digit on the way
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    assert len(device.garbled) == 2 and err.count("garbled status report") == 2, err
+    check_views(out, 9)
+
+
+def test_a_controller_that_dies_mid_capture_is_named_as_the_cause(make_device, tmp_path, capsys):
+    device = make_device()
+    out = tmp_path / "cap"
+    process = start_capture(capture_args(out, device, rows=3, cols=3))
+    wait_for_views(process, out, 2)
+    device.power_off()
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 2, err
+    assert "does not answer a status query either" in err or "stopped answering" in err, err
+    assert "last report" not in err and "Ctrl-C" not in err, err
+    assert main(["stage", "status", "--stage", device.url]) == 2  # read-only: says what may be wrong
+    err = capsys.readouterr().err
+    assert "no status report within 5 s" in err and "off" in err, err
+
+
+def test_the_port_is_closed_to_other_programs_while_lfrig_holds_it(make_device):
+    device = make_device()
+    os.chmod(device.path, 0o666)  # open to every user, as a udev rule opens a USB serial adapter
+    cat = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", "timeout", "1", "cat", device.path]
+    with GrblStage(device.path) as stage:
+        done = subprocess.run(cat, capture_output=True, text=True, timeout=30)
+        assert done.returncode == 1 and "busy" in done.stderr.lower(), (done.returncode, done.stderr)
+        assert stage.status()["state"] == "Alarm"
+    done = subprocess.run(cat, capture_output=True, text=True, timeout=30)
+    # lfrig let go: cat opens it and reads (to the end: pyserial leaves VMIN=0, or to the timeout)
+    assert done.returncode in (0, 124) and not done.stderr, (done.returncode, done.stderr)
+
+
+def test_a_program_that_reads_the_port_is_named(make_device):
+    device = make_device()
+    cat = subprocess.Popen(["cat", device.path], stdout=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 10
+        while (cat.pid, "cat") not in port_holders(device.path):
+            assert time.monotonic() < deadline, port_holders(device.path)
+            time.sleep(0.02)
+        status = start_capture(["stage", "status", "--stage", device.url])
+        _, err = status.communicate(timeout=60)
+        # named when the port opens; then whichever reads a reply first takes it: lfrig gets its
+        # report, or names the program again in the error
+        assert f"process {cat.pid} (cat)" in err.splitlines()[0] and "also has the port open" in err, err
+        assert status.returncode == 0 or err.count(f"process {cat.pid} (cat)") == 2, err
+    finally:
+        cat.kill()
+        cat.wait()
+
+
+def test_inch_reports_are_refused(make_device, tmp_path, capsys):
+    device = make_device({13: 1})
+    assert main(capture_args(tmp_path / "cap", device, "--dry-run", rows=3, cols=3)) == 2
+    assert "set $13=0" in capsys.readouterr().err
+    before = device.carriage_mm()
+    assert main(["stage", "move", "-5", "-5", "-2", "--home", "--stage", device.url]) == 2
+    assert "set $13=0" in capsys.readouterr().err
+    assert device.carriage_mm() == before
+
+
+def test_targets_between_motor_steps_are_refused_before_anything_moves(make_device, tmp_path, capsys):
+    device = make_device({100: 40})  # 0.025 mm steps on X
+    out = tmp_path / "cap"
+    assert main(capture_args(out, device, "--dry-run", "--pitch-mm", "0.31", rows=3, cols=3)) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "$100=40 steps/mm" in err, err
+    assert main(capture_args(out, device, "--pitch-mm", "0.31", rows=3, cols=3)) == 2
+    err = capsys.readouterr().err
+    assert "$100=40 steps/mm" in err and "home it" not in err, err
+    assert views_in(out) == []
+    on_grid = tmp_path / "on-grid"
+    assert main(capture_args(on_grid, device, "--pitch-mm", "0.3", rows=3, cols=3)) == 0, capsys.readouterr().err
+    check_views(on_grid, 9)
