@@ -26,7 +26,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from recon.cloud import MAX_RELATIVE_JUMP, Mesh, PointCloud, depth_mesh, point_cloud
+from recon.cloud import MAX_RELATIVE_JUMP, MAX_STEP_FOOTPRINTS, Mesh, PointCloud, depth_mesh, point_cloud
 from recon.camera import Camera
 from recon.errors import ExportError
 
@@ -324,6 +324,7 @@ def export_ply(
     poisson: bool = False,
     ascii: bool = False,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
+    max_step_footprints: float = MAX_STEP_FOOTPRINTS,
     poisson_depth: int = 9,
     confidence: np.ndarray | None = None,
     min_confidence: float = MIN_CONFIDENCE,
@@ -347,7 +348,7 @@ def export_ply(
         ``(H, W)`` bool, ``True`` where the disparity is trustworthy; ``NaN`` disparities and
         non-positive effective disparities are left out in any case.
     kind
-        ``"mesh"`` (the depth grid triangulated, cut at depth jumps) or ``"points"``.
+        ``"mesh"`` (the depth grid triangulated, cut where the surface breaks) or ``"points"``.
     poisson
         Mesh by screened Poisson reconstruction of the oriented cloud instead of the grid
         (``kind`` must be ``"mesh"``).
@@ -356,6 +357,10 @@ def export_ply(
     max_relative_jump
         Neighbours whose depths differ by more than this fraction are not joined
         (:data:`recon.cloud.MAX_RELATIVE_JUMP`).
+    max_step_footprints
+        Neighbours whose step, beyond the local slope of the disparity, is more than this many pixel
+        footprints are not joined (:func:`recon.cloud.surface_breaks`,
+        :data:`recon.cloud.MAX_STEP_FOOTPRINTS`).
     poisson_depth
         Octree depth for :func:`poisson_mesh`.
     confidence
@@ -382,7 +387,7 @@ def export_ply(
         mask = trusted if mask is None else (np.asarray(mask, bool) & trusted)
     depth = camera.depth_mm(disparity.astype(np.float64))
     options = {"focal_px": camera.focal_px, "principal_point_px": camera.principal_point_px, "mask": mask,
-               "max_relative_jump": max_relative_jump}
+               "max_relative_jump": max_relative_jump, "max_step_footprints": max_step_footprints}
     cloud = point_cloud(depth, image, **options)
     depth_range = (float(cloud.points_mm[:, 2].min()), float(cloud.points_mm[:, 2].max())) if len(cloud) else None
     common = {"pixels_used": len(cloud), "pixels_total": int(disparity.size), "depth_range_mm": depth_range,
@@ -413,6 +418,7 @@ def export_result(
     pitch_mm: float | None = None,
     disparity_offset: float | None = None,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
+    max_step_footprints: float = MAX_STEP_FOOTPRINTS,
     min_confidence: float = MIN_CONFIDENCE,
     keep_all: bool = False,
 ) -> ExportSummary:
@@ -436,6 +442,7 @@ def export_result(
         poisson=poisson,
         ascii=ascii,
         max_relative_jump=max_relative_jump,
+        max_step_footprints=max_step_footprints,
         confidence=result.confidence,
         min_confidence=min_confidence,
         search_range=result.search_range,
