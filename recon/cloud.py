@@ -542,6 +542,14 @@ def depth_mesh(
     )
 
 
+def longest_edges(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(M,)`` length of each triangle's longest edge, in the vertices' unit (mm)."""
+    vertices = np.asarray(vertices_mm, np.float64)
+    corners = [vertices[triangles[:, k]] for k in range(3)]
+    lengths = [np.linalg.norm(corners[k] - corners[(k + 1) % 3], axis=-1) for k in range(3)]
+    return np.max(lengths, axis=0) if len(triangles) else np.zeros(0)
+
+
 def triangle_normals(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(M, 3)`` unit face normals by the right-hand rule over ``(v1 - v0) x (v2 - v0)``."""
     v0, v1, v2 = (vertices_mm[triangles[:, k]] for k in range(3))
