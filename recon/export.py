@@ -1,13 +1,16 @@
-"""The export edge: point clouds and meshes to PLY files through open3d.
+"""The export edge: point clouds and meshes to PLY files.
 
-This is the only module that imports open3d (lazily, inside the functions that need it, so that
-``import recon.export`` and ``lfrig --help`` stay fast). Everything before this point is plain numpy
-(:mod:`recon.depth`, :mod:`recon.cloud`).
+open3d is imported only here (lazily, inside the functions that need it, so that ``import
+recon.export`` and ``lfrig --help`` stay fast), for Poisson reconstruction; the PLY files are
+written by :func:`write_ply`. Everything before this point is plain numpy (:mod:`recon.depth`,
+:mod:`recon.cloud`).
 
 PLY files are binary little-endian by default, ASCII on request; coordinates are mm in the camera
 frame of the centre view (x right, y down, z forward; ``docs/conventions.md``). Vertices carry
-``x y z`` (double), ``nx ny nz`` (double) and, with an image, ``red green blue`` (uchar). Meshes add
-``face`` lists of vertex indices. MeshLab, CloudCompare and open3d read these files.
+``x y z`` (float32), ``nx ny nz`` (float32), with an image ``red green blue`` (uchar) and with a
+confidence map ``confidence`` (float32). Meshes add ``face`` lists of vertex indices. The header's
+``comment`` lines give units, frame, the meaning of ``confidence`` and the provenance
+(:mod:`recon.provenance`). MeshLab, CloudCompare and open3d read these files.
 
 Entry points
 ------------
@@ -15,7 +18,7 @@ Entry points
   --ply`` and the simulated session call.
 - :func:`export_result`: the same from a reconstruction folder (``lfrig export``; the folder is
   read by :func:`recon.result.read_result`).
-- :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`poisson_mesh`: the pieces.
+- :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`write_ply`, :func:`poisson_mesh`: the pieces.
 """
 
 from __future__ import annotations
@@ -54,18 +57,6 @@ def to_open3d_cloud(cloud: PointCloud):
     if cloud.colours is not None:
         pcd.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(cloud.colours, dtype=np.float64))
     return pcd
-
-
-def to_open3d_mesh(mesh: Mesh):
-    """An ``open3d.geometry.TriangleMesh`` with vertex normals and colours (if any)."""
-    o3d = _open3d()
-    out = o3d.geometry.TriangleMesh()
-    out.vertices = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.vertices_mm, dtype=np.float64))
-    out.triangles = o3d.utility.Vector3iVector(np.ascontiguousarray(mesh.triangles, dtype=np.int32))
-    out.vertex_normals = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.normals, dtype=np.float64))
-    if mesh.colours is not None:
-        out.vertex_colors = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.colours, dtype=np.float64))
-    return out
 
 
 def _check_target(path: Path) -> Path:
