@@ -11,11 +11,11 @@ default the image centre ``((W - 1) / 2, (H - 1) / 2)``.
 
 Pixels without a trustworthy depth (``NaN``, ``inf``, ``<= 0``, or ``False`` in an optional mask)
 are left out. Two neighbouring pixels are *connected* when both are kept, their depths differ by at
-most ``max_relative_jump`` times the nearer one and, when the disparity map is given, the disparity
-does not jump between them against the local slope (:func:`disparity_breaks`); the mesh has triangles
-only over connected pixels, so a foreground object and the background behind it are not joined by a
-skin even where the estimate ramps over a few pixels. Normals are unit vectors that face the camera
-(``n . P < 0``).
+most ``max_relative_jump`` times the nearer one and the disparity (``focal_px / Z``) does not break
+between them against its local slope (:func:`surface_breaks`); the mesh has triangles only over
+connected pixels, so a foreground object and the background behind it are not joined by a skin even
+where the estimate ramps over a few pixels, while a slanted plane stays whole. Normals are unit
+vectors that face the camera (``n . P < 0``).
 
 Nothing here imports open3d; :mod:`recon.export` turns these arrays into files.
 """
@@ -183,7 +183,8 @@ def jump_residual(disparity_px, *, axis: int, span_links: int = 3,
     Parameters
     ----------
     disparity_px
-        ``(H, W)`` disparity, pixels per view step; ``NaN`` where there is none.
+        ``(H, W)`` disparity (pixels per view step), or anything affine in it such as
+        ``focal_px / Z``; ``NaN`` where there is none.
     axis
         1: links ``(y, x)``-``(y, x + 1)``, shape ``(H, W - 1)``; 0: ``(y, x)``-``(y + 1, x)``,
         shape ``(H - 1, W)``.
