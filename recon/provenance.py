@@ -56,11 +56,12 @@ def lfrig_version() -> str:
     as a PEP 440 local label (``0.1.0+g5dd87be``, ``+dirty`` is not checked)."""
     from importlib import metadata
 
-    try:
-        version = metadata.version("lfrig")
-    except metadata.PackageNotFoundError:
-        version = "unknown"
-    commit = _git_commit(Path(__file__).resolve().parent.parent)
+    root = Path(__file__).resolve().parent.parent
+    # the installed metadata, not a build's leftover ``lfrig.egg-info`` in the checkout (or the cwd)
+    path = [entry for entry in sys.path if entry and Path(entry).resolve() != root and Path(entry).is_dir()]
+    found = next(iter(metadata.distributions(name="lfrig", path=path)), None)
+    version = found.version if found is not None else "unknown"
+    commit = _git_commit(root)
     return f"{version}+g{commit}" if commit else version
 
 
