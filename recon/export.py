@@ -34,7 +34,7 @@ from recon.cloud import (MAX_RELATIVE_JUMP, MAX_STEP_FOOTPRINTS, Mesh, PointClou
                          point_cloud)
 from recon.camera import Camera
 from recon.errors import ExportError
-from recon.provenance import ply_comments, provenance as make_provenance, utc_now
+from recon.provenance import ply_comments, provenance as make_provenance
 
 
 def _open3d():
@@ -478,12 +478,11 @@ def export_result(
     """
     from recon.result import read_result
 
-    started = utc_now()
     result = read_result(result_dir)
     camera = result.camera(focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset)
     return export_ply(
         ply_path,
-        provenance=make_provenance(input=result_input(result), timings_s={}, command=command, started_utc=started),
+        provenance=make_provenance(input=result_input(result), timings_s={}, command=command),
         disparity_px=result.disparity_px,
         image=result.image,
         camera=camera,

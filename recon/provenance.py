@@ -175,15 +175,14 @@ def provenance(
 
 def ply_comments(record: Mapping[str, Any] | None) -> list[str]:
     """The provenance part of a PLY header's ``comment`` lines (one fact per line, ASCII, no line
-    breaks): version, command, start time and input."""
+    breaks): version, command and input. Not the time, so that the same command on the same input
+    writes the same file."""
     if not record:
         return []
     lines = [f"lfrig_version {record.get('lfrig_version')}"]
     command = record.get("command")
     if command:
         lines.append("command " + " ".join(_quote(part) for part in command))
-    if record.get("started_utc"):
-        lines.append(f"started_utc {record['started_utc']}")
     source = record.get("input") or {}
     if source.get("path"):
         lines.append(f"source {source.get('kind')} {source['path']}")
