@@ -276,21 +276,26 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
             "(Z = focal_px * pitch_mm / (d + disparity_offset)), and write what is asked for. Pixels without "
             "a trustworthy disparity are left out: not finite, confidence (confidence.pfm) below --min-confidence, "
             "or outside the range the method searched (--keep-all keeps them); the PLY carries each vertex's "
-            "confidence as a float property. The mesh is cut where depth jumps. Coordinates are mm in "
-            "the centre camera's frame (x right, y down, z forward)."
+            "confidence as a float property. The mesh is cut where the disparity breaks against its local slope "
+            "(--max-step) or depth jumps (--max-jump). Coordinates are mm (float32) in the centre camera's frame "
+            "(x right, y down, z forward); the PLY header records units, frame, lfrig's version, the command "
+            "and the source as comments."
         ),
     )
     export.add_argument("result_dir", type=Path, metavar="RESULT_DIR", help="output folder of lfrig reconstruct")
     export.add_argument("--ply", type=output_file, metavar="OUT.ply", help="write a PLY point cloud or mesh here")
     kind = export.add_mutually_exclusive_group()
     kind.add_argument("--mesh", dest="kind", action="store_const", const="mesh",
-                      help="triangulate the depth grid, cut at depth jumps (the default)")
+                      help="triangulate the depth grid, cut where the surface breaks (the default)")
     kind.add_argument("--points", dest="kind", action="store_const", const="points",
                       help="a coloured point cloud with normals")
     export.set_defaults(kind="mesh")
     export.add_argument("--ascii", action="store_true", help="ASCII PLY instead of binary")
     export.add_argument("--poisson", action="store_true",
                         help="mesh by screened Poisson reconstruction of the point cloud instead of the grid")
+    export.add_argument("--max-step", type=positive_float, default=None, metavar="FOOTPRINTS",
+                        help="mesh: neighbours whose disparity steps, beyond its local slope, by more than this many "
+                             "pixel footprints (the width a pixel covers at that depth) are not joined (default 8)")
     export.add_argument("--max-jump", type=positive_float, default=None, metavar="FRACTION",
                         help="neighbours whose depths differ by more than this fraction are not joined "
                              "(default 0.05)")
@@ -332,6 +337,8 @@ def _export(args: argparse.Namespace) -> None:
                           "--poses POSES_DIR")
     if args.poisson and args.kind == "points":
         raise ExportError("--poisson makes a mesh; drop --points")
+    if args.max_step is not None and not args.max_step > 0:
+        raise ExportError(f"--max-step {args.max_step}: give a positive number of pixel footprints, e.g. 8")
     if args.max_jump is not None and not args.max_jump > 0:
         raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
     if args.min_confidence is not None and not 0 <= args.min_confidence <= 1:
@@ -339,9 +346,10 @@ def _export(args: argparse.Namespace) -> None:
 
     import numpy as np
 
-    from recon.cloud import MAX_RELATIVE_JUMP
+    from recon.cloud import MAX_RELATIVE_JUMP, MAX_STEP_FOOTPRINTS
     from recon.depth import write_depth
-    from recon.export import MIN_CONFIDENCE, export_ply, trusted_pixels
+    from recon.export import MIN_CONFIDENCE, export_ply, result_input, trusted_pixels
+    from recon.provenance import provenance as make_provenance
     from recon.result import read_result
 
     min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
@@ -364,6 +372,8 @@ def _export(args: argparse.Namespace) -> None:
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
             kind=args.kind, poisson=args.poisson, ascii=args.ascii,
             max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
+            max_step_footprints=MAX_STEP_FOOTPRINTS if args.max_step is None else args.max_step,
+            provenance=make_provenance(input=result_input(result), timings_s={}),
             confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
             keep_all=args.keep_all,
         )
@@ -539,3 +549,11 @@ def _import(args: argparse.Namespace) -> None:
             disparity_range=tuple(args.disparity_range) if args.disparity_range else None, progress=bar,
         )
     print(f"{path}: imported from {args.src}, complete")
+    from recon.pipeline import metric_camera_missing
+
+    missing = metric_camera_missing(path)
+    if missing:
+        flags = " and ".join("--" + name.replace("_", "-") for name in missing)
+        print(f"lfrig: warning: {path} records no {' or '.join(missing)}, so it will only give disparity: no "
+              f"depth, point cloud or mesh. Import again with {flags} for metric output, or give them to "
+              "`lfrig export` later.", file=sys.stderr)

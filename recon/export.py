@@ -1,13 +1,16 @@
-"""The export edge: point clouds and meshes to PLY files through open3d.
+"""The export edge: point clouds and meshes to PLY files.
 
-This is the only module that imports open3d (lazily, inside the functions that need it, so that
-``import recon.export`` and ``lfrig --help`` stay fast). Everything before this point is plain numpy
-(:mod:`recon.depth`, :mod:`recon.cloud`).
+open3d is imported only here (lazily, inside the functions that need it, so that ``import
+recon.export`` and ``lfrig --help`` stay fast), for Poisson reconstruction; the PLY files are
+written by :func:`write_ply`. Everything before this point is plain numpy (:mod:`recon.depth`,
+:mod:`recon.cloud`).
 
 PLY files are binary little-endian by default, ASCII on request; coordinates are mm in the camera
 frame of the centre view (x right, y down, z forward; ``docs/conventions.md``). Vertices carry
-``x y z`` (double), ``nx ny nz`` (double) and, with an image, ``red green blue`` (uchar). Meshes add
-``face`` lists of vertex indices. MeshLab, CloudCompare and open3d read these files.
+``x y z`` (float32), ``nx ny nz`` (float32), with an image ``red green blue`` (uchar) and with a
+confidence map ``confidence`` (float32). Meshes add ``face`` lists of vertex indices. The header's
+``comment`` lines give units, frame, the meaning of ``confidence`` and the provenance
+(:mod:`recon.provenance`). MeshLab, CloudCompare and open3d read these files.
 
 Entry points
 ------------
@@ -15,20 +18,23 @@ Entry points
   --ply`` and the simulated session call.
 - :func:`export_result`: the same from a reconstruction folder (``lfrig export``; the folder is
   read by :func:`recon.result.read_result`).
-- :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`poisson_mesh`: the pieces.
+- :func:`write_cloud_ply`, :func:`write_mesh_ply`, :func:`write_ply`, :func:`poisson_mesh`: the pieces.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from recon.cloud import MAX_RELATIVE_JUMP, Mesh, PointCloud, depth_mesh, point_cloud
+from recon.cloud import (MAX_RELATIVE_JUMP, MAX_STEP_FOOTPRINTS, Mesh, PointCloud, depth_mesh, longest_edges,
+                         point_cloud)
 from recon.camera import Camera
 from recon.errors import ExportError
+from recon.provenance import ply_comments, provenance as make_provenance
 
 
 def _open3d():
@@ -53,18 +59,6 @@ def to_open3d_cloud(cloud: PointCloud):
     return pcd
 
 
-def to_open3d_mesh(mesh: Mesh):
-    """An ``open3d.geometry.TriangleMesh`` with vertex normals and colours (if any)."""
-    o3d = _open3d()
-    out = o3d.geometry.TriangleMesh()
-    out.vertices = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.vertices_mm, dtype=np.float64))
-    out.triangles = o3d.utility.Vector3iVector(np.ascontiguousarray(mesh.triangles, dtype=np.int32))
-    out.vertex_normals = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.normals, dtype=np.float64))
-    if mesh.colours is not None:
-        out.vertex_colors = o3d.utility.Vector3dVector(np.ascontiguousarray(mesh.colours, dtype=np.float64))
-    return out
-
-
 def _check_target(path: Path) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".ply":
@@ -74,59 +68,142 @@ def _check_target(path: Path) -> Path:
     return path
 
 
-def write_cloud_ply(path, cloud: PointCloud, *, ascii: bool = False) -> Path:
-    """Write a point cloud as PLY (binary unless ``ascii``). Returns the path."""
+#: What every PLY header says about the coordinates (``docs/conventions.md``).
+PLY_FRAME_COMMENTS = (
+    "units mm",
+    "frame centre camera of the light field: x right, y down, z forward along the optical axis "
+    "(docs/conventions.md)",
+    "normals unit vectors facing the camera (n . P < 0)",
+)
+#: What the ``confidence`` vertex property means.
+PLY_CONFIDENCE_COMMENT = ("confidence per-vertex confidence of the disparity in [0, 1] "
+                          "(recon.entropy.confidence), from the pixel the vertex comes from")
+
+
+def write_cloud_ply(path, cloud: PointCloud, *, ascii: bool = False, confidence: np.ndarray | None = None,
+                    comments: Sequence[str] = ()) -> Path:
+    """Write a point cloud as PLY (binary unless ``ascii``, :func:`write_ply`). Returns the path.
+
+    ``confidence``: ``(N,)`` per point, written as the float vertex property ``confidence``, or ``None``."""
     path = _check_target(path)
     if len(cloud) == 0:
         raise ExportError(f"{path}: nothing to write, the point cloud is empty (no pixel had a trustworthy depth)")
-    pcd = to_open3d_cloud(cloud)
-    _write_atomic(path, lambda tmp: _open3d().io.write_point_cloud(str(tmp), pcd, write_ascii=ascii),
-                  what="point cloud", vertices=len(cloud), faces=0, ascii=ascii)
-    return path
+    return write_ply(path, vertices_mm=cloud.points_mm, normals=cloud.normals, colours=cloud.colours,
+                     confidence=confidence, comments=comments, ascii=ascii)
 
 
-def write_mesh_ply(path, mesh: Mesh, *, ascii: bool = False) -> Path:
-    """Write a triangle mesh as PLY (binary unless ``ascii``). Returns the path."""
+def write_mesh_ply(path, mesh: Mesh, *, ascii: bool = False, confidence: np.ndarray | None = None,
+                   comments: Sequence[str] = ()) -> Path:
+    """Write a triangle mesh as PLY (binary unless ``ascii``, :func:`write_ply`). Returns the path.
+
+    ``confidence``: ``(N,)`` per vertex, written as the float vertex property ``confidence``, or ``None``."""
     path = _check_target(path)
     if len(mesh.triangles) == 0:
         raise ExportError(
             f"{path}: nothing to write, the mesh has no triangles (too few connected pixels); "
-            "export --points instead, or raise the jump threshold"
+            "export --points instead, or raise --max-step"
         )
-    o3d_mesh = to_open3d_mesh(mesh)
-    _write_atomic(
-        path,
-        lambda tmp: _open3d().io.write_triangle_mesh(
-            str(tmp), o3d_mesh, write_ascii=ascii, write_vertex_normals=True,
-            write_vertex_colors=mesh.colours is not None, write_triangle_uvs=False,
-        ),
-        what="mesh", vertices=len(mesh.vertices_mm), faces=len(mesh.triangles), ascii=ascii,
-    )
+    return write_ply(path, vertices_mm=mesh.vertices_mm, normals=mesh.normals, colours=mesh.colours,
+                     confidence=confidence, triangles=mesh.triangles, comments=comments, ascii=ascii)
+
+
+def write_ply(path, *, vertices_mm: np.ndarray, normals: np.ndarray, colours: np.ndarray | None = None,
+              confidence: np.ndarray | None = None, triangles: np.ndarray | None = None,
+              comments: Sequence[str] = (), ascii: bool = False) -> Path:
+    """Write vertices (and faces) as a PLY file, atomically (a temporary file renamed into place).
+
+    Parameters
+    ----------
+    vertices_mm, normals
+        ``(N, 3)``: written as ``float`` (float32) ``x y z`` and ``nx ny nz``.
+    colours
+        ``(N, 3)`` RGB in ``[0, 1]``, written as ``uchar`` ``red green blue``; or ``None``.
+    confidence
+        ``(N,)``, written as ``float confidence``; or ``None``.
+    triangles
+        ``(M, 3)`` vertex indices, written as ``face`` lists (``uchar`` count, ``uint`` indices); or
+        ``None`` for a point cloud.
+    comments
+        Header ``comment`` lines (one line each, printable ASCII; other characters are escaped),
+        after ``Created by lfrig``.
+    ascii
+        ASCII PLY instead of binary little-endian.
+
+    Raises
+    ------
+    ExportError
+        When the file cannot be written (a full disk, no permission); ``path`` keeps what it held.
+    """
+    from recon.errors import FileWriteError
+    from recon.lf.imageio import write_bytes_atomic
+    from recon.provenance import ascii_line
+
+    path = Path(path)
+    count = len(vertices_mm)
+    fields = [(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz")]
+    if colours is not None:
+        fields += [(name, "u1") for name in ("red", "green", "blue")]
+    if confidence is not None:
+        fields.append(("confidence", "<f4"))
+    vertex = np.empty(count, np.dtype(fields))
+    for k, name in enumerate(("x", "y", "z")):
+        vertex[name] = vertices_mm[:, k]
+    for k, name in enumerate(("nx", "ny", "nz")):
+        vertex[name] = normals[:, k]
+    if colours is not None:
+        rgb = np.clip(np.rint(np.asarray(colours, np.float64) * 255.0), 0, 255).astype(np.uint8)
+        for k, name in enumerate(("red", "green", "blue")):
+            vertex[name] = rgb[:, k]
+    if confidence is not None:
+        vertex["confidence"] = np.asarray(confidence, np.float32).reshape(-1)
+    faces = None if triangles is None else np.asarray(triangles)
+    if faces is not None and len(faces) and (faces.min() < 0 or faces.max() >= count):
+        raise ValueError(f"triangles index vertices 0..{count - 1}; got {faces.min()}..{faces.max()}")
+    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", "comment Created by lfrig"]
+    header += [f"comment {ascii_line(line)}" for line in comments]
+    header.append(f"element vertex {count}")
+    types = {"<f4": "float", "u1": "uchar"}
+    header += [f"property {types[kind]} {name}" for name, kind in fields]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar uint vertex_indices"]
+    header.append("end_header")
+    head = ("\n".join(header) + "\n").encode("ascii")
+    if ascii:
+        body = _ascii_rows(vertex) + (b"" if faces is None else _ascii_faces(faces))
+    else:
+        body = vertex.tobytes()
+        if faces is not None:
+            face = np.empty(len(faces), np.dtype([("n", "u1"), ("v", "<u4", 3)]))
+            face["n"] = 3
+            face["v"] = faces
+            body += face.tobytes()
+    try:
+        write_bytes_atomic(path, head + body)
+    except FileWriteError as error:
+        raise ExportError(str(error)) from None
     return path
 
 
-def _write_atomic(path: Path, write, *, what: str, vertices: int, faces: int, ascii: bool) -> None:
-    """Let open3d write a temporary file beside ``path``, check it, sync it and rename it into place.
+def _ascii_rows(vertex: np.ndarray) -> bytes:
+    """One line per vertex: floats to 7 significant digits (float32's precision), integers as they are."""
+    if not len(vertex):
+        return b""
+    columns = [vertex[name].astype(str) if vertex[name].dtype.kind == "u" else np.char.mod("%.7g", vertex[name])
+               for name in vertex.dtype.names]
+    lines = columns[0]
+    for column in columns[1:]:
+        lines = np.char.add(np.char.add(lines, " "), column)
+    return ("\n".join(lines.tolist()) + "\n").encode("ascii")
 
-    open3d reports success even when the disk filled up under it, so the file is checked too: its
-    header must announce ``vertices`` and ``faces`` elements and, for binary PLY, the body must be at
-    least as long as those elements need. A failed or short write is an :class:`ExportError` naming
-    ``path``, and ``path`` keeps what it held before.
-    """
-    from recon.errors import FileWriteError
-    from recon.lf.imageio import atomic_output
 
-    try:
-        with atomic_output(path, what=what) as tmp:
-            if not write(tmp):
-                raise ExportError(f"{path}: open3d could not write the {what} (is the folder writable and not full?)")
-            _check_ply(tmp, path, vertices=vertices, faces=faces, ascii=ascii)
-    except FileWriteError as error:
-        raise ExportError(str(error)) from None
+def _ascii_faces(faces: np.ndarray) -> bytes:
+    return "".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii")
 
 
 def _check_ply(tmp: Path, path: Path, *, vertices: int, faces: int, ascii: bool) -> None:
-    """Check the PLY open3d wrote at ``tmp`` holds what it should (see :func:`_write_atomic`)."""
+    """Check the PLY file at ``tmp`` holds what it should: its header announces ``vertices`` and
+    ``faces`` elements and the body is at least as long as those elements need; else an
+    :class:`ExportError` naming ``path``."""
     data_size = tmp.stat().st_size
     with open(tmp, "rb") as f:
         head = f.read(4096)
@@ -208,58 +285,6 @@ def poisson_mesh(cloud: PointCloud, *, depth: int = 9, density_quantile: float =
     return Mesh(vertices_mm=vertices, triangles=triangles, normals=normals, colours=colours, pixels=None)
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
-              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
-
-
-def add_vertex_property(path, name: str, values: np.ndarray) -> Path:
-    """Rewrite the PLY file ``path`` (as open3d writes it: binary little-endian or ASCII, the vertex
-    element first, its properties scalar) with one more ``float`` vertex property ``name``.
-
-    ``values`` ``(N,)``: one per vertex, in the file's vertex order. Other elements are kept byte for
-    byte. Returns the path."""
-    path = Path(path)
-    data = path.read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    lines = data[:end].decode("ascii").splitlines()
-    fmt = next(line.split()[1] for line in lines if line.startswith("format "))
-    try:
-        at = next(i for i, line in enumerate(lines) if line.startswith("element vertex "))
-    except StopIteration:
-        raise ExportError(f"{path}: no vertex element in the PLY header") from None
-    count = int(lines[at].split()[2])
-    values = np.asarray(values, np.float32).reshape(-1)
-    if len(values) != count:
-        raise ValueError(f"{path}: {count} vertices but {len(values)} values for {name!r}")
-    last = at + 1
-    while last < len(lines) and lines[last].startswith("property "):
-        last += 1
-    props = [line.split() for line in lines[at + 1:last]]
-    header = "\n".join(lines[:last] + [f"property float {name}"] + lines[last:]) + "\n"
-    body = data[end:]
-    if fmt == "ascii":
-        text = body.decode("ascii").split("\n")
-        rows = [f"{row} {v:.6g}" if row.strip() else row for row, v in zip(text[:count], values)]
-        out = header.encode("ascii") + "\n".join(rows + text[count:]).encode("ascii")
-    elif fmt == "binary_little_endian":
-        if any(p[1] == "list" for p in props):
-            raise ExportError(f"{path}: list properties in the vertex element are not supported")
-        dtype = np.dtype([(p[2], _PLY_TYPES[p[1]]) for p in props])
-        vertices = np.frombuffer(body[:count * dtype.itemsize], dtype=dtype)
-        extended = np.empty(count, np.dtype(dtype.descr + [(name, "<f4")]))
-        for field_name in dtype.names:
-            extended[field_name] = vertices[field_name]
-        extended[name] = values
-        out = header.encode("ascii") + extended.tobytes() + body[count * dtype.itemsize:]
-    else:
-        raise ExportError(f"{path}: PLY format {fmt!r} not supported for adding a property")
-    from recon.lf.imageio import write_bytes_atomic
-
-    write_bytes_atomic(path, out)
-    return path
-
-
 #: Pixels whose confidence (``confidence.pfm``, :mod:`recon.entropy.confidence`) is below this are left
 #: out of exports unless the caller keeps everything.
 MIN_CONFIDENCE = 0.4
@@ -298,6 +323,7 @@ class ExportSummary:
     pixels_total: int
     depth_range_mm: tuple[float, float] | None
     pixels_unreliable: int = 0  # left out for low confidence or a disparity outside the search range
+    long_triangles: int = 0  # triangles whose longest edge is over 10x the median one (curtains, spikes)
 
     def as_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
@@ -324,11 +350,13 @@ def export_ply(
     poisson: bool = False,
     ascii: bool = False,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
+    max_step_footprints: float = MAX_STEP_FOOTPRINTS,
     poisson_depth: int = 9,
     confidence: np.ndarray | None = None,
     min_confidence: float = MIN_CONFIDENCE,
     search_range: tuple[float, float] | None = None,
     keep_all: bool = False,
+    provenance: Mapping[str, Any] | None = None,
 ) -> ExportSummary:
     """Disparity of the centre view -> depth -> coloured point cloud or cut mesh -> PLY.
 
@@ -347,7 +375,7 @@ def export_ply(
         ``(H, W)`` bool, ``True`` where the disparity is trustworthy; ``NaN`` disparities and
         non-positive effective disparities are left out in any case.
     kind
-        ``"mesh"`` (the depth grid triangulated, cut at depth jumps) or ``"points"``.
+        ``"mesh"`` (the depth grid triangulated, cut where the surface breaks) or ``"points"``.
     poisson
         Mesh by screened Poisson reconstruction of the oriented cloud instead of the grid
         (``kind`` must be ``"mesh"``).
@@ -356,6 +384,10 @@ def export_ply(
     max_relative_jump
         Neighbours whose depths differ by more than this fraction are not joined
         (:data:`recon.cloud.MAX_RELATIVE_JUMP`).
+    max_step_footprints
+        Neighbours whose step, beyond the local slope of the disparity, is more than this many pixel
+        footprints are not joined (:func:`recon.cloud.surface_breaks`,
+        :data:`recon.cloud.MAX_STEP_FOOTPRINTS`).
     poisson_depth
         Octree depth for :func:`poisson_mesh`.
     confidence
@@ -364,6 +396,10 @@ def export_ply(
     min_confidence, search_range, keep_all
         Unless ``keep_all``, pixels with confidence below ``min_confidence`` or a disparity outside
         ``search_range`` are left out (:func:`trusted_pixels`).
+    provenance
+        :func:`recon.provenance.provenance` of what made the file, written into the PLY header as
+        ``comment`` lines (:func:`recon.provenance.ply_comments`) beside units, frame and the
+        meaning of ``confidence``; or ``None``.
     """
     if kind not in ("mesh", "points"):
         raise ValueError(f"kind must be 'mesh' or 'points'; got {kind!r}")
@@ -382,23 +418,38 @@ def export_ply(
         mask = trusted if mask is None else (np.asarray(mask, bool) & trusted)
     depth = camera.depth_mm(disparity.astype(np.float64))
     options = {"focal_px": camera.focal_px, "principal_point_px": camera.principal_point_px, "mask": mask,
-               "max_relative_jump": max_relative_jump}
+               "max_relative_jump": max_relative_jump, "max_step_footprints": max_step_footprints}
     cloud = point_cloud(depth, image, **options)
     depth_range = (float(cloud.points_mm[:, 2].min()), float(cloud.points_mm[:, 2].max())) if len(cloud) else None
     common = {"pixels_used": len(cloud), "pixels_total": int(disparity.size), "depth_range_mm": depth_range,
               "pixels_unreliable": unreliable}
+    comments = list(PLY_FRAME_COMMENTS) + ply_comments(provenance)
+    if confidence is not None:
+        comments.append(PLY_CONFIDENCE_COMMENT)
+        comments.append("confidence_filter every finite pixel kept" if keep_all else
+                        f"confidence_filter pixels below {min_confidence:g} left out")
+
+    def per_vertex(pixels: np.ndarray | None) -> np.ndarray | None:
+        if confidence is None or pixels is None:
+            return None
+        return np.asarray(confidence)[pixels[:, 0], pixels[:, 1]]
+
     if kind == "points":
-        written = write_cloud_ply(path, cloud, ascii=ascii)
-        if confidence is not None:
-            add_vertex_property(written, "confidence", np.asarray(confidence)[cloud.pixels[:, 0], cloud.pixels[:, 1]])
+        written = write_cloud_ply(path, cloud, ascii=ascii, confidence=per_vertex(cloud.pixels), comments=comments)
         return ExportSummary(path=written, kind="points", points=len(cloud), triangles=0, **common)
-    mesh = poisson_mesh(cloud, depth=poisson_depth) if poisson else depth_mesh(depth, image, **options)
-    written = write_mesh_ply(path, mesh, ascii=ascii)
-    if confidence is not None and mesh.pixels is not None:
-        add_vertex_property(written, "confidence", np.asarray(confidence)[mesh.pixels[:, 0], mesh.pixels[:, 1]])
+    if poisson:
+        mesh = poisson_mesh(cloud, depth=poisson_depth)
+        comments.append(f"mesh screened Poisson reconstruction of the oriented cloud, octree depth {poisson_depth}")
+    else:
+        mesh = depth_mesh(depth, image, **options)
+        comments.append(f"mesh pixel grid, cut where the disparity steps more than {max_step_footprints:g} pixel "
+                        f"footprints beyond its local slope or depth jumps more than {max_relative_jump:g}")
+    written = write_mesh_ply(path, mesh, ascii=ascii, confidence=per_vertex(mesh.pixels), comments=comments)
+    edges = longest_edges(mesh.vertices_mm, mesh.triangles)
     return ExportSummary(
         path=written, kind="poisson" if poisson else "mesh", points=len(mesh.vertices_mm),
-        triangles=len(mesh.triangles), **common,
+        triangles=len(mesh.triangles), long_triangles=int(np.count_nonzero(edges > 10 * np.median(edges))),
+        **common,
     )
 
 
@@ -413,14 +464,17 @@ def export_result(
     pitch_mm: float | None = None,
     disparity_offset: float | None = None,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
+    max_step_footprints: float = MAX_STEP_FOOTPRINTS,
     min_confidence: float = MIN_CONFIDENCE,
     keep_all: bool = False,
+    command: Sequence[str] | None = None,
 ) -> ExportSummary:
     """:func:`export_ply` for a reconstruction folder (:func:`recon.result.read_result`).
 
     ``focal_px``, ``pitch_mm`` and ``disparity_offset`` override ``result.json`` when given. The
     folder's ``confidence.pfm`` and searched range (``result.json`` options) filter the pixels unless
-    ``keep_all``.
+    ``keep_all``. The PLY header names the light field the reconstruction read (``result.json``'s
+    provenance, :func:`result_input`) and ``command`` (default: this process's command line).
     """
     from recon.result import read_result
 
@@ -428,6 +482,7 @@ def export_result(
     camera = result.camera(focal_px=focal_px, pitch_mm=pitch_mm, disparity_offset=disparity_offset)
     return export_ply(
         ply_path,
+        provenance=make_provenance(input=result_input(result), timings_s={}, command=command),
         disparity_px=result.disparity_px,
         image=result.image,
         camera=camera,
@@ -436,8 +491,18 @@ def export_result(
         poisson=poisson,
         ascii=ascii,
         max_relative_jump=max_relative_jump,
+        max_step_footprints=max_step_footprints,
         confidence=result.confidence,
         min_confidence=min_confidence,
         search_range=result.search_range,
         keep_all=keep_all,
     )
+
+
+def result_input(result) -> dict[str, Any]:
+    """The input identity of a reconstruction folder (:class:`recon.result.ResultFolder`): its
+    ``result.json`` provenance's ``input``, else the ``source`` folder it names, not hashed."""
+    recorded = (result.record.provenance or {}).get("input")
+    if isinstance(recorded, dict) and recorded.get("kind"):
+        return recorded
+    return {"kind": "unknown", "path": result.record.source}

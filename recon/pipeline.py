@@ -16,7 +16,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -116,6 +116,24 @@ def check_output_outside(source: str | os.PathLike, out_dir: str | os.PathLike) 
                          "its own for them")
 
 
+#: The camera values metric depth needs (``Z = focal_px * pitch_mm / (d + d0)``).
+METRIC_CAMERA = ("focal_px", "pitch_mm")
+
+
+def metric_camera_missing(lf: str | os.PathLike | LightField) -> list[str]:
+    """Which of :data:`METRIC_CAMERA` a light field does not record, without reading its views (a
+    folder: its ``parameters.cfg``, the only place either layout keeps them)."""
+    if isinstance(lf, LightField):
+        return [name for name in METRIC_CAMERA if getattr(lf, name) is None]
+    from recon.lf.params import camera_from_parameters, read_parameters
+
+    cfg = Path(lf) / "parameters.cfg"
+    if not cfg.is_file():
+        return list(METRIC_CAMERA)
+    _, camera = camera_from_parameters(read_parameters(cfg), path=cfg)
+    return [name for name in METRIC_CAMERA if camera.get(name) is None]
+
+
 def write_json_atomic(path: Path, record: Any) -> None:
     """Write ``record`` as indented JSON to ``path`` through a temporary file renamed over it."""
     from recon.lf.imageio import write_bytes_atomic
@@ -136,6 +154,7 @@ def reconstruct_to_folder(
     source: str | None = None,
     extra: Mapping[str, Any] | None = None,
     verify: bool = True,
+    command: Sequence[str] | None = None,
 ) -> FolderResult:
     """Reconstruct one light field into ``out_dir`` (created if needed); see the module docstring.
 
@@ -161,6 +180,9 @@ def reconstruct_to_folder(
         More keys for ``result.json`` (e.g. how the work was tiled); they must not clash.
     verify
         Check a capture's views against their journalled checksums (:func:`recon.lf.capture.read_capture`).
+    command
+        The command line recorded in ``result.json``'s ``provenance`` (default: this process's,
+        :func:`recon.provenance.current_command`); a batch passes the command that started it.
 
     Raises
     ------
@@ -168,12 +190,21 @@ def reconstruct_to_folder(
         For an unreadable light field, a bad disparity range, or a failed export.
     """
     from recon.lf import read_lightfield
+    from recon.provenance import current_command, utc_now
 
+    started_utc, started = utc_now(), time.perf_counter()
+    command = current_command() if command is None else [str(part) for part in command]
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
     if lf.source is not None:
         check_output_outside(lf.source, out_dir)
+    read_s = time.perf_counter() - started
     opts: dict[str, Any] = dict(options or {})
     check_options(method, opts)
+    missing = metric_camera_missing(lf) if ply is not None else []
+    if missing:
+        raise ReconError(f"{lf.source or 'the light field'}: no {' or '.join(missing)} recorded (parameters.cfg), "
+                         "so no metric PLY can be made; reconstruct without the PLY (drop --ply) and give the camera "
+                         "to `lfrig export RESULT_DIR --ply OUT.ply --focal-px F --pitch-mm P`")
     if opts.get("disparity_range") is not None:
         opts["disparity_range"] = tuple(float(v) for v in opts["disparity_range"])
         problem = disparity_range_problem(opts["disparity_range"], grid=lf.grid_shape, image_shape=lf.image_shape)
@@ -185,16 +216,18 @@ def reconstruct_to_folder(
     # One writer per result folder; the lock ends with the process, whatever way it ends.
     with FolderLock(out, what="reconstruction"):
         return _reconstruct_locked(lf, out, method=method, opts=opts, ply=ply, ply_kind=ply_kind,
-                                   progress=progress, estimate=estimate, source=source, extra=extra)
+                                   progress=progress, estimate=estimate, source=source, extra=extra,
+                                   made={"command": command, "started_utc": started_utc, "read": read_s})
 
 
 def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[str, Any], ply, ply_kind,
-                        progress, estimate, source, extra) -> FolderResult:
+                        progress, estimate, source, extra, made: dict[str, Any]) -> FolderResult:
     from recon.colour import colourise
     from recon.evaluate import score
     from recon.lf.imageio import write_png
     from recon.lf import read_ground_truth
     from recon.lf.pfm import write_pfm
+    from recon.provenance import input_identity, provenance
 
     gt = read_ground_truth(lf)  # before the work: a broken truth file fails now, not after the estimate
     if gt is not None and gt.shape != lf.image_shape:
@@ -213,6 +246,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     method_result = (estimate or run_in_process)(lf, method, opts, progress)
     disparity = method_result.disparity
     seconds = time.perf_counter() - started
+    written = time.perf_counter()
     write_pfm(out / DISPARITY_PFM, disparity)
     picture, shown = colourise(disparity, value_range=lf.disparity_range)
     write_png(out / DISPARITY_PNG, picture)
@@ -229,7 +263,13 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
             listed.append(Path(ply).resolve().relative_to(out.resolve()).as_posix())
         except ValueError:
             pass
+    identity = input_identity(lf.source)
+    if source is not None:  # the folder the views came from, not a worker's copy of it
+        identity["path"] = source
+    timings = {"read": made["read"], "estimate": seconds, "write": time.perf_counter() - written}
     record = ResultRecord(
+        provenance=provenance(input=identity, timings_s=timings, command=made["command"],
+                              started_utc=made["started_utc"]),
         method=method, options=jsonable(method_result.options), source=source,
         image=[lf.image_shape[1], lf.image_shape[0]], grid=list(lf.grid_shape),
         focal_px=lf.focal_px, pitch_mm=lf.pitch_mm, disparity_offset=lf.disparity_offset,
@@ -242,6 +282,6 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     if ply is not None:
         from recon.export import export_result
 
-        folder.export = export_result(out, ply, kind=ply_kind)
+        folder.export = export_result(out, ply, kind=ply_kind, command=made["command"])
         folder.ply = Path(ply)
     return folder

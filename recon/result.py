@@ -77,6 +77,10 @@ class ResultRecord:
     files
         The files this run wrote into the folder (relative names), ``result.json`` and a PLY inside the
         folder included; the next run into the folder removes them first (:func:`clear_result`).
+    provenance
+        How the result was made (:func:`recon.provenance.provenance`: lfrig's version, the command,
+        the start time, the input's identity, timings per step, the machine), or ``None`` for a
+        folder written before it was recorded.
     extra
         Any further keys (how the work was tiled, a ``mask`` file name, ...), kept as they are.
     """
@@ -94,6 +98,7 @@ class ResultRecord:
     seconds: float | None = None
     scores: dict[str, Any] | None = None
     files: list[str] | None = None
+    provenance: dict[str, Any] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -106,11 +111,14 @@ class ResultRecord:
 
     def to_json(self) -> dict[str, Any]:
         """The JSON object of ``result.json`` (``scores`` only when there are any; ``extra`` inline)."""
-        record = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("scores", "files", "extra")}
+        optional = ("scores", "files", "provenance", "extra")
+        record = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in optional}
         if self.scores is not None:
             record["scores"] = self.scores
         if self.files is not None:
             record["files"] = list(self.files)
+        if self.provenance is not None:
+            record["provenance"] = self.provenance
         for key, value in self.extra.items():
             if key in record:
                 raise ValueError(f"extra key {key!r} would overwrite result.json's own {key!r}")
@@ -156,6 +164,8 @@ class ResultRecord:
         files = record.get("files")
         if files is not None and not (isinstance(files, list) and all(isinstance(f, str) for f in files)):
             raise ExportError(f"{where}: files = {files!r} must be a list of file names")
+        if values.get("provenance") is not None and not isinstance(values["provenance"], dict):
+            raise ExportError(f"{where}: provenance = {values['provenance']!r} must be a JSON object")
         return cls(**values, extra={key: value for key, value in record.items() if key not in own})
 
 

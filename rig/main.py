@@ -53,6 +53,20 @@ def user_path_error(error: OSError) -> str | None:
     path = error.filename if error.filename2 is None else f"{error.filename} -> {error.filename2}"
     return f"{path}: {error.strerror or 'OS error'}; {hint}"
 
+
+class _Version(argparse.Action):
+    """``--version``: the version is looked up only when asked for (it may ask git)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from recon.provenance import lfrig_version
+
+        print(f"lfrig {lfrig_version()}")
+        parser.exit()
+
+
 #: The modules whose ``register(subparsers)`` add subcommands, in the order ``--help`` lists them.
 #: Imported by :func:`build_parser` (inside :func:`main`'s handling of Ctrl-C: they load numba and scipy).
 COMMAND_MODULES = ("rig.demo", "recon.cli", "rig.cli", "calib.cli")
@@ -65,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="lfrig",
         description="Light-field capture on a translation stage, calibration, and disparity/depth reconstruction.",
     )
+    parser.add_argument("--version", action=_Version, help="print lfrig's version (with the git commit of a checkout) and exit")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
@@ -113,6 +128,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
+    from recon.provenance import set_command
+
+    set_command(["lfrig", *(sys.argv[1:] if argv is None else [str(a) for a in argv])])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -9,8 +9,10 @@ from recon.cloud import (
     depth_mesh,
     depth_to_points,
     grid_triangles,
+    jump_residual,
     neighbour_links,
     point_cloud,
+    surface_breaks,
     triangle_normals,
 )
 
@@ -132,3 +134,87 @@ def test_mesh_drops_isolated_pixels_but_cloud_keeps_them():
 def test_depth_must_be_a_map(bad):
     with pytest.raises(ValueError, match="depth_mm"):
         point_cloud(bad, focal_px=FOCAL_PX)
+
+
+# --------------------------------------------------------------------------------------------------
+# breaks judged on the disparity against its local slope (issue 23: the estimate's edges ramp)
+
+RIG_FOCAL_PX, RIG_PITCH_MM = 3000.0, 0.6  # focal_px * pitch_mm = 1800, as the simulated rig's
+
+
+def ramped_step(height=10, width=24, far_px=1.9, near_px=2.0, ramp=(0.025, 0.05, 0.075), start=10, seed=None):
+    """Depth (mm) of a far plane (x < start) and a near one, the disparity between them spread over
+    ``len(ramp)`` pixels as an estimate spreads an edge: each one-pixel step far below 5 % of depth."""
+    disparity = np.full((height, width), near_px)
+    disparity[:, :start] = far_px
+    for k, fraction in enumerate(ramp):
+        disparity[:, start + k] = far_px + fraction / 0.1 * (near_px - far_px)
+    if seed is not None:
+        disparity += 0.0002 * np.random.default_rng(seed).standard_normal(disparity.shape)
+    return RIG_FOCAL_PX * RIG_PITCH_MM / disparity
+
+
+@pytest.mark.parametrize("ramp", [(0.05,), (0.033, 0.067), (0.025, 0.05, 0.075)])
+def test_an_edge_ramped_over_a_few_pixels_is_cut(ramp):
+    depth = ramped_step(ramp=ramp, seed=5)
+    steps = np.abs(np.diff(depth, axis=1)) / np.minimum(depth[:, 1:], depth[:, :-1])
+    assert steps.max() < 0.05  # the relative depth test alone joins every pixel
+    mesh = depth_mesh(depth, focal_px=RIG_FOCAL_PX)
+    z = mesh.vertices_mm[mesh.triangles][..., 2]
+    # far 947.4 mm, near 900 mm: no triangle spans even a third of that
+    assert (z.max(axis=1) - z.min(axis=1)).max() < 5.0, "a triangle hangs across the edge"
+    # both planes stay meshed up to the ramp: the far side's x < 10, the near side's x >= 10 + len(ramp)
+    far_cells = 2 * (depth.shape[0] - 1) * (10 - 1)
+    near_cells = 2 * (depth.shape[0] - 1) * (depth.shape[1] - 10 - len(ramp) - 1)
+    assert len(mesh.triangles) >= far_cells + near_cells
+    # the normals beside the cut come from each pixel's own plane (fronto-parallel: straight at the camera)
+    cloud = point_cloud(ramped_step(ramp=ramp), focal_px=RIG_FOCAL_PX)  # without noise
+    flat = (cloud.pixels[:, 1] < 10) | (cloud.pixels[:, 1] >= 10 + len(ramp))
+    assert np.all(cloud.normals[flat] @ np.array([0.0, 0.0, -1.0]) > 0.999)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 6.0, 20.0])
+def test_a_steep_plane_stays_whole(tilt):
+    """Z = Z0 + tilt * X (+ tilt / 2 * Y): each pixel steps ``tilt`` footprints deeper, up to 87 deg
+    from facing the camera, with a little noise; nothing is cut."""
+    height, width = 16, 20
+    ys, xs = np.indices((height, width), dtype=float)
+    slope = tilt * (xs - (width - 1) / 2) / RIG_FOCAL_PX + tilt / 2 * (ys - (height - 1) / 2) / RIG_FOCAL_PX
+    depth = 1000.0 / (1.0 - slope)
+    depth *= 1 + 1e-5 * np.random.default_rng(1).standard_normal(depth.shape)
+    mesh = depth_mesh(depth, focal_px=RIG_FOCAL_PX)
+    assert len(mesh.triangles) == 2 * (height - 1) * (width - 1)
+    right, down = surface_breaks(depth, focal_px=RIG_FOCAL_PX)
+    assert not right.any() and not down.any()
+
+
+def test_a_band_two_pixels_wide_stays_joined_along_itself():
+    depth = np.full((12, 14), 1000.0)
+    depth[5:7, :] = 900.0  # a thin rod in front of a wall
+    right, down = neighbour_links(depth, focal_px=RIG_FOCAL_PX)
+    assert right.all()
+    assert down[5].all()  # the rod's two rows
+    assert not down[4].any() and not down[6].any()  # rod and wall are not joined
+
+
+def test_a_spike_off_the_surface_is_not_joined():
+    depth = np.full((9, 9), 1000.0)
+    depth[4, 4] = 1010.0  # 30 footprints behind its neighbours, 1 % of depth
+    right, down = neighbour_links(depth, focal_px=RIG_FOCAL_PX)
+    assert not right[4, 3] and not right[4, 4] and not down[3, 4] and not down[4, 4]
+    assert right.sum() == right.size - 2 and down.sum() == down.size - 2
+
+
+def test_jump_residual_is_zero_on_any_plane_and_the_step_at_an_edge():
+    ys, xs = np.indices((14, 12), dtype=float)
+    plane = 0.3 * xs - 0.2 * ys + 1.0
+    for axis in (0, 1):
+        for span in (1, 3, 5):
+            residual = jump_residual(plane, axis=axis, span_links=span)
+            assert np.isfinite(residual).all()
+            np.testing.assert_allclose(residual, 0.0, atol=1e-12)
+    ys, xs = np.indices((7, 12), dtype=float)
+    step = np.where(xs < 6, 1.0, 1.5)
+    residual = jump_residual(step, axis=1, span_links=3)
+    np.testing.assert_allclose(residual[:, 5], 0.5)
+    np.testing.assert_allclose(np.delete(residual, 5, axis=1), 0.0)  # flat links beside a sharp step stay

@@ -162,8 +162,10 @@ def test_binary_mesh_is_plain_ply_that_any_reader_can_parse(tmp_path):
     assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
     properties = [line.split()[-1] for line in lines if line.startswith("property ") and "list" not in line]
     assert properties == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    assert [line for line in lines if line.startswith("property float ")] == [
+        f"property float {n}" for n in properties[:6]]  # float32 vertices and normals
     assert "property list uchar uint vertex_indices" in lines
-    vertex = np.dtype([(n, "<f8") for n in properties[:6]] + [(n, "u1") for n in properties[6:]])
+    vertex = np.dtype([(n, "<f4") for n in properties[:6]] + [(n, "u1") for n in properties[6:]])
     face = np.dtype([("n", "u1"), ("v", "<u4", 3)])
     vertices = np.frombuffer(data, vertex, count=summary.points, offset=end)
     faces = np.frombuffer(data, face, count=summary.triangles, offset=end + vertex.itemsize * summary.points)

@@ -131,24 +131,19 @@ def _cloud(n=2000):
                       pixels=np.zeros((n, 2), np.int64))
 
 
-def test_a_ply_that_open3d_wrote_short_is_an_error_and_replaces_nothing(tmp_path, monkeypatch):
-    """open3d reports success on a full disk; the written file is checked against its header."""
-    import open3d
-
+def test_a_ply_write_that_fails_midway_is_an_error_and_replaces_nothing(tmp_path, monkeypatch):
+    """The disk fills up half-way through the PLY: an ExportError naming the file, the old file intact."""
+    import recon.lf.imageio as imageio
     from recon.export import write_cloud_ply
 
     target = tmp_path / "model.ply"
     target.write_bytes(b"previous complete file")
-    real = open3d.io.write_point_cloud
 
-    def short(name, pcd, **kw):
-        ok = real(name, pcd, **kw)
-        with open(name, "r+b") as f:
-            f.truncate(65536 if os.path.getsize(name) > 65536 else os.path.getsize(name) - 10)
-        return ok
+    def full(path):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(open3d.io, "write_point_cloud", short)
-    with pytest.raises(ExportError, match=r"model\.ply: the PLY written is shorter"):
+    monkeypatch.setattr(imageio, "fault_point", full)
+    with pytest.raises(ExportError, match=r"model\.ply: cannot write \(No space left on device\)"):
         write_cloud_ply(target, _cloud())
     assert target.read_bytes() == b"previous complete file"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.ply"]  # no temporary left

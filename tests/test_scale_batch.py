@@ -67,6 +67,7 @@ def captures(tmp_path_factory) -> dict[str, Path]:
     broken = root / "broken"
     broken.mkdir()
     (broken / "input_Cam000.png").write_bytes(b"this is not a PNG")
+    (broken / "parameters.cfg").write_text("[lfrig]\nfocal_px = 100\n\n[extrinsics]\nbaseline_mm = 1\n")  # a camera
     return {p.name: p for p in sorted(root.iterdir())}
 
 
@@ -104,8 +105,11 @@ def assert_same_result(folder: Path, reference: Path) -> None:
     np.testing.assert_array_equal(read_pfm(folder / "disparity.pfm"), read_pfm(reference / "disparity.pfm"))
     mine, theirs = (json.loads((f / "result.json").read_text()) for f in (folder, reference))
     mine.pop("seconds"), theirs.pop("seconds")
+    made, made_there = mine.pop("provenance"), theirs.pop("provenance")  # when, how and by which command differ
+    assert made["input"] == made_there["input"] and made["input"]["kind"] in ("capture", "benchmark")
     assert mine == theirs
-    assert (folder / "mesh.ply").stat().st_size == (reference / "mesh.ply").stat().st_size
+    ply, ply_there = ((f / "mesh.ply").read_bytes() for f in (folder, reference))
+    assert ply[ply.index(b"end_header\n"):] == ply_there[ply_there.index(b"end_header\n"):]
 
 
 def mtimes(folder: Path) -> dict[str, int]:
@@ -304,3 +308,19 @@ def test_batch_through_a_dask_scheduler_and_worker_started_by_hand(tmp_path, cap
     assert "2 done, 0 already complete, 1 failed" in printed and "FAILED broken" in printed
     for name in ("scene_a", "scene_b"):  # ... and the others are as if run one by one
         assert_same_result(out / name, one_by_one[name])
+
+
+def test_a_capture_without_camera_is_refused_before_any_work_when_a_ply_is_asked_for(tmp_path, captures, capsys):
+    """Issue 23: the batch ran the estimate, then failed on the export with a flag it does not have."""
+    from rig.main import main
+
+    bare = tmp_path / "bare"
+    shutil.copytree(captures["scene_b"], bare)
+    (bare / "parameters.cfg").unlink()
+    out = tmp_path / "out"
+    assert main(["batch", "reconstruct", str(captures["scene_a"]), str(bare), "-o", str(out), *FLAGS]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bare has no focal_px or pitch_mm" in err and "--export none" in err
+    assert not out.exists() or not any(out.rglob("disparity.pfm"))  # nothing was estimated
+    plan = prepare_batch([bare], out, request=BatchRequest(method="baseline", options=OPTIONS, export=None))
+    assert [job.name for job, _ in plan.todo] == ["bare"]  # disparity only: nothing to refuse

@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import shutil
 import tempfile
 import time
@@ -36,7 +35,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from recon.pipeline import reconstruct_to_folder, write_json_atomic
+from recon.pipeline import metric_camera_missing, reconstruct_to_folder, write_json_atomic
+from recon.provenance import current_command, lightfield_files, provenance, utc_now
 from recon.result import RESULT_JSON
 from recon.scale import ScaleError
 
@@ -56,11 +56,8 @@ SCHEDULER_GRACE_S = 10.0
 Transfer = Literal["shared", "ship"]
 Status = Literal["ok", "skipped", "failed"]
 
-#: The files a light-field reader uses (``recon.lf.benchmark``: benchmark layout; ``recon.lf.capture``: capture
-#: layout). Only these are fingerprinted and shipped, not e.g. a benchmark's high-resolution truth.
-_LIGHTFIELD_FILE = re.compile(
-    r"^(input_Cam\d{3}\.png|parameters\.cfg|gt_disp_lowres\.pfm|manifest\.jsonl|views/u\d+_v\d+\.png)$"
-)
+# Only the files a light-field reader uses (recon.provenance.lightfield_files) are fingerprinted and
+# shipped, not e.g. a benchmark's high-resolution truth.
 
 
 # --------------------------------------------------------------------------------------------------
@@ -152,16 +149,6 @@ def plan_jobs(captures: Sequence[str | os.PathLike], out_dir: str | os.PathLike)
 # --------------------------------------------------------------------------------------------------
 
 
-def lightfield_files(source: Path) -> list[str]:
-    """Relative paths (``/``-separated, sorted) of the files a reader uses in a light-field folder."""
-    found = []
-    for path in source.rglob("*"):
-        rel = path.relative_to(source).as_posix()
-        if path.is_file() and _LIGHTFIELD_FILE.match(rel):
-            found.append(rel)
-    return sorted(found)
-
-
 def input_fingerprint(source: Path) -> str:
     """SHA-256 over the light-field files' names, sizes and modification times (cheap: no reading)."""
     digest = hashlib.sha256()
@@ -246,12 +233,14 @@ def reconstruct_capture(
     request: BatchRequest,
     payload: dict[str, bytes] | None = None,
     threads: int | None = None,
+    command: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Reconstruct (and export) one capture; the cluster task. Never raises for a bad capture.
 
     Shared mode (``payload is None``): read ``source``, write into ``out_dir``. Ship mode: ``payload``
     maps relative paths to the light-field files' bytes; the work happens in a temporary folder and
     the output files come back as ``files`` (name -> bytes). ``threads`` caps numba/OpenCV threads.
+    ``command`` is the batch's command line, recorded in ``result.json``'s provenance.
 
     Returns
     -------
@@ -289,7 +278,7 @@ def reconstruct_capture(
         ply = target_dir / request.ply_name if request.ply_name else None
         folder = reconstruct_to_folder(
             lf_dir, target_dir, method=request.method, options=request.options, ply=ply,
-            ply_kind=request.export or "mesh", estimate=estimate, source=str(source), extra=extra,
+            ply_kind=request.export or "mesh", estimate=estimate, source=str(source), extra=extra, command=command,
         )
         names = list(folder.files) + ([request.ply_name] if ply is not None else [])
         report.update(status="ok", scores=folder.record.scores, names=names)
@@ -364,6 +353,8 @@ class BatchPlan:
     request: BatchRequest
     done: list[Outcome]
     todo: list[tuple[CaptureJob, str]]  # (job, input fingerprint)
+    command: list[str] = field(default_factory=current_command)  # recorded in every result and the summary
+    started_utc: str = field(default_factory=utc_now)
 
 
 def prepare_batch(captures: Sequence[str | os.PathLike], out_dir: str | os.PathLike, *,
@@ -372,8 +363,23 @@ def prepare_batch(captures: Sequence[str | os.PathLike], out_dir: str | os.PathL
 
     ``force`` redoes complete captures too. The marker of every capture to run is removed now, so
     its folder reads as incomplete until the run writes a new one.
+
+    Raises
+    ------
+    ScaleError
+        When a PLY is asked for (``request.export``) and a capture does not record the focal length
+        and pitch that metric depth needs: before any work, naming the captures.
     """
+    started = utc_now()
     jobs = plan_jobs(captures, out_dir)
+    if request.export is not None:
+        lacking = {job.name: metric_camera_missing(job.source) for job in jobs}
+        lacking = {name: missing for name, missing in lacking.items() if missing}
+        if lacking:
+            which = "; ".join(f"{name} has no {' or '.join(missing)}" for name, missing in lacking.items())
+            raise ScaleError(f"{which} (parameters.cfg), so no metric PLY can be made: run the batch with "
+                             "--export none for disparity only, or import the views again with --focal-px and "
+                             "--pitch-mm")
     done: list[Outcome] = []
     todo: list[tuple[CaptureJob, str]] = []
     for job in jobs:
@@ -386,7 +392,7 @@ def prepare_batch(captures: Sequence[str | os.PathLike], out_dir: str | os.PathL
         else:
             (job.out_dir / MARKER).unlink(missing_ok=True)
             todo.append((job, fingerprint))
-    return BatchPlan(jobs=jobs, out_dir=Path(out_dir), request=request, done=done, todo=todo)
+    return BatchPlan(jobs=jobs, out_dir=Path(out_dir), request=request, done=done, todo=todo, started_utc=started)
 
 
 def run_batch(
@@ -433,6 +439,7 @@ def run_batch(
     if transfer not in ("shared", "ship"):
         raise ValueError(f"transfer must be 'shared' or 'ship'; got {transfer!r}")
     request = plan.request
+    started = time.perf_counter()
     plan.out_dir.mkdir(parents=True, exist_ok=True)
     outcomes: dict[str, Outcome] = {}
     total = len(plan.jobs)
@@ -450,9 +457,22 @@ def run_batch(
         _run(client, plan, transfer=transfer, threads=threads, max_in_flight=max_in_flight, report=report,
              note=on_note, no_worker_timeout_s=no_worker_timeout_s)
     ordered = [outcomes[job.name] for job in plan.jobs]
+    made = provenance(input={"kind": "batch", "path": str(plan.out_dir.resolve()),
+                             "captures": {job.name: _recorded_input(job) for job in plan.jobs}},
+                      timings_s={"total": time.perf_counter() - started}, command=plan.command,
+                      started_utc=plan.started_utc)
     write_json_atomic(plan.out_dir / SUMMARY, {"request": request.identity(), "transfer": transfer,
-                                               "captures": [o.as_dict() for o in ordered]})
+                                               "captures": [o.as_dict() for o in ordered], "provenance": made})
     return ordered
+
+
+def _recorded_input(job: CaptureJob) -> dict[str, Any] | None:
+    """The input identity a capture's ``result.json`` records (its provenance), or ``None``."""
+    try:
+        record = json.loads((job.out_dir / RESULT_JSON).read_text(encoding="utf-8"))
+        return (record.get("provenance") or {}).get("input")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 @dataclass
@@ -523,7 +543,7 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
                 task.payload = client.scatter([payload], hash=False)[0]
             future = client.submit(reconstruct_capture, str(job.source),
                                    None if transfer == "ship" else str(job.out_dir), request, task.payload, threads,
-                                   pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
+                                   plan.command, pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
         except (CommClosedError, ConnectionError, TimeoutError) as error:
             # the worker chosen for the views (or the scheduler) went away during the call: try again;
             # if it was the scheduler, the loop's status check stops the batch
