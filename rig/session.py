@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -78,18 +79,35 @@ class SessionResult:
 
 
 class SessionLog:
-    """Appends timestamped lines to ``session.log`` (flushed at once, so a crash keeps them)."""
+    """Appends timestamped lines to ``session.log`` (flushed at once, so a crash keeps them).
+
+    Safe to call from a signal handler: a line logged while another is being written (the handler
+    ran in the middle of that write; a buffered file must not be re-entered) waits and is written
+    right after it."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._file = open(path, "a", encoding="utf-8")
+        self._writing = False
+        self._waiting: list[str] = []
 
     def __call__(self, message: str) -> None:
         stamp = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
-        self._file.write(f"{stamp}  {message}\n")
-        self._file.flush()
+        self._waiting.append(f"{stamp}  {message}\n")
+        if self._writing:  # a signal handler inside the write below: its line follows that one
+            return
+        self._writing = True
+        try:
+            while self._waiting:
+                self._file.write(self._waiting.pop(0))
+            self._file.flush()
+        finally:
+            self._writing = False
 
     def close(self) -> None:
+        for line in self._waiting:
+            self._file.write(line)
+        self._waiting.clear()
         self._file.close()
 
 
@@ -124,9 +142,17 @@ class _Interrupts:
 
     def _say(self, text: str) -> None:
         self.log(text)
-        if self.stream is not None:
+        if self.stream is None:
+            return
+        try:  # straight to the file descriptor: the handler may have interrupted a write to the stream
+            fd = self.stream.fileno()
+        except (AttributeError, OSError, ValueError):
+            fd = None
+        if fd is None:
             self.stream.write("\n" + text + "\n")
             self.stream.flush()
+        else:
+            os.write(fd, ("\n" + text + "\n").encode("utf-8", "replace"))
 
     def _handler(self, signum: int, frame: Any) -> None:
         self.count += 1

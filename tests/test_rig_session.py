@@ -418,3 +418,25 @@ def test_a_stop_during_a_backlash_take_up_finishes_its_view(rig, tmp_path, monke
         assert (view_lines(tmp_path / "c")[-1]["u"], view_lines(tmp_path / "c")[-1]["v"]) == (1, 1)
         last = view_lines(tmp_path / "c")[-1]["readback_mm"]
         assert max(abs(a - b) for a, b in zip(stage.position(), last)) <= 0.005
+
+
+def test_the_session_log_takes_a_line_from_a_signal_handler_mid_write(tmp_path):
+    """A Ctrl-C whose handler logs while a line is being written must not re-enter the buffered file
+    (RuntimeError: reentrant call): its line is written right after the one in progress."""
+    from rig.session import SessionLog
+
+    log = SessionLog(tmp_path / "session.log")
+    real_write = log._file.write
+    fired = []
+
+    def write_and_be_interrupted(text):
+        if not fired:
+            fired.append(True)
+            log("from the handler")  # what the SIGINT handler does
+        return real_write(text)
+
+    log._file.write = write_and_be_interrupted
+    log("a view")
+    log.close()
+    lines = (tmp_path / "session.log").read_text().splitlines()
+    assert [line.split("  ", 1)[1] for line in lines] == ["a view", "from the handler"]
