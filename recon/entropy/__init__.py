@@ -4,7 +4,8 @@
 ``DEFAULTS`` / ``EntropyOptions`` list every option with its default and help text.
 """
 
-from recon.entropy.estimate import DEFAULTS, EntropyOptions, EntropyResult, estimate_disparity, make_options
+from recon.entropy.estimate import EntropyResult, estimate_disparity
+from recon.entropy.options import DEFAULTS, EntropyOptions, make_options
 from recon.entropy.outputs import write_outputs
 
 __all__ = ["DEFAULTS", "EntropyOptions", "EntropyResult", "estimate_disparity", "make_options",
