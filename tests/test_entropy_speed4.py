@@ -41,7 +41,8 @@ def test_compact_penalty_lists_each_pixels_finite_windows_in_order():
 
 
 def test_search_penalty_is_the_masked_float32_product():
-    from recon.entropy.estimate import _search_penalty, make_options
+    from recon.entropy.options import make_options
+    from recon.entropy.steps import _search_penalty
     rng = np.random.default_rng(9)
     entropy = (rng.random((9, 11, 14)) * 6 - 1).astype(np.float32)
     entropy[rng.random(entropy.shape) < 0.5] = -np.inf

@@ -1,43 +1,28 @@
-"""The whole matching-entropy estimator: :func:`estimate_disparity`.
+"""The whole matching-entropy estimator: :func:`estimate_disparity`, the phases of
+:data:`recon.entropy.plan.PLAN` run on one image (``docs/entropy-method.md`` describes each step):
 
-Steps (paper Sections 3-4; ``docs/entropy-method.md`` says which reading each follows):
-
-1. initial disparity ``d0`` from the nine views (centre + farthest in eight directions),
-2. search range: the caller's, else the light field's, else the robust extent of ``d0``,
-3. region labels (Eqs. 8-12),
-4. window per pixel by largest matching entropy (Eq. 1); visible-view set of the shape for occluded
-   pixels, all views elsewhere,
-5. line search of Eq. 5 over all views with sub-step parabolic refinement (Eqs. 6-7),
-6. TV refinement of Eq. 13 in smooth regions.
+1. ``initial``: flat pixels (Eq. 12) and the initial disparity ``d0`` from the nine views (the
+   centre and the farthest in eight directions);
+2. ``layers``: black holes of ``d0`` filled, the search range (the caller's, else the light
+   field's, else the robust extent of ``d0``), the noise-limited pixels;
+3. ``matching``: views filtered where noise rules, region labels (Eqs. 8-11), windows by matching
+   entropy (Eq. 1), the line search of Eqs. 5-7 with sub-step refinement, centroid correction, the
+   boundary test;
+4. ``refine``: TV refinement of Eq. 13 in smooth regions, the confidence map.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.entropy.aperture import informative_strips
-from recon.entropy.boundary import snap_boundaries
-from recon.entropy.confidence import confidence_map
-from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
-from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
-from recon.entropy.noise import (filter_flat_views, noise_limited_windows, soften_views,
-                                 texture_to_noise, warp_mask_to_views, weak_texture_pixels)
-from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
-                                    line_search)
-from recon.entropy.windows import N_SHAPES
-from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
-from recon.entropy.windows import STRIP_SHAPES, curvature_size_cap, window_rect
-from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
-from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
-from recon.entropy.options import (DEFAULTS, PRESETS, EntropyOptions, check_options,  # noqa: F401
-                                   make_options)
+from recon.entropy.options import DEFAULTS, PRESETS, EntropyOptions, check_options, make_options  # noqa: F401
+from recon.entropy.plan import run_plan, start
+from recon.entropy.state import State
 from recon.errors import ReconError
-from recon.progress import ProgressCallback
 from recon.lf.lightfield import LightField
+from recon.progress import ProgressCallback
 
 
 @dataclass
@@ -94,57 +79,6 @@ class EntropyResult:
 
 
 
-class _Reporter:
-    """Turns the estimator's steps into one overall fraction for ``progress`` (:mod:`recon.progress`).
-
-    Each step has a weight in "initial-candidate units" (the time one candidate of the nine-view
-    search takes): a candidate of the full line search costs :data:`MATCH_CANDIDATE_WEIGHT` of them
-    (81 views and up to 77 windows against 9 views and 11), and the fixed steps a measured share
-    (2-core machine, 512x512, backgammon: initial 2.5 s for 52 candidates, matching 10 s for 121,
-    regions 0.2 s, windows 1.5 s, TV 1 s; the TV refinement compiled since: ~0.25 s with the
-    confidence map). The fraction never goes back.
-    """
-
-    FIXED = {"regions": 4.0, "windows": 30.0, "refine": 5.0}
-
-    def __init__(self, report, n_initial: int, n_matching: int) -> None:
-        self.report = report
-        self.weights = {"initial": float(n_initial), **self.FIXED,
-                        "matching": MATCH_CANDIDATE_WEIGHT * n_matching}
-        self.order = ["initial", "regions", "windows", "matching", "refine"]
-        self.current = "initial"
-        self.note = ""
-        self.last = 0.0
-
-    def set_matching(self, n_matching: int) -> None:
-        self.weights["matching"] = MATCH_CANDIDATE_WEIGHT * n_matching
-
-    def _emit(self, within: float) -> None:
-        if self.report is None:
-            return
-        before = sum(self.weights[k] for k in self.order[:self.order.index(self.current)])
-        total = sum(self.weights.values())
-        fraction = min(max((before + within * self.weights[self.current]) / total, self.last), 1.0)
-        self.last = fraction
-        self.report(fraction, self.note)
-
-    def step(self, name: str, message: str) -> None:
-        self.current = name
-        self.note = message
-        self._emit(0.0)
-
-    def within(self, fraction: float) -> None:
-        self._emit(fraction)
-
-    def done(self) -> None:
-        self.current = self.order[-1]
-        self.note = "done"
-        self._emit(1.0)
-
-
-#: Time of one full line-search candidate in units of one nine-view candidate (see ``_Reporter``).
-MATCH_CANDIDATE_WEIGHT = 1.8
-
 
 def _check(lf: LightField, opts: EntropyOptions) -> None:
     U, V = lf.grid_shape
@@ -154,13 +88,7 @@ def _check(lf: LightField, opts: EntropyOptions) -> None:
 
 
 def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
-                       progress: ProgressCallback | None = None,
-                       noise_sigma: float | None = None,
-                       initial: tuple[np.ndarray, np.ndarray] | None = None,
-                       disparity_origin: float | None = None,
-                       noise_limited: np.ndarray | None = None,
-                       stop_after: str | None = None,
-                       preset: str | None = None,
+                       progress: ProgressCallback | None = None, preset: str | None = None,
                        **overrides) -> EntropyResult:
     """Disparity of the centre view by the matching-entropy method.
 
@@ -169,24 +97,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     lf
         Light field with a grid of at least 3x3 views (``views[u, v, y, x(, c)]``).
     options
-        :class:`EntropyOptions`; default :data:`DEFAULTS` (the paper's values).
+        :class:`EntropyOptions`; default :data:`DEFAULTS`.
     progress
-        Called as ``progress(fraction, message)`` (:mod:`recon.progress`) with the estimated share of the whole
-        run done so far (``0..1``, never decreasing, weighted by each step's expected time) at the
-        start of each step and after every candidate disparity of the two line searches, which
-        take almost all the time; ``message`` names the current step. Ends with ``(1.0, "done")``.
-    noise_sigma, initial, disparity_origin, stop_after
-        For tiling (``recon.scale.tiles``; the default ``None`` computes everything here, from this
-        light field). ``noise_sigma``: the centre view's noise sigma in ``[0, 1]`` grey units
-        (default: estimated from this centre view). ``stop_after="initial"``: return after the raw
-        nine-view search (``initial_disparity`` not hole-filled; ``info`` has
-        ``initial_ambiguity`` and ``flat``), the whole-image step :func:`fill_initial` is the
-        caller's. ``initial=(d0, ambiguity0)``: an already filled initial estimate (skips the
-        initial search). ``disparity_origin``: bin origin of the disparity histogram (default the
-        layer map's minimum, :func:`layer_origin`). ``noise_limited``: the ``(H, W)`` bool mask of
-        :func:`noise_limited_pixels` of the whole image (its window-scale test reaches 2-3 window
-        radii; default: computed here). ``stop_after="matching"``: return before the whole-image
-        refinement (``disparity`` is the matched map; :func:`refine_global` finishes).
+        Called as ``progress(fraction, message)`` (:mod:`recon.progress`) with the estimated share
+        of the whole run done so far (``0..1``, never decreasing, weighted by each step's expected
+        time) at the start of each step and after every candidate disparity of the two line
+        searches, which take almost all the time; ``message`` names the current step. Ends with
+        ``(1.0, "done")``.
     preset
         A key of :data:`PRESETS` (``"paper"``: the paper's literal configuration) applied before
         ``overrides``; not together with ``options``.
@@ -200,356 +117,20 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     """
     opts = make_options(options, preset=preset, **overrides)
     _check(lf, opts)
-    if stop_after not in (None, "initial", "matching"):
-        raise ValueError(f"stop_after must be None, 'initial' or 'matching', got {stop_after!r}")
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
+    return result_of(run_plan(start(lf, opts, progress=progress)))
 
-    def lap(name: str) -> None:
-        nonlocal t
-        now = time.perf_counter()
-        timings[name] = now - t
-        t = now
 
-    gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
-    U, V, H, W = gray.shape
-    lap("load")
-
-    u0, v0 = U // 2, V // 2
-    flat, flat_info = flat_pixels(gray[u0, v0], size=opts.smooth_neighbourhood,
-                                  tolerance=opts.smooth_tolerance, sigma=noise_sigma)
-    noise = flat_info["noise_sigma"]
-    raw_gray = gray
-    hole_delta = hole_tolerance(opts, noise)
-    known = opts.disparity_range or lf.disparity_range
-    initial_rng = known if known is not None else opts.initial_range
-    if known is not None:  # search a little beyond a known range: edges of the range are refined
-        initial_rng = (known[0] - opts.initial_step, known[1] + opts.initial_step)
-    elif opts.discover_range and initial is None:
-        initial_rng = unknown_range(gray, options=opts, noise_sigma=noise)
-    n_initial = len(disparity_candidates(initial_rng[0], initial_rng[1], opts.initial_step))
-    guess = known if known is not None else initial_rng
-    reporter = _Reporter(progress, n_initial,
-                         len(disparity_candidates(guess[0], guess[1], opts.step)))
-    reporter.step("initial", "initial disparity (nine views)")
-    holes0 = None
-    if initial is None:
-        strip_ok0 = _strip_ok(gray[u0, v0], (opts.initial_window,), noise, opts)
-        strip_ok0 = None if strip_ok0 is None else strip_ok0[..., 0]
-        d0, _, ambiguity0 = initial_disparity(
-            gray, disparity_range=initial_rng, step=opts.initial_step, window=opts.initial_window,
-            shiftable=opts.initial_shiftable, strips=opts.strip_windows,
-            ambiguity_delta=hole_delta / opts.intensity_scale, progress=reporter.within,
-            strip_ok=strip_ok0)
-        if stop_after == "initial":
-            lap("initial")
-            return _partial(d0, flat, ambiguity0, noise, timings, opts, known or initial_rng)
-        d0, holes0 = fill_initial(d0, ambiguity0, flat, options=opts)
-    else:
-        d0, ambiguity0 = (np.asarray(a) for a in initial)
-        if d0.shape != (H, W) or ambiguity0.shape != (H, W):
-            raise ValueError(f"initial maps must be {H}x{W} like the views, got {d0.shape[::-1]}")
-    if opts.boundary_snap_initial:  # docs/entropy-method.md, "Boundaries"
-        d0 = _snap(raw_gray, d0, noise, initial_rng, opts)
-    # Noise-limited pixels (docs/entropy-method.md): matched on views filtered where they land,
-    # with the largest window.
-    if noise_limited is None:
-        noise_limited = noise_limited_pixels(raw_gray[u0, v0], flat, ambiguity0, noise=noise, options=opts)
-    elif noise_limited.shape != (H, W):
-        raise ValueError(f"noise_limited must be {H}x{W} like the views, got {noise_limited.shape[::-1]}")
-    if opts.noise_filter > 0 and noise_limited.any():
-        texture = opts.noise_gate == "texture"
-        gray = filter_flat_views(raw_gray, sigma_px=opts.noise_filter, noise_sigma=noise,
-                                 size=opts.smooth_neighbourhood, tolerance=opts.smooth_tolerance,
-                                 where=warp_mask_to_views(noise_limited, d0, (U, V)),
-                                 texture_ratio=opts.noise_texture_ratio if texture else None,
-                                 radius_px=max(opts.window_sizes) // 2)
-    if opts.weak_texture_filter > 0:  # the rest of the weak texture, mildly
-        weak = weak_texture_pixels(_texture_ratio(raw_gray[u0, v0], noise, opts),
-                                   texture_ratio=opts.weak_texture_ratio) & ~noise_limited
-        if weak.any():
-            gray = soften_views(gray, sigma_px=opts.weak_texture_filter,
-                                where=warp_mask_to_views(weak, d0, (U, V)),
-                                out=None if gray is raw_gray else gray)  # raw_gray is used later
-    lap("initial")
-    if known is not None:
-        rng = (float(known[0]), float(known[1]))
-    else:
-        rng = range_from_initial(d0, percentile=opts.range_percentile, margin=opts.range_margin,
-                                 limits=initial_rng, grid_shape=(U, V),
-                                 sure=sure_pixels(ambiguity0, step=opts.initial_step,
-                                                  width=opts.initial_hole_width))
-
-    reporter.step("regions", "region types")
-    labels, region_info = region_labels(
-        raw_gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
-        smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance,
-        occlusion_views=opts.occlusion_views, noise=noise,
-        keep=_layer_keep(ambiguity0, flat, opts))
-    lap("regions")
-
-    reporter.step("windows", "window selection (matching entropy)")
-    grey_q = quantise_grey(raw_gray[U // 2, V // 2], opts.grey_bins)
-    disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin, origin=disparity_origin)
-    sizes = tuple(sorted(opts.window_sizes))
-    if opts.side_windows == "edges":
-        side_radius = jump_distance(layer_jumps(region_info["layers"], layer_gap=opts.side_jump))
-    else:
-        side_radius = None if opts.side_windows == "occlusion" else np.zeros((H, W), np.int64)
-    shape_map, size_map, entropy, all_entropy = select_windows(
-        grey_q, disp_q, labels, sizes=sizes, alpha1=opts.alpha1,
-        alpha2_occlusion=opts.alpha2_occlusion, alpha2_other=opts.alpha2_other,
-        strips=opts.strip_windows, side_radius=side_radius,
-        layers=region_info["layers"] if opts.single_layer_windows else None,
-        layer_gap=opts.layer_gap, return_all=True,
-        max_size=None if opts.crease_tolerance <= 0 else np.where(
-            noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
-            curvature_size_cap(region_info["layers"], sizes, tolerance=opts.crease_tolerance,
-                               measured=~noise_limited, initial=d0,
-                               noise_factor=opts.crease_noise)))
-    lap("windows")
-
-    candidates = disparity_candidates(rng[0], rng[1], opts.step)
-    reporter.set_matching(len(candidates))
-    reporter.step("matching", f"line search over [{rng[0]:.2f}, {rng[1]:.2f}] step {opts.step}")
-    occluded = {"none": np.zeros(labels.shape, bool), "occluded": labels == OCCLUDED,
-                "occlusion": (labels == OCCLUDED) | (labels == OCCLUDING),
-                "all": np.ones(labels.shape, bool)}[opts.visible_sets]
-    if opts.joint:
-        windows = [(s, z) for s in range(N_SHAPES if opts.strip_windows else 9) for z in sizes]
-        matched, cost, k, ambiguity = joint_line_search(  # penalty: a temporary, freed in there
-            gray, candidates, windows=windows,
-            penalty=_gate_strips_if(_search_penalty(all_entropy, noise_limited, opts, len(sizes)),
-                                    raw_gray[u0, v0], sizes=sizes, noise=noise, opts=opts),
-            use_shape_set=occluded, intensity_scale=opts.intensity_scale,
-            ambiguity_delta=hole_delta, progress=reporter.within)
-        shape_map = k // len(sizes)
-        size_map = np.asarray(sizes)[k % len(sizes)]
-        entropy = np.take_along_axis(all_entropy, k[..., None], 2)[..., 0]
-    del all_entropy
-    set_map = np.where(occluded, shape_map, 0)
-    if not opts.joint:
-        matched, cost, costs = line_search(gray, candidates, shape_map=shape_map,
-                                           size_map=size_map, set_map=set_map, return_costs=True,
-                                           progress=reporter.within)
-        ambiguity = cost_ambiguity(costs, hole_delta / opts.intensity_scale)
-        del costs
-    if opts.centroid_correction:
-        rect_table = np.array([[window_rect(sh, z) if z % 2 else (0, 0, 0, 0)
-                                for z in range(max(sizes) + 1)] for sh in range(N_SHAPES)], np.int64)
-        matched = centroid_correction(matched, rect_table[shape_map, size_map],
-                                      max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
-    if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
-        matched = _snap(raw_gray, matched, noise, rng, opts)
-    lap("matching")
-
-    if stop_after == "matching":
-        refined, holes, confidence = matched, None, None
-    else:
-        reporter.step("refine", "TV refinement of smooth regions")
-        refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
-        confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
-                                    step=opts.step, disparity_range=rng, holes=holes,
-                                    valley_px=opts.hole_width, hole_support=opts.hole_support,
-                                    hole_ramp=opts.hole_ramp)
-        lap("refine")
-        reporter.done()
-
+def result_of(state: State) -> EntropyResult:
+    """The :class:`EntropyResult` of a state the whole plan ran on."""
+    w = state.windows
     return EntropyResult(
-        disparity=refined, initial_disparity=d0.astype(np.float32),
-        matched_disparity=matched, labels=labels.astype(np.uint8),
-        window_size=size_map.astype(np.uint8), window_shape=shape_map.astype(np.uint8),
-        view_set=set_map.astype(np.uint8), entropy=entropy, cost=cost, disparity_range=rng,
-        timings=timings, options=opts,
-        info={"ambiguity": ambiguity, "initial_ambiguity": ambiguity0, "holes": holes,
-              "initial_holes": holes0, "hole_delta": hole_delta, "flat": flat,
-              "noise_sigma": region_info["noise_sigma"],
-              "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
-        confidence=confidence)
-
-
-def _snap(gray: np.ndarray, disparity: np.ndarray, noise: float, rng: tuple[float, float],
-          opts: EntropyOptions) -> np.ndarray:
-    """:func:`recon.entropy.boundary.snap_boundaries` with the options' parameters."""
-    return snap_boundaries(gray, disparity, noise_sigma=noise, disparity_range=rng,
-                           jump=opts.boundary_jump, support=opts.boundary_support,
-                           confidence=opts.boundary_confidence, mix=opts.boundary_mix,
-                           mix_contrast=opts.boundary_mix_contrast,
-                           mix_extrapolate=opts.boundary_mix_extrapolate)[0]
-
-
-def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
-                    n_sizes: int) -> np.ndarray:
-    """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
-    offered), with ``flat_windows="largest"`` applied. The float32 product of ``E`` and ``-lambda``
-    (what numpy makes of ``-lambda * E``) in one pass, without a float temporary of the volume (a
-    float64 one was once the run's largest allocation; a masked ``np.where`` by rows took 0.25 s)."""
-    with np.errstate(invalid="ignore"):  # lambda = 0 times -inf: NaN, set to inf below
-        out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
-    out[~np.isfinite(all_entropy)] = np.inf
-    if opts.flat_windows == "largest":
-        out = _largest_windows_only(out, noise_limited, n_sizes)
-    return out
-
-
-def hole_tolerance(options: EntropyOptions, noise_sigma: float) -> float:
-    """How far above a cost curve's least value a candidate still counts as part of its valley, in
-    the cost's units (``intensity_scale``): ``hole_delta``, or ``hole_delta_noise`` times the
-    noise sigma (``[0, 1]`` grey units) if that is larger."""
-    return max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
-
-
-def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: float
-                  ) -> tuple[float, float]:
-    """The range the initial search covers when nobody gave one: :func:`initial.discover_range`
-    over ``options.initial_range`` with the estimator's own window, step, percentiles and hole
-    tolerance (``noise_sigma`` of the centre view in ``[0, 1]`` grey units)."""
-    hole_delta = hole_tolerance(options, noise_sigma)
-    return discover_range(gray, search_range=options.initial_range, step=options.initial_step,
-                          window=options.initial_window, percentile=options.range_percentile,
-                          margin=options.range_margin, shiftable=options.initial_shiftable,
-                          strips=options.strip_windows,
-                          ambiguity_delta=hole_delta / options.intensity_scale,
-                          sure_width=options.initial_hole_width)
-
-
-def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
-    size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
-    size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
-    smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
-    picks whichever window's noise dips lowest, most often the smallest and noisiest."""
-    ys, xs = np.nonzero(flat)  # only those pixels change (none on most textured scenes)
-    if ys.size == 0:
-        return penalty
-    sub = penalty[ys, xs]
-    N, K = sub.shape
-    by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
-    offered = by_size.any(axis=1)
-    largest = n_sizes - 1 - np.argmax(offered[:, ::-1], axis=1)
-    size_of = np.arange(K) % n_sizes
-    bar = size_of[None, :] != largest[:, None]
-    has_square = by_size[np.arange(N), 0, largest]
-    bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
-    out = penalty.astype(np.float32, copy=True)
-    out[ys, xs] = np.where(bar, np.inf, sub)
-    return out
-
-
-#: Least variation along a strip that counts as texture: Eq. 12's floor, half an 8-bit grey level.
-STRIP_FLOOR = 0.5 / 255
-
-
-def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
-              opts: EntropyOptions) -> np.ndarray | None:
-    """``(H, W, 2, len(sizes))`` :func:`informative_strips`, or ``None`` when not gated."""
-    if not opts.strip_windows or opts.strip_aperture == 0:
-        return None
-    return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
-                              floor=STRIP_FLOOR, length=opts.strip_aperture_length)
-
-
-def _gate_strips_if(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                    opts: EntropyOptions) -> np.ndarray:
-    """:func:`_gate_strips` when ``opts.strip_aperture_scope`` is ``"all"``, else ``penalty`` itself."""
-    if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
-        return _gate_strips(penalty, centre, sizes=sizes, noise=noise, factor=opts.strip_aperture,
-                            length=opts.strip_aperture_length)
-    return penalty
-
-
-def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                 factor: float, length: int) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
-    with the strip windows barred where they cannot measure disparity
-    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
-    n = len(sizes)
-    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR,
-                            length=length)
-    out = penalty.copy()
-    for j, shape in enumerate(STRIP_SHAPES):
-        block = out[..., shape * n:(shape + 1) * n]
-        block[~ok[..., j, :]] = np.inf
-    # A pixel offered nothing but uninformative strips keeps them: some window must be matched.
-    none_left = ~np.isfinite(out).any(axis=2)
-    out[none_left] = penalty[none_left]
-    return out.astype(np.float32)
-
-
-def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,
-                         noise: float, options: EntropyOptions) -> np.ndarray:
-    """``(H, W)`` bool: the pixels whose matching the noise, not the texture, decides
-    (``options.noise_gate``): ``"texture"``: inside a window of the largest size whose every pixel
-    has nothing but noise around it (:func:`recon.entropy.noise.texture_to_noise` below
-    ``noise_texture_ratio``, with the ``noise_filter`` sigma, 1.5 px when the filter is off;
-    :func:`recon.entropy.noise.noise_limited_windows`); Eq. 12's per-pixel count is not used: on a
-    wall under noise it flips from pixel to pixel. ``"holes"`` (the first version): Eq. 12-flat
-    with no valley in the initial nine-view cost."""
-    if options.noise_gate == "holes":
-        return flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
-    return noise_limited_windows(_texture_ratio(centre, noise, options) < options.noise_texture_ratio,
-                                 radius_px=max(options.window_sizes) // 2)
-
-
-def texture_sigma_px(options: EntropyOptions) -> float:
-    """Sigma (px) of the filter with which the texture gates measure texture against noise
-    (:func:`recon.entropy.noise.texture_to_noise`): ``noise_filter``, 1.5 px when it is off."""
-    return options.noise_filter if options.noise_filter > 0 else 1.5
-
-
-def _texture_ratio(centre: np.ndarray, noise: float, options: EntropyOptions) -> np.ndarray:
-    # texture_to_noise over the largest window
-    return texture_to_noise(centre, noise_sigma=noise, sigma_px=texture_sigma_px(options),
-                            radius_px=max(options.window_sizes) // 2)
-
-
-def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:
-    return (ambiguity0 * opts.initial_step <= opts.layer_keep_width) & ~flat
-
-
-def _partial(d0, flat, ambiguity0, noise, timings, opts, known) -> EntropyResult:
-    # The result of stop_after="initial": the raw initial estimate and what fill_initial needs.
-    empty = np.zeros(d0.shape, np.uint8)
-    return EntropyResult(
-        disparity=d0.astype(np.float32), initial_disparity=d0.astype(np.float32),
-        matched_disparity=d0.astype(np.float32), labels=empty, window_size=empty,
-        window_shape=empty, view_set=empty, entropy=np.zeros(d0.shape, np.float32),
-        cost=np.zeros(d0.shape, np.float32),
-        disparity_range=tuple(known) if known is not None else opts.initial_range,
-        timings=timings, options=opts,
-        info={"initial_ambiguity": ambiguity0, "flat": flat, "noise_sigma": noise})
-
-
-def fill_initial(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
-                 options: EntropyOptions) -> tuple[np.ndarray, np.ndarray | None]:
-    """Whole-image step after the initial search: black holes of ``d0`` (flat pixels whose
-    nine-view cost curve is flat) filled from their surroundings (:func:`harmonic_fill`).
-
-    ``(H, W)`` maps in, ``(filled d0 float32, holes bool or None)`` out."""
-    holes0 = (flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
-              if options.fill_holes else None)
-    if holes0 is not None and holes0.any():
-        d0 = harmonic_fill(d0, holes0)
-    return d0, holes0
-
-
-def layer_origin(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
-                 options: EntropyOptions) -> float:
-    """The disparity histogram's bin origin the whole image uses: the layer map's minimum."""
-    layers = layer_map(d0, median_size=options.layer_median,
-                       keep=_layer_keep(ambiguity0, flat, options))
-    return float(np.nanmin(layers))
-
-
-def refine_global(matched: np.ndarray, labels: np.ndarray, flat: np.ndarray,
-                  ambiguity: np.ndarray, *, options: EntropyOptions
-                  ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Whole-image last step: the TV refinement of Eq. 13 over the smooth region, black holes
-    (flat pixels whose matching cost curve is flat) filled by it.
-
-    ``(H, W)`` maps in (matched disparity, labels, flat mask, cost ambiguity in candidates);
-    ``(refined float32, holes bool or None)`` out."""
-    holes = flat & (ambiguity * options.step > options.hole_width) if options.fill_holes else None
-    refined = tv_refine(matched, labels == SMOOTH, gamma=options.gamma,
-                        iterations=options.tv_iterations, holes=holes)
-    return refined, holes
+        disparity=state.refined, initial_disparity=state.d0.astype(np.float32),
+        matched_disparity=state.matched, labels=state.labels.astype(np.uint8),
+        window_size=w["size"].astype(np.uint8), window_shape=w["shape"].astype(np.uint8),
+        view_set=w["set"].astype(np.uint8), entropy=w["entropy"], cost=state.cost,
+        disparity_range=state.disparity_range, timings=state.timings, options=state.options,
+        info={"ambiguity": state.ambiguity, "initial_ambiguity": state.ambiguity0, "holes": state.holes,
+              "initial_holes": state.holes0, "hole_delta": state.hole_delta, "flat": state.flat,
+              "noise_sigma": state.region_info["noise_sigma"],
+              "smooth_tolerance_abs": state.region_info["smooth_tolerance_abs"]},
+        confidence=state.confidence)
