@@ -405,6 +405,18 @@ EntropyOptions.__doc__ = (
     own names, with their defaults; ``options.<group>`` gives one group. Checked on construction
     (``ValueError`` naming the value).""")
 
+#: Step name -> a few words on what it does (help texts, docs).
+TITLES: dict[str, str] = {
+    "initial": "the nine-view initial estimate d0 and range discovery",
+    "regions": "layers, occlusion labels, flat regions",
+    "noise": "noise gate, flat-view filter, weak-texture softening",
+    "windows": "window choice by matching entropy, curvature cap, strip aperture",
+    "matching": "line search, view sets",
+    "boundary": "the boundary test after matching",
+    "refine": "TV refinement, hole filling, centroid correction",
+    "confidence": "the confidence map",
+}
+
 #: Field name -> the step (key of :data:`GROUPS`) it belongs to.
 STEP_OF: dict[str, str] = {f.name: name for name, g in GROUPS.items() for f in dataclasses.fields(g)}
 
