@@ -5,21 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 
-
-
-def _penalty(rng, H=13, W=17, K=11):
-    pen = (rng.random((H, W, K)) * 4 - 3).astype(np.float32)
-    pen[rng.random((H, W, K)) < 0.6] = np.inf  # most windows not offered
-    if H < 8 or W < 3 or K < 4:
-        return pen
-    pen[2] = np.inf  # a row with nothing offered
-    pen[4, 3] = np.inf  # a pixel with nothing offered
-    pen[5, :, 0] = -0.0  # signed zeros kept as they are
-    pen[6, 1, 2] = -np.inf  # not finite: not offered either
-    pen[7, 2, 3] = np.nan
-    return pen
-
-
 def test_search_penalty_is_the_masked_float32_product():
     from recon.entropy.options import make_options
     from recon.entropy.steps import _search_penalty

@@ -7,21 +7,7 @@ import numpy as np
 
 from recon.entropy.cost import (WindowCost, block_abs_diff, block_abs_diff_reference, cost_ambiguity,
                                 cost_ambiguity_reference, set_view_counts, window_cost_reference)
-
-
-def _rng():
-    return np.random.default_rng(7)
-
-
-def _volume(rng, D=23, H=17, W=19):
-    # Quantised costs make exact ties (the first minimum must win) and flat stretches common.
-    costs = np.round(rng.random((D, H, W)) * 8).astype(np.float32) / 8
-    costs[:, 0, 0] = np.nan  # all NaN
-    costs[3, 1, 1] = np.nan  # NaN after a minimum: np.argmin takes the NaN
-    costs[:, 2, 2] = 1.0  # all tied: first candidate, no parabola
-    costs[:, 3, 3] = np.linspace(1, 0, D)  # minimum at the last candidate
-    costs[:, 4, 4] = np.inf
-    return costs
+from kernel_inputs import cost_volume, seeded
 
 
 def _block_abs_diff_float32(gray, disparity, view_mask=None):
@@ -51,7 +37,7 @@ def _block_abs_diff_float32(gray, disparity, view_mask=None):
 
 
 def test_block_abs_diff_matches_reference():
-    gray = _rng().random((5, 5, 11, 13)).astype(np.float32)
+    gray = seeded().random((5, 5, 11, 13)).astype(np.float32)
     mask = np.ones((5, 5), bool)
     mask[0, 1] = False
     for d in (-1.3, 0.0, 0.37):
@@ -84,7 +70,7 @@ def test_block_abs_diff_is_bit_identical_to_its_float32_arithmetic():
 
 
 def test_window_cost_fast_matches_reference():
-    rng = _rng()
+    rng = seeded()
     blocks = rng.random((9, 12, 10)).astype(np.float32)
     shape = rng.integers(0, 11, (12, 10))
     size = rng.choice([3, 5, 7], (12, 10))
@@ -136,7 +122,7 @@ def test_min_window_cost_is_bit_identical_to_reference():
 
 def test_cost_ambiguity_fast_is_identical_to_reference():
     rng = np.random.default_rng(5)
-    costs = _volume(rng, D=31, H=40, W=21)
+    costs = cost_volume(rng, D=31, H=40, W=21)
     for delta in (0.0, 0.125, 0.3, 2.0):
         np.testing.assert_array_equal(cost_ambiguity(costs, delta), cost_ambiguity_reference(costs, delta))
     assert cost_ambiguity(costs, 0.0)[2, 2] == 31  # a plateau: every candidate ties

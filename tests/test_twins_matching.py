@@ -8,55 +8,7 @@ import numpy as np
 from recon.entropy.cost import block_abs_diff, set_view_counts
 from recon.entropy.legacy_matching import _compact_penalty, _compact_penalty_reference
 from recon.entropy.matching import subpixel_argmin, subpixel_argmin_reference
-
-
-def _rng():
-    return np.random.default_rng(7)
-
-
-def _volume(rng, D=23, H=17, W=19):
-    # Quantised costs make exact ties (the first minimum must win) and flat stretches common.
-    costs = np.round(rng.random((D, H, W)) * 8).astype(np.float32) / 8
-    costs[:, 0, 0] = np.nan  # all NaN
-    costs[3, 1, 1] = np.nan  # NaN after a minimum: np.argmin takes the NaN
-    costs[:, 2, 2] = 1.0  # all tied: first candidate, no parabola
-    costs[:, 3, 3] = np.linspace(1, 0, D)  # minimum at the last candidate
-    costs[:, 4, 4] = np.inf
-    return costs
-
-
-def _penalty(rng, H=13, W=17, K=11):
-    pen = (rng.random((H, W, K)) * 4 - 3).astype(np.float32)
-    pen[rng.random((H, W, K)) < 0.6] = np.inf  # most windows not offered
-    if H < 8 or W < 3 or K < 4:
-        return pen
-    pen[2] = np.inf  # a row with nothing offered
-    pen[4, 3] = np.inf  # a pixel with nothing offered
-    pen[5, :, 0] = -0.0  # signed zeros kept as they are
-    pen[6, 1, 2] = -np.inf  # not finite: not offered either
-    pen[7, 2, 3] = np.nan
-    return pen
-
-
-def _joint_inputs(rng, H, W, sizes=(3, 5, 15)):
-    from recon.entropy.cost import set_view_counts
-    from recon.entropy.windows import N_SHAPES, window_rect
-    windows = [(s, z) for s in range(N_SHAPES) for z in sizes]
-    rects = np.array([window_rect(s, z) for s, z in windows], np.int64)
-    shapes = np.array([s for s, _ in windows], np.int64)
-    penalty = rng.normal(0, 1, (H, W, len(windows))).astype(np.float32)
-    penalty = np.round(penalty * 4) / 4  # coarse: exact ties between windows happen
-    penalty[rng.random(penalty.shape) < 0.5] = np.inf
-    penalty[..., 0] = np.where(rng.random((H, W)) < 0.9, 0.0, np.inf)  # the square mostly offered
-    penalty[:, :, len(sizes):][:, W // 3] = np.inf  # a column offering squares only
-    penalty[H // 2] = np.inf  # a row offering one window only
-    penalty[H // 2, :, 1] = -0.25
-    penalty[1, :, 1] = np.inf  # the 5x5 square offered at both ends of row 1 only: two runs if wide
-    penalty[1, [0, 1, 2, W - 3, W - 2], 1] = 0.5
-    occluded = rng.random((H, W)) < 0.3
-    occluded[:, -3:] = True  # a run of occluded pixels at the right edge
-    counts = set_view_counts((9, 9)).astype(np.float64)
-    return windows, rects, shapes, penalty, occluded, counts
+from kernel_inputs import cost_volume, joint_inputs, penalty_volume, seeded
 
 
 def test_subpixel_argmin_finds_the_vertex_of_a_parabola():
@@ -70,7 +22,7 @@ def test_subpixel_argmin_finds_the_vertex_of_a_parabola():
 def test_subpixel_argmin_fast_is_bit_identical_to_reference():
     rng = np.random.default_rng(3)
     for D in (1, 2, 23):
-        costs = _volume(rng, D=D) if D > 4 else rng.random((D, 5, 6)).astype(np.float32)
+        costs = cost_volume(rng, D=D) if D > 4 else rng.random((D, 5, 6)).astype(np.float32)
         for cands in (-0.7 + 0.05 * np.arange(D), (0.2 + 0.1 * np.arange(D)).astype(np.float32)):
             d_ref, c_ref = subpixel_argmin_reference(costs, cands)
             d_fast, c_fast = subpixel_argmin(costs, cands)
@@ -89,7 +41,7 @@ def test_subpixel_argmin_takes_the_first_of_tied_minima():
 def test_joint_line_search_fast_matches_reference():
     from recon.entropy.matching import joint_line_search, joint_line_search_reference
 
-    rng = _rng()
+    rng = seeded()
     gray = rng.random((3, 3, 9, 10)).astype(np.float32)
     windows = [(s, z) for s in range(11) for z in (3, 5)]
     penalty = rng.normal(0, 1, (9, 10, len(windows))).astype(np.float32)
@@ -116,7 +68,7 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
     # (6, 9): the 15-px windows wider than the image; the widest: rows with several runs
     for H, W in ((21, 33), (6, 9), (7, RUN_GAP + 20)):
         gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8
-        windows, rects, shapes, penalty, occluded, counts = _joint_inputs(rng, H, W)
+        windows, rects, shapes, penalty, occluded, counts = joint_inputs(rng, H, W)
         starts, ks, pens = _compact_penalty(penalty)
         dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
         order = row_order(H)
@@ -145,7 +97,7 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
 def test_compact_penalty_is_identical_to_reference():
     rng = np.random.default_rng(7)
     for shape in ((13, 17, 11), (1, 1, 1), (3, 40, 77)):
-        pen = _penalty(rng, *shape)
+        pen = penalty_volume(rng, *shape)
         for fast, ref in zip(_compact_penalty(pen), _compact_penalty_reference(pen)):
             assert fast.dtype == ref.dtype
             np.testing.assert_array_equal(fast.view(np.uint8), ref.view(np.uint8))

@@ -6,14 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from recon.entropy.refine import tv_energy, tv_refine
-
-
-def _rng():
-    return np.random.default_rng(7)
+from kernel_inputs import seeded
 
 
 def test_tv_refine_invariants():
-    rng = _rng()
+    rng = seeded()
     f = (np.linspace(0, 1, 16)[None] + 0.05 * rng.standard_normal((16, 16))).astype(np.float32)
     mask = np.zeros((16, 16), bool)
     mask[4:12, 4:12] = True
