@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lf.lightfield import LightField, max_view_offset, view_shift_px  # noqa: F401 (max_view_offset: part of this module's API)
+from recon.lf.lightfield import LightField, max_view_offset, view_shift_px  # noqa: F401 (max_view_offset re-exported)
 from recon.progress import ProgressCallback, report
 from recon.scale import ScaleError
 
