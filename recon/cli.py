@@ -76,56 +76,99 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     ev.set_defaults(handler=_evaluate)
 
 
-#: Entropy options that have a shared flag above, or are not useful from the command line.
+#: Entropy options that have an everyday flag of their own (``add_method_arguments``).
 _SHARED_OPTIONS = {"disparity_range", "step"}
 
 
 def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     """The method flags shared by ``lfrig reconstruct`` and ``lfrig batch reconstruct``: ``--method``,
-    ``--disparity-range``, ``--step``, the baseline's ``--window`` and one flag per entropy option.
+    ``--preset``, ``--disparity-range``, ``--step``, the baseline's ``--window``, and one flag per
+    entropy option, listed by ``--help-tuning`` (grouped by step) rather than ``--help``.
     :func:`method_options` turns the parsed flags into the chosen method's options."""
+    from recon.entropy.options import PRESETS
+
     parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
+    parser.add_argument("--preset", choices=list(PRESETS), default=None,
+                        help="entropy: a named set of options applied before the tuning flags: 'paper' is the "
+                             "paper's literal configuration (docs/entropy-method.md), 'default' lfrig's defaults")
     parser.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
                              "entropy finds it by a coarse search over -8 8 and its initial estimate; baseline searches -4 4)")
     parser.add_argument("--step", type=positive_float, default=None,
                         help="spacing of candidate disparities, refined to sub-step by a parabola (default: baseline 0.02, entropy 0.04)")
-    base = parser.add_argument_group("baseline method")
-    base.add_argument("--window", type=positive_int, default=None, help="square window side in pixels (default 7)")
-    _add_entropy_options(parser.add_argument_group(
-        "entropy method (defaults: the paper's values; see docs/entropy-method.md)"))
+    parser.add_argument("--window", type=positive_int, default=None,
+                        help="baseline: square window side in pixels (default 7)")
+    parser.add_argument("--help-tuning", action=_TuningHelp,
+                        help="list the entropy method's tuning flags, grouped by step, and exit")
+    for action in _entropy_flags(parser):
+        action.help = argparse.SUPPRESS
 
 
-def _add_entropy_options(group: argparse._ArgumentGroup) -> None:
-    """One flag per field of :class:`recon.entropy.EntropyOptions`, from its type, default and help.
-
-    Flags default to ``None``, so only what the user sets overrides the estimator's own defaults.
-    """
+def _entropy_flags(parser) -> list[argparse.Action]:
+    """One flag per field of :class:`recon.entropy.options.EntropyOptions` (but the everyday ones),
+    from its type, default and help, grouped by step; each value is checked by its step's options
+    group as it is parsed. Flags default to ``None``, so only what the user sets overrides the
+    estimator's own defaults."""
     import dataclasses
 
-    from recon.entropy.estimate import DEFAULTS, PRESETS, EntropyOptions
+    from recon.entropy.options import DEFAULTS, GROUPS, TITLES
 
-    group.add_argument("--preset", choices=list(PRESETS), default=None,
-                       help="a named set of options applied before the flags below: 'paper' is the paper's "
-                            "literal configuration (docs/entropy-method.md), 'default' lfrig's defaults")
-    for f in dataclasses.fields(EntropyOptions):
-        if f.name in _SHARED_OPTIONS:
-            continue
-        default = getattr(DEFAULTS, f.name)
-        flag = "--" + f.name.replace("_", "-")
-        text = f"{f.metadata.get('help', '')} (default {default})".replace("%", "%%")
-        if isinstance(default, bool):
-            group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
-        elif isinstance(default, tuple):
-            kind = type(default[0]) if default else float
-            group.add_argument(flag, type=_flag_type(kind), nargs="+", default=None, metavar="N", help=text)
-        else:
-            group.add_argument(flag, type=_flag_type(type(default)), default=None, help=text)
+    actions = []
+    for step, group in GROUPS.items():
+        section = parser.add_argument_group(f"{step} ({TITLES[step]})")
+        for f in dataclasses.fields(group):
+            if f.name in _SHARED_OPTIONS:
+                continue
+            default = getattr(DEFAULTS, f.name)
+            flag = "--" + f.name.replace("_", "-")
+            text = f"{f.metadata.get('help', '')} (default {default})".replace("%", "%%")
+            if isinstance(default, bool):
+                actions.append(section.add_argument(flag, action=argparse.BooleanOptionalAction, default=None,
+                                                    help=text))
+            elif isinstance(default, tuple):
+                kind = type(default[0]) if default else float
+                actions.append(section.add_argument(flag, type=_flag_type(kind), nargs="+", default=None,
+                                                    metavar="N", action=_CheckedOption, help=text))
+            else:
+                actions.append(section.add_argument(flag, type=_flag_type(type(default)), default=None,
+                                                    action=_CheckedOption, help=text))
+    return actions
+
+
+class _CheckedOption(argparse.Action):
+    """Stores an entropy option's value once its step's options group accepts it
+    (:func:`recon.entropy.options.check_value`); else a one-line usage error."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from recon.entropy.options import check_value
+
+        value = tuple(values) if isinstance(values, list) else values
+        try:
+            check_value(self.dest, value)
+        except ValueError as error:
+            raise argparse.ArgumentError(self, str(error)) from None
+        setattr(namespace, self.dest, value)
+
+
+class _TuningHelp(argparse.Action):
+    """``--help-tuning``: the entropy method's tuning flags, grouped by step, then exit."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        tuning = argparse.ArgumentParser(
+            prog=parser.prog, add_help=False, usage=f"{parser.prog} LF_DIR -o OUT_DIR [TUNING FLAGS]",
+            description="The entropy method's options, grouped by the step of the estimator that reads "
+                        "them (docs/entropy-method.md). Each overrides the preset's value.")
+        _entropy_flags(tuning)
+        tuning.print_help()
+        parser.exit()
 
 
 def _flag_type(kind: type):
-    """Floats must be finite (no ``nan``/``inf``); the estimator's own check judges the rest."""
+    """Floats must be finite (no ``nan``/``inf``); the options groups judge the rest."""
     return finite_float if kind is float else kind
 
 
@@ -153,7 +196,7 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
         return chosen
     if getattr(args, "preset", None) is not None:
         chosen["preset"] = args.preset
-    from recon.entropy.estimate import EntropyOptions
+    from recon.entropy.options import EntropyOptions
 
     for f in dataclasses.fields(EntropyOptions):
         value = getattr(args, f.name, None)

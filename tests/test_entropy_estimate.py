@@ -127,27 +127,40 @@ def test_write_outputs(square, tmp_path):
 
 
 def test_the_phases_compose_to_the_whole_estimator():
-    """What tiling calls (recon.scale.tiles): the raw initial search, the whole-image hole fill,
-    the matching with the whole image's noise sigma and bin origin, the whole-image refinement;
-    composed they give exactly the untiled result."""
-    from recon.entropy.estimate import fill_initial, layer_origin, refine_global
+    """What tiling does (recon.scale.tiles): the phases of the plan in order, the tile-local ones
+    through run_phase_on_tile (here one tile, the whole image, given the whole image's maps and
+    numbers), the whole-image ones on the state; composed they give exactly the untiled result."""
+    from recon.entropy.plan import PLAN, run_phase, run_phase_on_tile, shared_numbers, start, take_tiles
 
     lf, _ = occluding_square_scene(48, seed=5, back=-0.5, front=0.9, grid=(5, 5))
     whole = estimate_disparity(lf)
-    first = estimate_disparity(lf, stop_after="initial")
-    sigma = first.info["noise_sigma"]
-    d0, _ = fill_initial(first.initial_disparity, first.info["initial_ambiguity"], first.info["flat"],
-                         options=DEFAULTS)
-    np.testing.assert_array_equal(d0, whole.initial_disparity)
-    origin = layer_origin(d0, first.info["initial_ambiguity"], first.info["flat"], options=DEFAULTS)
-    second = estimate_disparity(lf, stop_after="matching", noise_sigma=sigma, disparity_origin=origin,
-                                initial=(d0, first.info["initial_ambiguity"]))
-    np.testing.assert_array_equal(second.matched_disparity, whole.matched_disparity)
-    refined, _ = refine_global(second.matched_disparity, second.labels, second.info["flat"],
-                               second.info["ambiguity"], options=DEFAULTS)
-    np.testing.assert_array_equal(refined, whole.disparity)
-    with pytest.raises(ValueError, match="stop_after"):
-        estimate_disparity(lf, stop_after="windows")
+    state = start(lf, DEFAULTS)
+    for phase in PLAN:
+        if phase.tile_local:
+            out = run_phase_on_tile(lf, phase, [getattr(state, name) for name in phase.reads],
+                                    options=DEFAULTS, shared=shared_numbers(state))
+            assert out.shape == (len(phase.writes), *lf.image_shape) and out.dtype == np.float32
+            take_tiles(state, phase, out)
+        else:
+            run_phase(state, phase)
+    np.testing.assert_array_equal(state.d0, whole.initial_disparity)
+    np.testing.assert_array_equal(state.matched, whole.matched_disparity)
+    np.testing.assert_array_equal(state.refined, whole.disparity)
+
+
+def test_the_halo_is_the_sum_of_the_tile_local_steps_reaches():
+    """A step added to the plan adds its reach to the halo tiles need, and nothing else does."""
+    from recon.entropy.plan import PLAN, Phase, halo_px
+    from recon.entropy.state import Reach, Step
+
+    reach = Reach((9, 9), (-1.0, 2.0))
+    base = halo_px(DEFAULTS, reach)
+    assert base == sum(s.reach_px(DEFAULTS, reach) for p in PLAN if p.tile_local for s in p.steps)
+    assert base >= max(DEFAULTS.window_sizes) // 2 + reach.view_px(DEFAULTS)
+    extra = Step("extra", lambda state: None, lambda options, reach: 7)
+    local = (*PLAN, Phase("extra", (extra,), tile_local=True))
+    whole = (*PLAN, Phase("extra", (extra,), tile_local=False))
+    assert halo_px(DEFAULTS, reach, local) == base + 7 and halo_px(DEFAULTS, reach, whole) == base
 
 
 def test_disparity_bins_from_a_given_origin():

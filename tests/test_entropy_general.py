@@ -10,7 +10,7 @@ import pytest
 from recon.baseline import estimate_baseline
 from recon.entropy import estimate_disparity
 from recon.entropy.entropy import select_windows, select_windows_reference
-from recon.entropy.matching import cost_ambiguity
+from recon.entropy.cost import cost_ambiguity
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
 from recon.entropy.regions import (jump_distance,

@@ -10,8 +10,8 @@ import pytest
 
 from recon.entropy import DEFAULTS, estimate_disparity, make_options
 from recon.entropy.confidence import confidence_map
-from recon.entropy.estimate import PRESETS, _largest_windows_only
-from recon.entropy.estimate import noise_limited_pixels
+from recon.entropy.options import PRESETS
+from recon.entropy.steps import _largest_windows_only, noise_limited_pixels
 from recon.entropy.noise import (filter_flat_views, filter_gain, filter_reach_px, gradient_noise_energy,
                                  soften_reach_px, soften_views, texture_reach_px, texture_to_noise,
                                  weak_texture_pixels)

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from recon.entropy import DEFAULTS, estimate_disparity
-from recon.entropy.estimate import unknown_range
+from recon.entropy.steps import unknown_range
 from recon.entropy.initial import coarse_factor, downsample_views, initial_disparity
 from recon.lf.lightfield import LightField
 from recon.synthetic import Layer, noise_texture, occluding_square_scene, render

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.entropy.matching import view_blocks
+from recon.entropy.cost import view_blocks
 from recon.entropy.windows import (N_SHAPES, SET_BLOCKS, visible_view_mask, window_mask,
                                    window_rect)
 from recon.synthetic import Layer, noise_texture, render

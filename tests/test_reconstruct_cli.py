@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rig.main import main
 from recon.lf.pfm import read_pfm
@@ -53,3 +54,49 @@ def test_a_bug_inside_an_estimator_keeps_its_traceback(tmp_path, monkeypatch):
     monkeypatch.setattr(recon.baseline, "estimate_baseline", broken)
     with pytest.raises(ValueError, match="broadcast"):
         reconstruct_to_folder(FIXTURES / "tiny_capture", tmp_path / "o", method="baseline", options={"window": 5})
+
+
+def test_help_shows_the_everyday_flags_and_help_tuning_every_option_by_step(capsys):
+    import dataclasses
+
+    from recon.entropy.options import GROUPS, TITLES
+
+    assert main(["reconstruct", "--help"]) == 0
+    everyday = capsys.readouterr().out
+    assert len(everyday.splitlines()) < 100
+    for flag in ("--method", "--preset", "--disparity-range", "--step", "--output", "--help-tuning"):
+        assert flag in everyday, flag
+    assert "--gamma" not in everyday and "--boundary-mix" not in everyday
+    assert main(["reconstruct", "--help-tuning"]) == 0
+    tuning = capsys.readouterr().out
+    for step, group in GROUPS.items():
+        assert f"{step} ({TITLES[step]})" in tuning
+        for f in dataclasses.fields(group):
+            if f.name not in ("disparity_range", "step"):
+                assert "--" + f.name.replace("_", "-") in tuning, f.name
+
+
+@pytest.mark.parametrize("argv", [
+    ["--occlusion-views", "foo"], ["--disparity-bin", "0"], ["--initial-window", "4"],
+    ["--intensity-scale", "0"], ["--initial-range", "5", "-5"], ["--gamma", "-1"], ["--tv-iterations", "-1"],
+])
+def test_a_bad_tuning_value_is_refused_while_parsing(tmp_path, capsys, monkeypatch, argv):
+    """Issue #22, point 9: one line, exit 2, before the light field is even read."""
+    import recon.lf
+
+    monkeypatch.setattr(recon.lf, "read_lightfield", lambda *a, **k: pytest.fail("read before the check"))
+    status = main(["reconstruct", str(FIXTURES / "tiny_capture"), "-o", str(tmp_path / "out"), "--quiet", *argv])
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert status == 2 and len(lines) == 1 and lines[0].startswith("lfrig: error:"), err
+    assert argv[0] in lines[0] and argv[0][2:].replace("-", "_") in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_tuning_flags_still_reach_the_estimator(tmp_path):
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(FIXTURES / "tiny_capture"), "-o", str(out), "--quiet", "--preset", "paper",
+                 "--gamma", "0.3", "--window-sizes", "3", "5", "--no-boundary-snap"]) == 0
+    options = json.loads((out / "result.json").read_text())["options"]
+    assert options["gamma"] == 0.3 and options["window_sizes"] == [3, 5] and options["boundary_snap"] is False
+    assert options["grey_bins"] == 256  # the preset's

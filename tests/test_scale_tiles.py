@@ -199,7 +199,7 @@ def test_entropy_tiles_need_the_whole_image_steps(boxes):
 
 
 def test_window_sums_do_not_depend_on_the_table_origin():
-    from recon.entropy.matching import FIXED_INV, set_integrals
+    from recon.entropy.cost import FIXED_INV, set_integrals
 
     rng = np.random.default_rng(3)
     blocks = rng.random((9, 40, 50)).astype(np.float32) * 9

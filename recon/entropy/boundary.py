@@ -234,7 +234,7 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
 
 
 def _sample(image: np.ndarray, y: float, x: float) -> float:
-    # bilinear, coordinates clamped to the image (as recon.entropy.matching._bilinear)
+    # bilinear, coordinates clamped to the image (as recon.entropy.cost._bilinear)
     return float(ndimage.map_coordinates(image.astype(np.float64), [[y], [x]], order=1, mode="nearest")[0])
 
 

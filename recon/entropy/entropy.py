@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from recon.entropy.labels import OCCLUDED, OCCLUDING
-from recon.entropy.matching import row_order
+from recon.entropy.layout import row_order
 from recon.entropy.windows import N_SHAPES, window_rect
 
 
@@ -122,7 +122,7 @@ def _add(counts, k, s, xlogx):
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
                    n_disp, xlogx, side_radius, layers, gap, max_size, order, shape_map, size_map,
                    best_e, all_e):
-    # Rows in ``order`` (matching.row_order: dealt round-robin to the threads; pixels near depth
+    # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
     # edges try 11 shapes, elsewhere 1).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]

@@ -137,7 +137,7 @@ def _occlusion_kernel(layers, offsets, layer_gap, neg, pos):
                         pos[y, x] += m - bottom[ly, lx]
 
 
-def occlusion_diffs_fast(layers: np.ndarray, offsets: list[tuple[int, int]], *,
+def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
                          layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
     """Compiled twin of :func:`occlusion_diffs_reference`."""
     H, W = layers.shape
@@ -245,7 +245,7 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
     mask = initial_view_mask((U, V)) if occlusion_views == "nine" else np.ones((U, V), bool)
     offsets = [(u - u0, v - v0) for u, v in zip(*np.nonzero(mask)) if (u, v) != (u0, v0)]
     layers = layer_map(d0, median_size=layer_median, keep=keep)
-    diffs = occlusion_diffs_fast if fast else occlusion_diffs_reference
+    diffs = occlusion_diffs if fast else occlusion_diffs_reference
     neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
     flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance,
                                   sigma=noise)

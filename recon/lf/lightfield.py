@@ -12,6 +12,7 @@ so that ``d > 0`` for points in front of the plane of zero disparity (the benchm
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -121,3 +122,15 @@ def to_gray(images: np.ndarray) -> np.ndarray:
         out[i] = cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2GRAY)
     out *= np.float32(scale)
     return out.reshape(images.shape[:-1])
+
+
+def max_view_offset(grid_shape: tuple[int, int]) -> int:
+    """``max |u - u0|, |v - v0|`` over the grid: how many view steps the farthest view is away."""
+    rows, cols = grid_shape
+    return max(rows // 2, rows - 1 - rows // 2, cols // 2, cols - 1 - cols // 2)
+
+
+def view_shift_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
+    """``ceil(max|d| * max view offset)``: the farthest (pixels) any view is sampled from a pixel
+    of the centre view for a disparity in ``disparity_range`` (px/view)."""
+    return math.ceil(max(abs(disparity_range[0]), abs(disparity_range[1])) * max_view_offset(grid_shape) - 1e-9)

@@ -16,15 +16,13 @@ be re-derived per tile) and returns the halo in pixels.
   ``halo = window // 2 + ceil(max|d| * max view offset) + 1`` (one more pixel for the bilinear
   neighbour, so no sample inside the core's reach is clamped at the crop's edge). The stitched map
   equals the untiled one bit for bit (``tests/test_scale_tiles.py``).
-- **entropy**: two tile-local phases with whole-image steps between them (:func:`_entropy_run`):
-  the noise sigma of the whole centre view is computed once and given to every tile; tiles return
-  the raw initial estimate; the whole image fills its black holes and takes the layer map's
-  minimum (the disparity histogram's bin origin); tiles run regions, windows and the line search
-  (window sums are exact int64 sums, so a crop sums like the whole image); the whole image runs
-  the TV refinement (Eq. 13) with its hole filling. The halo covers the chain of local steps
-  (initial estimate, layer median, occlusion warp, largest window, line search). The stitched map
-  equals the untiled one (bit for bit on the scene suite; ``tests/test_scale_tiles.py`` asserts
-  1e-4 px/view).
+- **entropy**: the estimator's phase plan (:data:`recon.entropy.plan.PLAN`) run in order, its
+  tile-local phases tile by tile (each tile given the whole image's maps and numbers it reads), its
+  whole-image phases (hole filling, search range, TV refinement) on the stitched maps. The halo is
+  the sum of the tile-local steps' reaches, each declared beside its step
+  (:func:`recon.entropy.plan.halo_px`); window sums are exact int64 sums, so a crop sums like the
+  whole image. The stitched map equals the untiled one (bit for bit on the scene suite;
+  ``tests/test_scale_tiles.py`` asserts 1e-4 px/view).
 """
 
 from __future__ import annotations
@@ -37,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.lf.lightfield import LightField
+from recon.lf.lightfield import LightField, max_view_offset, view_shift_px  # noqa: F401 (max_view_offset re-exported)
 from recon.progress import ProgressCallback, report
 from recon.scale import ScaleError
 
@@ -116,17 +114,6 @@ def stitch(image_shape: tuple[int, int], tiles: list[Tile], results: list[np.nda
 # --------------------------------------------------------------------------------------------------
 
 
-def max_view_offset(grid_shape: tuple[int, int]) -> int:
-    """``max |u - u0|, |v - v0|`` over the grid: how many view steps the farthest view is away."""
-    rows, cols = grid_shape
-    return max(rows // 2, rows - 1 - rows // 2, cols // 2, cols - 1 - cols // 2)
-
-
-def _shift_px(disparity_range: tuple[float, float], grid_shape: tuple[int, int]) -> int:
-    """``ceil(max|d| * max view offset)``: the farthest a view is sampled from a pixel."""
-    return math.ceil(max(abs(disparity_range[0]), abs(disparity_range[1])) * max_view_offset(grid_shape) - 1e-9)
-
-
 @dataclass(frozen=True)
 class TileRule:
     """How to tile one method.
@@ -146,6 +133,8 @@ class TileRule:
     #: ``maps``, ``(H, W)`` arrays, cut to the tile's crop) and stitches. ``None``: one
     #: :func:`run_tile` per tile.
     run: Callable[..., np.ndarray] | None = None
+    #: How many rounds of tiles ``run`` makes (for the progress), a number or a function giving it.
+    rounds: int | Callable[[], int] = 1
 
 
 def _baseline_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
@@ -160,24 +149,7 @@ def _baseline_halo(lf: LightField, options: dict[str, Any]) -> int:
     from recon.baseline import estimate_baseline
 
     window = options.get("window", inspect.signature(estimate_baseline).parameters["window"].default)
-    return int(window) // 2 + _shift_px(options["disparity_range"], lf.grid_shape) + 1
-
-
-def _entropy_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
-    from recon.entropy import make_options
-
-    opts = make_options(**{k: v for k, v in options.items() if v is not None})
-    out = dict(options)
-    known = opts.disparity_range or lf.disparity_range
-    if known is None and opts.discover_range:  # the whole image's coarse search, as untiled
-        from recon.entropy.estimate import unknown_range
-        from recon.entropy.regions import noise_sigma
-
-        gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
-        U, V = lf.grid_shape
-        known = unknown_range(gray, options=opts, noise_sigma=noise_sigma(gray[U // 2, V // 2]))
-    out["disparity_range"] = tuple(known or opts.initial_range)
-    return out
+    return int(window) // 2 + view_shift_px(options["disparity_range"], lf.grid_shape) + 1
 
 
 def _entropy_options(options: dict[str, Any]):
@@ -186,108 +158,69 @@ def _entropy_options(options: dict[str, Any]):
     return make_options(**{k: v for k, v in options.items() if v is not None})
 
 
-def _entropy_initial_task(crop: LightField, maps: list[np.ndarray], options: dict[str, Any],
-                          threads: int | None) -> np.ndarray:
-    """Tile-local phase 1: the raw nine-view estimate, its ambiguity and the flat mask."""
-    from recon.entropy.estimate import estimate_disparity
+def _entropy_resolve(lf: LightField, options: dict[str, Any]) -> dict[str, Any]:
+    opts = _entropy_options(options)
+    out = dict(options)
+    known = opts.disparity_range or lf.disparity_range
+    if known is None and opts.discover_range:  # the whole image's coarse search, as untiled
+        from recon.entropy.plan import start
+
+        known = start(lf, opts).initial_range
+    out["disparity_range"] = tuple(known or opts.initial_range)
+    return out
+
+
+def _entropy_phase_task(crop: LightField, maps: list[np.ndarray], options: dict[str, Any],
+                        threads: int | None) -> np.ndarray:
+    """One tile-local phase of the estimator on one tile (``recon.entropy.plan.run_phase_on_tile``)."""
+    from recon.entropy.plan import PLAN, run_phase_on_tile
     from recon.scale.cluster import limit_threads
 
     limit_threads(threads)
     options = dict(options)  # a retried task gets the same dict again
+    name = options.pop("_phase")
+    phase = next(p for p in PLAN if p.name == name)
     shared = options.pop("_shared")
-    r = estimate_disparity(crop, options=_entropy_options(options), stop_after="initial", **shared)
-    return np.stack([r.initial_disparity, r.info["initial_ambiguity"], r.info["flat"]]).astype(np.float32)
-
-
-def _entropy_matching_task(crop: LightField, maps: list[np.ndarray], options: dict[str, Any],
-                           threads: int | None) -> np.ndarray:
-    """Tile-local phase 2 (given the whole image's filled initial estimate): labels, windows and
-    the line search up to the matched disparity, its labels and cost ambiguity."""
-    from recon.entropy.estimate import estimate_disparity
-    from recon.scale.cluster import limit_threads
-
-    limit_threads(threads)
-    options = dict(options)  # a retried task gets the same dict again
-    shared = options.pop("_shared")
-    d0, ambiguity0, noise_limited = maps
-    r = estimate_disparity(crop, options=_entropy_options(options), stop_after="matching",
-                           initial=(d0, ambiguity0.astype(np.int32)), noise_limited=noise_limited > 0.5,
-                           **shared)
-    return np.stack([r.matched_disparity, r.labels, r.info["ambiguity"]]).astype(np.float32)
+    return run_phase_on_tile(crop, phase, maps, options=_entropy_options(options), shared=shared)
 
 
 def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarray:
-    """Entropy tiled exactly: tile-local phases between whole-image steps that are cheap.
+    """The estimator's phases (``recon.entropy.plan.PLAN``) in order: tile-local ones tile by tile
+    (each tile given the whole image's maps it reads and its shared numbers, its outputs stitched),
+    whole-image ones here."""
+    from recon.entropy.plan import PLAN, run_phase, shared_numbers, start, take_tiles
 
-    1. every tile: raw initial estimate (nine views), its ambiguity, flat mask, with the whole
-       centre view's noise sigma;
-    2. whole image: black holes of ``d0`` filled (``fill_initial``), the layer map's minimum (the
-       disparity histogram's bin origin), the noise-limited pixels (``noise_limited_pixels``);
-    3. every tile: regions, windows, line search, centroid correction;
-    4. whole image: TV refinement with hole filling (``refine_global``).
-    """
-    from recon.entropy.estimate import fill_initial, layer_origin, noise_limited_pixels, refine_global
-    from recon.entropy.regions import noise_sigma
-
-    opts = _entropy_options(options)
-    sigma = noise_sigma(np.asarray(lf.gray(), np.float32)[lf.grid_shape[0] // 2, lf.grid_shape[1] // 2])
+    state = start(lf, _entropy_options(options))
     common = {k: v for k, v in options.items() if v is not None}
-    first = map_tiles(_entropy_initial_task, options={**common, "_shared": {"noise_sigma": sigma}})
-    d0_raw, ambiguity0, flat = first[0], first[1].astype(np.int32), first[2] > 0.5
-    d0, _ = fill_initial(d0_raw, ambiguity0, flat, options=opts)
-    origin = layer_origin(d0, ambiguity0, flat, options=opts)
-    centre = np.asarray(lf.gray(), np.float32)[lf.grid_shape[0] // 2, lf.grid_shape[1] // 2]
-    limited = noise_limited_pixels(centre, flat, ambiguity0, noise=sigma, options=opts)
-    second = map_tiles(_entropy_matching_task, maps=(d0, ambiguity0.astype(np.float32),
-                                                     limited.astype(np.float32)),
-                       options={**common, "_shared": {"noise_sigma": sigma, "disparity_origin": origin}})
-    matched, labels, ambiguity = second[0], second[1].astype(np.uint8), second[2].astype(np.int32)
-    refined, _ = refine_global(matched, labels, flat, ambiguity, options=opts)
-    return refined
+    for phase in PLAN:
+        if phase.tile_local:
+            stitched = map_tiles(_entropy_phase_task, maps=[getattr(state, name) for name in phase.reads],
+                                 options={**common, "_phase": phase.name, "_shared": shared_numbers(state)})
+            take_tiles(state, phase, stitched)
+        else:
+            run_phase(state, phase)
+    return state.refined
+
+
+def _entropy_rounds() -> int:
+    from recon.entropy.plan import PLAN
+
+    return sum(phase.tile_local for phase in PLAN)
 
 
 def _entropy_halo(lf: LightField, options: dict[str, Any]) -> int:
-    from recon.entropy import make_options
-    from recon.entropy.boundary import boundary_reach_px
-    from recon.entropy.estimate import texture_sigma_px
-    from recon.entropy.noise import filter_reach_px, soften_reach_px, texture_reach_px
+    from recon.entropy.plan import halo_px
+    from recon.entropy.state import Reach
 
-    opts = make_options(**{k: v for k, v in options.items() if v is not None})
-    lo, hi = opts.disparity_range
-    # the initial search looks one initial_step beyond a known range
-    shift = _shift_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape) + 1
-    # the strips' aperture test reads the centre view strip_aperture_length // 2 along each strip
-    gate = opts.strip_aperture_length // 2 if opts.strip_windows and opts.strip_aperture > 0 else 0
-    joint_gate = gate if opts.strip_aperture_scope == "all" else 0
-    initial = shift + max(opts.initial_window // 2, gate)  # d0 at a pixel
-    layers = opts.layer_median // 2 + shift             # median of d0, then the occlusion warp
-    matching = max(max(opts.window_sizes) // 2, joint_gate) + shift  # windows over labels/entropy, then the views
-    # which windows a pixel may use depends on depth jumps and layers within a window of it, and the
-    # side windows' centroid correction fits over one more window
-    window_tests = 2 * (max(opts.window_sizes) // 2) + 1
-    # views filtered where noise-limited pixels (a whole-image mask, given) land (a forward warp with
-    # d0) and the view is flat (Eq. 12, or with noise_gate="texture" the window-scale test)
-    radius = max(opts.window_sizes) // 2 if opts.noise_gate == "texture" else None
-    filtered = filter_reach_px(opts.noise_filter, size=opts.smooth_neighbourhood, radius_px=radius) + shift + 1
-    if opts.weak_texture_filter > 0:  # then the mild filter where weak-texture pixels land (the same warp)
-        filtered += (soften_reach_px(opts.weak_texture_filter) + shift + 1
-                     + texture_reach_px(texture_sigma_px(opts), radius_px=max(opts.window_sizes) // 2))
-    # the boundary test after matching reads the matched map along each pixel's rays
-    # (recon.entropy.boundary.boundary_reach_px)
-    boundary = boundary_reach_px((lo, hi), lf.grid_shape) if opts.boundary_snap else 0
-    # ... and, with boundary_snap_initial, the initial disparity's over the initial search's range
-    if opts.boundary_snap_initial:
-        boundary += boundary_reach_px((lo - opts.initial_step, hi + opts.initial_step), lf.grid_shape)
-    return (filtered + initial + layers + matching + window_tests + boundary
-            + opts.smooth_neighbourhood // 2)
+    opts = _entropy_options(options)
+    return halo_px(opts, Reach(lf.grid_shape, tuple(opts.disparity_range)))
 
 
-#: Tiling rule per method name (the lead may move ``halo_px`` next to each runner in
-#: ``recon.methods.METHODS``; this table is the stand-in).
+#: Tiling rule per method name.
 TILE_RULES: dict[str, TileRule] = {
     "baseline": TileRule(resolve=_baseline_resolve, halo_px=_baseline_halo, exact=True),
     "entropy": TileRule(
-        resolve=_entropy_resolve, halo_px=_entropy_halo, exact=True, run=_entropy_run,
+        resolve=_entropy_resolve, halo_px=_entropy_halo, exact=True, run=_entropy_run, rounds=_entropy_rounds,
         note="bit-identical on the scene suite; asserted to 1e-4 px/view",
     ),
 }
@@ -369,7 +302,7 @@ def tiled_disparity(
         ``progress(fraction, message)`` (:mod:`recon.progress`) as tiles finish, or ``None``.
     runner
         ``runner(crop, method, options, threads) -> (crop H, crop W)``; default :func:`run_tile`.
-        Not used for a method whose rule has its own ``run`` (entropy: two rounds of tiles).
+        Not used for a method whose rule has its own ``run`` (entropy: a round of tiles per tile-local phase).
 
     Returns
     -------
@@ -379,7 +312,7 @@ def tiled_disparity(
     resolved = rule.resolve(lf, dict(options or {}))
     halo = rule.halo_px(lf, resolved) if halo is None else int(halo)
     tiles = plan_tiles(lf.image_shape, tile=tile, halo=halo)
-    rounds = 2 if rule.run is not None else 1
+    rounds = rule.rounds() if callable(rule.rounds) else rule.rounds
     done_before = [0]
 
     def map_tiles(task, maps=(), options=resolved):

@@ -1,0 +1,482 @@
+"""The steps of the estimator (:data:`recon.entropy.plan.PLAN` puts them in order), each with its reach.
+
+A step reads and writes fields of :class:`recon.entropy.plan.State` and calls the step's own module
+for the work (:mod:`~recon.entropy.initial`, :mod:`~recon.entropy.regions`,
+:mod:`~recon.entropy.noise`, :mod:`~recon.entropy.entropy`, :mod:`~recon.entropy.matching`,
+:mod:`~recon.entropy.boundary`, :mod:`~recon.entropy.refine`, :mod:`~recon.entropy.confidence`).
+Its ``reach_px(options, reach)`` beside it says how many pixels around a pixel of its output it
+reads of the previous step's (``reach.view_px(options)``: how far a view is sampled); a tile's halo
+is the sum over the tile-local steps (:func:`recon.entropy.plan.halo_px`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.entropy.aperture import informative_strips
+from recon.entropy.boundary import boundary_reach_px, snap_boundaries
+from recon.entropy.confidence import confidence_map
+from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
+from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
+from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
+from recon.entropy.matching import cost_ambiguity, disparity_candidates, joint_line_search, line_search
+from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
+                                 soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
+                                 weak_texture_pixels)
+from recon.entropy.options import EntropyOptions
+from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
+from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
+from recon.entropy.state import Reach, State, Step
+from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
+
+
+def _no_reach(options: EntropyOptions, reach: Reach) -> int:
+    return 0
+
+
+# --------------------------------------------------------------------------------------------------
+# phase "initial" (tile-local): flat pixels, the nine-view estimate
+
+
+def flat_step(s: State) -> None:
+    """Eq. 12's flat pixels of the centre view (``s.flat``)."""
+    o = s.options
+    s.flat, _ = flat_pixels(s.centre, size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                            sigma=s.noise_sigma)
+
+
+def flat_reach(options: EntropyOptions, reach: Reach) -> int:
+    return options.smooth_neighbourhood // 2
+
+
+def initial_step(s: State) -> None:
+    """The raw nine-view estimate ``s.d0`` and its cost ambiguity ``s.ambiguity0`` (candidates)."""
+    o = s.options
+    s.reporter.step("initial", "initial disparity (nine views)")
+    strip_ok = _strip_ok(s.centre, (o.initial_window,), s.noise_sigma, o)
+    s.d0, _, s.ambiguity0 = initial_disparity(
+        s.raw, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
+        shiftable=o.initial_shiftable, strips=o.strip_windows,
+        ambiguity_delta=s.hole_delta / o.intensity_scale, progress=s.reporter.within,
+        strip_ok=None if strip_ok is None else strip_ok[..., 0])
+
+
+def initial_reach(options: EntropyOptions, reach: Reach) -> int:
+    return reach.view_px(options) + max(options.initial_window // 2, _strip_gate_px(options))
+
+
+# --------------------------------------------------------------------------------------------------
+# phase "layers" (whole image): holes of d0 filled, the range, the layers' origin, noise-limited pixels
+
+
+def fill_initial_step(s: State) -> None:
+    """Black holes of ``s.d0`` (``s.holes0``) filled from their surroundings."""
+    s.d0, s.holes0 = fill_initial(s.d0, s.ambiguity0, s.flat, options=s.options)
+
+
+def snap_initial_step(s: State) -> None:
+    """With ``boundary_snap_initial``: the boundary test on ``s.d0`` (``docs/entropy-method.md``)."""
+    if s.options.boundary_snap_initial:
+        s.d0 = _snap(s.raw, s.d0, s.noise_sigma, s.initial_range, s.options)
+
+
+def noise_limited_step(s: State) -> None:
+    """``s.noise_limited``: the pixels whose matching the noise decides (:func:`noise_limited_pixels`)."""
+    s.noise_limited = noise_limited_pixels(s.centre, s.flat, s.ambiguity0, noise=s.noise_sigma,
+                                           options=s.options)
+
+
+def search_range_step(s: State) -> None:
+    """``s.disparity_range``: the known range, else the robust extent of ``s.d0``."""
+    o = s.options
+    if s.known is not None:
+        s.disparity_range = (float(s.known[0]), float(s.known[1]))
+    else:
+        s.disparity_range = range_from_initial(
+            s.d0, percentile=o.range_percentile, margin=o.range_margin, limits=s.initial_range,
+            grid_shape=s.raw.shape[:2],
+            sure=sure_pixels(s.ambiguity0, step=o.initial_step, width=o.initial_hole_width))
+
+
+def layer_origin_step(s: State) -> None:
+    """``s.origin``: the disparity histogram's bin origin, the same for every tile."""
+    s.origin = layer_origin(s.d0, s.ambiguity0, s.flat, options=s.options)
+
+
+# --------------------------------------------------------------------------------------------------
+# phase "matching" (tile-local): filtered views, regions, windows, line search, boundaries
+
+
+def view_filters_step(s: State) -> None:
+    """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
+    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``)."""
+    o, U, V = s.options, *s.raw.shape[:2]
+    if o.noise_filter > 0 and s.noise_limited.any():
+        texture = o.noise_gate == "texture"
+        s.views = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                    size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                    where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
+                                    texture_ratio=o.noise_texture_ratio if texture else None,
+                                    radius_px=o.windows.largest_radius_px)
+    if o.weak_texture_filter > 0:  # the rest of the weak texture, mildly
+        weak = weak_texture_pixels(_texture_ratio(s.centre, s.noise_sigma, o),
+                                   texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
+        if weak.any():
+            s.views = soften_views(s.views, sigma_px=o.weak_texture_filter,
+                                   where=warp_mask_to_views(weak, s.d0, (U, V)),
+                                   out=None if s.views is s.raw else s.views)  # raw is used later
+    s.lap("initial")
+
+
+def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
+    # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat
+    # (Eq. 12, or with noise_gate="texture" the window-scale test); then the mild filter where
+    # weak-texture pixels land (the same warp)
+    o, radius = options, options.windows.largest_radius_px
+    px = filter_reach_px(o.noise_filter, size=o.smooth_neighbourhood,
+                         radius_px=radius if o.noise_gate == "texture" else None) + reach.view_px(o) + 1
+    if o.weak_texture_filter > 0:
+        px += (soften_reach_px(o.weak_texture_filter) + reach.view_px(o) + 1
+               + texture_reach_px(texture_sigma_px(o), radius_px=radius))
+    return px
+
+
+def regions_step(s: State) -> None:
+    """``s.labels`` (Eqs. 8-11) and ``s.region_info`` (the layer map, noise figures)."""
+    o = s.options
+    s.reporter.step("regions", "region types")
+    s.labels, s.region_info = region_labels(
+        s.raw, s.d0, layer_gap=o.layer_gap, layer_median=o.layer_median,
+        smooth_neighbourhood=o.smooth_neighbourhood, smooth_tolerance=o.smooth_tolerance,
+        occlusion_views=o.occlusion_views, noise=s.noise_sigma, keep=_layer_keep(s.ambiguity0, s.flat, o))
+    s.lap("regions")
+
+
+def regions_reach(options: EntropyOptions, reach: Reach) -> int:
+    return options.layer_median // 2 + reach.view_px(options)  # median of d0, then the occlusion warp
+
+
+def windows_step(s: State) -> None:
+    """The windows each pixel is offered and their matching entropy (Eq. 1), in ``s.windows``."""
+    o = s.options
+    s.reporter.step("windows", "window selection (matching entropy)")
+    layers = s.region_info["layers"]
+    H, W = layers.shape
+    grey_q = quantise_grey(s.centre, o.grey_bins)
+    disp_q = quantise_disparity(layers, o.disparity_bin, origin=s.origin)
+    sizes = tuple(sorted(o.window_sizes))
+    if o.side_windows == "edges":
+        side_radius = jump_distance(layer_jumps(layers, layer_gap=o.side_jump))
+    else:
+        side_radius = None if o.side_windows == "occlusion" else np.zeros((H, W), np.int64)
+    max_size = None if o.crease_tolerance <= 0 else np.where(
+        s.noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
+        curvature_size_cap(layers, sizes, tolerance=o.crease_tolerance, measured=~s.noise_limited,
+                           initial=s.d0, noise_factor=o.crease_noise))
+    shape_map, size_map, entropy, all_entropy = select_windows(
+        grey_q, disp_q, s.labels, sizes=sizes, alpha1=o.alpha1, alpha2_occlusion=o.alpha2_occlusion,
+        alpha2_other=o.alpha2_other, strips=o.strip_windows, side_radius=side_radius,
+        layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all=True,
+        max_size=max_size)
+    s.windows = {"sizes": sizes, "shape": shape_map, "size": size_map, "entropy": entropy,
+                 "all_entropy": all_entropy}
+    s.lap("windows")
+
+
+def windows_reach(options: EntropyOptions, reach: Reach) -> int:
+    # which windows a pixel may use depends on depth jumps and layers within a window of it
+    return options.windows.largest_radius_px + 1
+
+
+def line_search_step(s: State) -> None:
+    """The line search of Eqs. 5-7: ``s.matched``, ``s.cost`` and the cost ambiguity ``s.ambiguity``
+    (candidates), the chosen windows in ``s.windows``."""
+    o, w = s.options, s.windows
+    sizes, labels = w["sizes"], s.labels
+    candidates = disparity_candidates(s.disparity_range[0], s.disparity_range[1], o.step)
+    s.reporter.set_matching(len(candidates))
+    s.reporter.step("matching", f"line search over [{s.disparity_range[0]:.2f}, "
+                                f"{s.disparity_range[1]:.2f}] step {o.step}")
+    occluded = {"none": np.zeros(labels.shape, bool), "occluded": labels == OCCLUDED,
+                "occlusion": (labels == OCCLUDED) | (labels == OCCLUDING),
+                "all": np.ones(labels.shape, bool)}[o.visible_sets]
+    if o.joint:
+        windows = [(sh, z) for sh in range(N_SHAPES if o.strip_windows else 9) for z in sizes]
+        s.matched, s.cost, k, s.ambiguity = joint_line_search(  # penalty: a temporary, freed in there
+            s.views, candidates, windows=windows,
+            penalty=_gate_strips_if(_search_penalty(w["all_entropy"], s.noise_limited, o, len(sizes)),
+                                    s.centre, sizes=sizes, noise=s.noise_sigma, opts=o),
+            use_shape_set=occluded, intensity_scale=o.intensity_scale, ambiguity_delta=s.hole_delta,
+            progress=s.reporter.within)
+        w["shape"] = k // len(sizes)
+        w["size"] = np.asarray(sizes)[k % len(sizes)]
+        w["entropy"] = np.take_along_axis(w["all_entropy"], k[..., None], 2)[..., 0]
+    del w["all_entropy"]
+    w["set"] = np.where(occluded, w["shape"], 0)
+    if not o.joint:
+        s.matched, s.cost, costs = line_search(s.views, candidates, shape_map=w["shape"], size_map=w["size"],
+                                               set_map=w["set"], return_costs=True,
+                                               progress=s.reporter.within)
+        s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
+
+
+def line_search_reach(options: EntropyOptions, reach: Reach) -> int:
+    # windows over labels and entropy, then the views; the strips' aperture test along each strip
+    joint_gate = _strip_gate_px(options) if options.strip_aperture_scope == "all" else 0
+    return max(options.windows.largest_radius_px, joint_gate) + reach.view_px(options)
+
+
+def centroid_step(s: State) -> None:
+    """With ``centroid_correction``: each side window's estimate moved from its centroid back to
+    the pixel (:func:`recon.entropy.refine.centroid_correction`)."""
+    o, w = s.options, s.windows
+    if o.centroid_correction:
+        sizes = w["sizes"]
+        rect_table = np.array([[window_rect(sh, z) if z % 2 else (0, 0, 0, 0) for z in range(max(sizes) + 1)]
+                               for sh in range(N_SHAPES)], np.int64)
+        s.matched = centroid_correction(s.matched, rect_table[w["shape"], w["size"]],
+                                        max_residual=o.centroid_max_residual, max_shift=o.step * 10)
+
+
+def centroid_reach(options: EntropyOptions, reach: Reach) -> int:
+    return options.windows.largest_radius_px  # the plane is fitted over the window
+
+
+def boundary_step(s: State) -> None:
+    """With ``boundary_snap``: the boundary test on ``s.matched`` (``docs/entropy-method.md``)."""
+    if s.options.boundary_snap:
+        s.matched = _snap(s.raw, s.matched, s.noise_sigma, s.disparity_range, s.options)
+    s.lap("matching")
+
+
+def boundary_reach(options: EntropyOptions, reach: Reach) -> int:
+    # the matched map along each pixel's rays (recon.entropy.boundary.boundary_reach_px)
+    return boundary_reach_px(reach.disparity_range, reach.grid_shape) if options.boundary_snap else 0
+
+
+# --------------------------------------------------------------------------------------------------
+# phase "refine" (whole image): TV refinement, confidence
+
+
+def refine_step(s: State) -> None:
+    """``s.refined``: the TV refinement of Eq. 13, black holes ``s.holes`` filled by it."""
+    s.reporter.step("refine", "TV refinement of smooth regions")
+    s.refined, s.holes = refine_global(s.matched, s.labels, s.flat, s.ambiguity, options=s.options)
+
+
+def confidence_step(s: State) -> None:
+    """``s.confidence`` (:func:`recon.entropy.confidence.confidence_map`)."""
+    o = s.options
+    s.confidence = confidence_map(refined=s.refined, matched=s.matched, ambiguity=s.ambiguity, step=o.step,
+                                  disparity_range=s.disparity_range, holes=s.holes, valley_px=o.hole_width,
+                                  hole_support=o.hole_support, hole_ramp=o.hole_ramp)
+    s.lap("refine")
+    s.reporter.done()
+
+
+# --------------------------------------------------------------------------------------------------
+# the steps as the plan names them
+
+
+def _step(name, run, reach=_no_reach) -> Step:
+    return Step(name, run, reach)
+
+
+FLAT = _step("flat", flat_step, flat_reach)
+INITIAL = _step("initial", initial_step, initial_reach)
+FILL_INITIAL = _step("fill_initial", fill_initial_step)
+SNAP_INITIAL = _step("snap_initial", snap_initial_step)
+NOISE_LIMITED = _step("noise_limited", noise_limited_step)
+SEARCH_RANGE = _step("search_range", search_range_step)
+LAYER_ORIGIN = _step("layer_origin", layer_origin_step)
+VIEW_FILTERS = _step("view_filters", view_filters_step, view_filters_reach)
+REGIONS = _step("regions", regions_step, regions_reach)
+WINDOWS = _step("windows", windows_step, windows_reach)
+LINE_SEARCH = _step("line_search", line_search_step, line_search_reach)
+CENTROID = _step("centroid", centroid_step, centroid_reach)
+BOUNDARY = _step("boundary", boundary_step, boundary_reach)
+REFINE = _step("refine", refine_step)
+CONFIDENCE = _step("confidence", confidence_step)
+
+
+# --------------------------------------------------------------------------------------------------
+# the steps' arithmetic on options
+
+
+def _snap(gray: np.ndarray, disparity: np.ndarray, noise: float, rng: tuple[float, float],
+          opts: EntropyOptions) -> np.ndarray:
+    """:func:`recon.entropy.boundary.snap_boundaries` with the options' parameters."""
+    return snap_boundaries(gray, disparity, noise_sigma=noise, disparity_range=rng,
+                           jump=opts.boundary_jump, support=opts.boundary_support,
+                           confidence=opts.boundary_confidence, mix=opts.boundary_mix,
+                           mix_contrast=opts.boundary_mix_contrast,
+                           mix_extrapolate=opts.boundary_mix_extrapolate)[0]
+
+
+def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
+                    n_sizes: int) -> np.ndarray:
+    """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
+    offered), with ``flat_windows="largest"`` applied. The float32 product of ``E`` and ``-lambda``
+    (what numpy makes of ``-lambda * E``) in one pass, without a float temporary of the volume (a
+    float64 one was once the run's largest allocation; a masked ``np.where`` by rows took 0.25 s)."""
+    with np.errstate(invalid="ignore"):  # lambda = 0 times -inf: NaN, set to inf below
+        out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
+    out[~np.isfinite(all_entropy)] = np.inf
+    if opts.flat_windows == "largest":
+        out = _largest_windows_only(out, noise_limited, n_sizes)
+    return out
+
+
+def hole_tolerance(options: EntropyOptions, noise_sigma: float) -> float:
+    """How far above a cost curve's least value a candidate still counts as part of its valley, in
+    the cost's units (``intensity_scale``): ``hole_delta``, or ``hole_delta_noise`` times the
+    noise sigma (``[0, 1]`` grey units) if that is larger."""
+    return max(options.hole_delta, options.hole_delta_noise * noise_sigma * options.intensity_scale)
+
+
+def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: float
+                  ) -> tuple[float, float]:
+    """The range the initial search covers when nobody gave one: :func:`initial.discover_range`
+    over ``options.initial_range`` with the estimator's own window, step, percentiles and hole
+    tolerance (``noise_sigma`` of the centre view in ``[0, 1]`` grey units)."""
+    hole_delta = hole_tolerance(options, noise_sigma)
+    return discover_range(gray, search_range=options.initial_range, step=options.initial_step,
+                          window=options.initial_window, percentile=options.range_percentile,
+                          margin=options.range_margin, shiftable=options.initial_shiftable,
+                          strips=options.strip_windows,
+                          ambiguity_delta=hole_delta / options.intensity_scale,
+                          sure_width=options.initial_hole_width)
+
+
+def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
+    size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
+    size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
+    smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
+    picks whichever window's noise dips lowest, most often the smallest and noisiest."""
+    ys, xs = np.nonzero(flat)  # only those pixels change (none on most textured scenes)
+    if ys.size == 0:
+        return penalty
+    sub = penalty[ys, xs]
+    N, K = sub.shape
+    by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
+    offered = by_size.any(axis=1)
+    largest = n_sizes - 1 - np.argmax(offered[:, ::-1], axis=1)
+    size_of = np.arange(K) % n_sizes
+    bar = size_of[None, :] != largest[:, None]
+    has_square = by_size[np.arange(N), 0, largest]
+    bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
+    out = penalty.astype(np.float32, copy=True)
+    out[ys, xs] = np.where(bar, np.inf, sub)
+    return out
+
+
+#: Least variation along a strip that counts as texture: Eq. 12's floor, half an 8-bit grey level.
+STRIP_FLOOR = 0.5 / 255
+
+
+def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
+              opts: EntropyOptions) -> np.ndarray | None:
+    """``(H, W, 2, len(sizes))`` :func:`informative_strips`, or ``None`` when not gated."""
+    if not opts.strip_windows or opts.strip_aperture == 0:
+        return None
+    return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
+                              floor=STRIP_FLOOR, length=opts.strip_aperture_length)
+
+
+def _gate_strips_if(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                    opts: EntropyOptions) -> np.ndarray:
+    """:func:`_gate_strips` when ``opts.strip_aperture_scope`` is ``"all"``, else ``penalty`` itself."""
+    if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
+        return _gate_strips(penalty, centre, sizes=sizes, noise=noise, factor=opts.strip_aperture,
+                            length=opts.strip_aperture_length)
+    return penalty
+
+
+def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                 factor: float, length: int) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
+    with the strip windows barred where they cannot measure disparity
+    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
+    n = len(sizes)
+    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR,
+                            length=length)
+    out = penalty.copy()
+    for j, shape in enumerate(STRIP_SHAPES):
+        block = out[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :]] = np.inf
+    # A pixel offered nothing but uninformative strips keeps them: some window must be matched.
+    none_left = ~np.isfinite(out).any(axis=2)
+    out[none_left] = penalty[none_left]
+    return out.astype(np.float32)
+
+
+def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,
+                         noise: float, options: EntropyOptions) -> np.ndarray:
+    """``(H, W)`` bool: the pixels whose matching the noise, not the texture, decides
+    (``options.noise_gate``): ``"texture"``: inside a window of the largest size whose every pixel
+    has nothing but noise around it (:func:`recon.entropy.noise.texture_to_noise` below
+    ``noise_texture_ratio``, with the ``noise_filter`` sigma, 1.5 px when the filter is off;
+    :func:`recon.entropy.noise.noise_limited_windows`); Eq. 12's per-pixel count is not used: on a
+    wall under noise it flips from pixel to pixel. ``"holes"`` (the first version): Eq. 12-flat
+    with no valley in the initial nine-view cost."""
+    if options.noise_gate == "holes":
+        return flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
+    return noise_limited_windows(_texture_ratio(centre, noise, options) < options.noise_texture_ratio,
+                                 radius_px=options.windows.largest_radius_px)
+
+
+def texture_sigma_px(options: EntropyOptions) -> float:
+    """Sigma (px) of the filter with which the texture gates measure texture against noise
+    (:func:`recon.entropy.noise.texture_to_noise`): ``noise_filter``, 1.5 px when it is off."""
+    return options.noise_filter if options.noise_filter > 0 else 1.5
+
+
+def _texture_ratio(centre: np.ndarray, noise: float, options: EntropyOptions) -> np.ndarray:
+    # texture_to_noise over the largest window
+    return texture_to_noise(centre, noise_sigma=noise, sigma_px=texture_sigma_px(options),
+                            radius_px=options.windows.largest_radius_px)
+
+
+def _layer_keep(ambiguity0: np.ndarray, flat: np.ndarray, opts: EntropyOptions) -> np.ndarray:
+    return (ambiguity0 * opts.initial_step <= opts.layer_keep_width) & ~flat
+
+
+def fill_initial(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
+                 options: EntropyOptions) -> tuple[np.ndarray, np.ndarray | None]:
+    """Whole-image step after the initial search: black holes of ``d0`` (flat pixels whose
+    nine-view cost curve is flat) filled from their surroundings (:func:`harmonic_fill`).
+
+    ``(H, W)`` maps in, ``(filled d0 float32, holes bool or None)`` out."""
+    holes0 = (flat & (ambiguity0 * options.initial_step > options.initial_hole_width)
+              if options.fill_holes else None)
+    if holes0 is not None and holes0.any():
+        d0 = harmonic_fill(d0, holes0)
+    return d0, holes0
+
+
+def layer_origin(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
+                 options: EntropyOptions) -> float:
+    """The disparity histogram's bin origin the whole image uses: the layer map's minimum."""
+    layers = layer_map(d0, median_size=options.layer_median,
+                       keep=_layer_keep(ambiguity0, flat, options))
+    return float(np.nanmin(layers))
+
+
+def refine_global(matched: np.ndarray, labels: np.ndarray, flat: np.ndarray,
+                  ambiguity: np.ndarray, *, options: EntropyOptions
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Whole-image last step: the TV refinement of Eq. 13 over the smooth region, black holes
+    (flat pixels whose matching cost curve is flat) filled by it.
+
+    ``(H, W)`` maps in (matched disparity, labels, flat mask, cost ambiguity in candidates);
+    ``(refined float32, holes bool or None)`` out."""
+    holes = flat & (ambiguity * options.step > options.hole_width) if options.fill_holes else None
+    refined = tv_refine(matched, labels == SMOOTH, gamma=options.gamma,
+                        iterations=options.tv_iterations, holes=holes)
+    return refined, holes
+
+
+def _strip_gate_px(options: EntropyOptions) -> int:
+    """How far (pixels) the strips' aperture test reads the centre view along a strip; 0 when off."""
+    return options.strip_aperture_length // 2 if options.strip_windows and options.strip_aperture > 0 else 0

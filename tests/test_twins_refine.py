@@ -1,0 +1,70 @@
+"""recon.entropy.refine: TV refinement and centroid correction, compiled and readable, agree and
+keep their invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.entropy.refine import tv_energy, tv_refine
+from kernel_inputs import seeded
+
+
+def test_tv_refine_invariants():
+    rng = seeded()
+    f = (np.linspace(0, 1, 16)[None] + 0.05 * rng.standard_normal((16, 16))).astype(np.float32)
+    mask = np.zeros((16, 16), bool)
+    mask[4:12, 4:12] = True
+    mu = tv_refine(f, mask, gamma=0.2, iterations=300)
+    assert np.array_equal(mu[~mask], f[~mask])
+    assert tv_energy(mu, f, mask, 0.2) < tv_energy(f, mask=mask, data=f, gamma=0.2)
+    # a constant map stays constant
+    const = np.full((8, 8), 0.3, np.float32)
+    np.testing.assert_allclose(tv_refine(const, np.ones((8, 8), bool), gamma=0.2, iterations=50),
+                               const, atol=1e-6)
+    # it is the minimum: no small random perturbation of the mask pixels does better
+    best = tv_energy(mu, f, mask, 0.2)
+    for _ in range(20):
+        trial = mu.copy()
+        trial[mask] += 0.003 * rng.standard_normal(mask.sum())
+        assert tv_energy(trial, f, mask, 0.2) >= best - 1e-4
+
+
+def test_tv_refine_fast_agrees_with_reference():
+    from recon.entropy.refine import tv_refine_reference
+
+    rng = np.random.default_rng(7)
+    f = (0.5 + 0.1 * rng.standard_normal((23, 31))).astype(np.float32)
+    mask = rng.random(f.shape) < 0.7
+    holes = np.zeros(f.shape, bool)
+    holes[5:9, 10:16] = True  # a hole: data term dropped, started from the harmonic fill
+    for kwargs in ({}, {"holes": holes}):
+        fast = tv_refine(f, mask, gamma=0.2, iterations=120, **kwargs)
+        reference = tv_refine_reference(f, mask, gamma=0.2, iterations=120, **kwargs)
+        np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-7)
+        assert np.abs(fast - f).max() > 0.01  # it did smooth something
+    # the smallest image the kernel takes
+    np.testing.assert_allclose(tv_refine(f[:2, :2], mask[:2, :2] | True, gamma=0.2, iterations=10),
+                               tv_refine_reference(f[:2, :2], mask[:2, :2] | True, gamma=0.2,
+                                                   iterations=10), rtol=0, atol=1e-7)
+
+
+def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin():
+    from recon.entropy.refine import centroid_correction, centroid_correction_reference
+    from recon.entropy.windows import N_SHAPES, window_rect
+
+    rng = np.random.default_rng(4)
+    H, W = 30, 34
+    yy, xx = np.mgrid[0:H, 0:W]
+    d = 0.3 + 0.01 * yy - 0.02 * xx + rng.normal(0, 0.002, (H, W))
+    d[:, 20:] += 0.8  # a step: planes fitted across it are rejected, far from the threshold
+    table = np.array([[window_rect(s, z) if z % 2 else (0, 0, 0, 0) for z in range(16)]
+                      for s in range(N_SHAPES)], np.int64)
+    rects = table[rng.integers(0, N_SHAPES, (H, W)), rng.choice([3, 5, 9, 15], (H, W))]
+    kwargs = dict(max_residual=0.05, max_shift=0.2)
+    fast = centroid_correction(d.astype(np.float32), rects, **kwargs)
+    reference = centroid_correction_reference(d.astype(np.float32), rects, **kwargs)
+    np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-6)
+    assert np.abs(fast - d).max() > 0.01  # it did correct something
+    crop = centroid_correction(np.ascontiguousarray(d[5:, 7:], dtype=np.float32), rects[5:, 7:], **kwargs)
+    # away from the crop's edge (15-px windows reach 7 px) a crop is bit-identical to the whole
+    np.testing.assert_array_equal(crop[7:, 7:], fast[12:, 14:])
