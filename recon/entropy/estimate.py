@@ -29,7 +29,7 @@ from recon.entropy.noise import (filter_flat_views, noise_limited_windows, softe
 from recon.entropy.matching import (cost_ambiguity, disparity_candidates, joint_line_search,
                                     line_search)
 from recon.entropy.windows import N_SHAPES
-from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
+from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.windows import STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
@@ -224,6 +224,13 @@ class EntropyOptions:
         True, "... F is the near surface's grey carried on linearly to the pixel (2 F - F2, F2 two "
               "pixels inside), so that shading towards a silhouette is not read as mixing "
               "(occlusion-v1's metal post; docs/entropy-method.md, 'Boundaries')")
+    valley_weights: bool = _opt(
+        True, "pixels whose matching cost valley is wide join the TV refinement with the data weight "
+              "(hole_width / valley width)^2, the curvature of their cost, instead of none (black "
+              "holes) or a fixed value (outside the smooth region); noise-limited black holes keep "
+              "no data term (recon.entropy.refine.valley_weights; needs fill_holes)")
+    unsure_width: float = _opt(
+        0.6, "... a pixel that is not Eq. 12-flat joins when its valley is wider than this (px/view)")
 
 
 #: The defaults, for the command line to turn into flags (``dataclasses.fields(EntropyOptions)``
@@ -243,7 +250,7 @@ PRESETS: dict[str, dict] = {
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
               "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0,
-              "weak_texture_filter": 0.0, "boundary_snap": False},
+              "weak_texture_filter": 0.0, "boundary_snap": False, "valley_weights": False},
 }
 
 
@@ -422,6 +429,8 @@ def check_options(opts: EntropyOptions) -> None:
         raise ValueError(f"weak_texture_filter must be a sigma >= 0 pixels (0: off), got {opts.weak_texture_filter}")
     if not opts.weak_texture_ratio > 0:
         raise ValueError(f"weak_texture_ratio must be > 0 (1 = pure noise), got {opts.weak_texture_ratio}")
+    if not (np.isfinite(opts.unsure_width) and opts.unsure_width > 0):
+        raise ValueError(f"unsure_width must be a valley width > 0 px/view, got {opts.unsure_width}")
     if not 0 <= opts.boundary_mix <= 1 or not opts.boundary_mix_contrast >= 0:
         raise ValueError(f"boundary_mix must be a fraction in [0, 1] (0: off) and boundary_mix_contrast "
                          f">= 0 noise sigmas; got {opts.boundary_mix}, {opts.boundary_mix_contrast}")
@@ -628,7 +637,10 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         refined, holes, confidence = matched, None, None
     else:
         reporter.step("refine", "TV refinement of smooth regions")
-        refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts)
+        refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts,
+                                       no_data=no_data_pixels(raw_gray[u0, v0], noise_limited,
+                                                              noise=noise, options=opts),
+                                       disparity_range=rng)
         confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
                                     step=opts.step, disparity_range=rng, holes=holes,
                                     valley_px=opts.hole_width, hole_support=opts.hole_support,
@@ -778,6 +790,17 @@ def texture_sigma_px(options: EntropyOptions) -> float:
     return options.noise_filter if options.noise_filter > 0 else 1.5
 
 
+def no_data_pixels(centre: np.ndarray, noise_limited: np.ndarray, *, noise: float,
+                   options: EntropyOptions) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose matched value carries no information about the surface, so
+    that the refinement's valley weights give them none: the noise-limited pixels
+    (:func:`noise_limited_pixels`) and every pixel whose own largest window holds nothing but noise
+    (:func:`recon.entropy.noise.texture_to_noise` below ``noise_texture_ratio``; a textureless
+    patch narrower than the noise gate's window is not noise-limited, yet matches itself at every
+    shift). ``centre``: ``(H, W)`` grey centre view; ``noise``: its sigma, ``[0, 1]`` grey units."""
+    return np.asarray(noise_limited, bool) | (_texture_ratio(centre, noise, options) < options.noise_texture_ratio)
+
+
 def _texture_ratio(centre: np.ndarray, noise: float, options: EntropyOptions) -> np.ndarray:
     # texture_to_noise over the largest window
     return texture_to_noise(centre, noise_sigma=noise, sigma_px=texture_sigma_px(options),
@@ -823,14 +846,27 @@ def layer_origin(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
 
 
 def refine_global(matched: np.ndarray, labels: np.ndarray, flat: np.ndarray,
-                  ambiguity: np.ndarray, *, options: EntropyOptions
+                  ambiguity: np.ndarray, *, options: EntropyOptions,
+                  no_data: np.ndarray | None = None,
+                  disparity_range: tuple[float, float] | None = None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Whole-image last step: the TV refinement of Eq. 13 over the smooth region, black holes
-    (flat pixels whose matching cost curve is flat) filled by it.
+    (flat pixels whose matching cost curve is flat) filled by it; with ``valley_weights`` the
+    pixels with a wide cost valley join it with their valley's weight
+    (:func:`recon.entropy.refine.valley_weights`; ``no_data``, the ``(H, W)`` bool mask of
+    :func:`no_data_pixels`, keep none, and so do plateaus over the whole searched
+    ``disparity_range``).
 
     ``(H, W)`` maps in (matched disparity, labels, flat mask, cost ambiguity in candidates);
-    ``(refined float32, holes bool or None)`` out."""
+    ``(refined float32, holes bool or None)`` out (the black holes, whose data term is dropped)."""
     holes = flat & (ambiguity * options.step > options.hole_width) if options.fill_holes else None
+    joined, weight = holes, None
+    if holes is not None and options.valley_weights:
+        span = (np.inf if disparity_range is None else
+                len(disparity_candidates(disparity_range[0], disparity_range[1], options.step)) * options.step)
+        joined, weight = valley_weights(ambiguity * options.step, flat=flat, no_data=no_data,
+                                        hole_width=options.hole_width, unsure_width=options.unsure_width,
+                                        plateau_width=span)
     refined = tv_refine(matched, labels == SMOOTH, gamma=options.gamma,
-                        iterations=options.tv_iterations, holes=holes)
+                        iterations=options.tv_iterations, holes=joined, hole_weight=weight)
     return refined, holes

@@ -226,7 +226,7 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
     3. every tile: regions, windows, line search, centroid correction;
     4. whole image: TV refinement with hole filling (``refine_global``).
     """
-    from recon.entropy.estimate import fill_initial, layer_origin, noise_limited_pixels, refine_global
+    from recon.entropy.estimate import fill_initial, layer_origin, no_data_pixels, noise_limited_pixels, refine_global
     from recon.entropy.regions import noise_sigma
 
     opts = _entropy_options(options)
@@ -242,7 +242,9 @@ def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarr
                                                      limited.astype(np.float32)),
                        options={**common, "_shared": {"noise_sigma": sigma, "disparity_origin": origin}})
     matched, labels, ambiguity = second[0], second[1].astype(np.uint8), second[2].astype(np.int32)
-    refined, _ = refine_global(matched, labels, flat, ambiguity, options=opts)
+    refined, _ = refine_global(matched, labels, flat, ambiguity, options=opts,
+                               no_data=no_data_pixels(centre, limited, noise=sigma, options=opts),
+                               disparity_range=opts.disparity_range)
     return refined
 
 
