@@ -121,8 +121,9 @@ def valley_weights(width: np.ndarray, *, flat: np.ndarray, no_data: np.ndarray |
       wider than ``unsure_width`` join;
     - a pixel without data (``no_data``: noise-limited, or nothing but noise in its window) keeps
       weight 0 as before: its matched value is the noise's, not the surface's
-      (``docs/entropy-method.md``); so does a pixel whose every candidate lies in the valley
-      (``width >= plateau_width``, the span of all candidates): a plateau has no minimum.
+      (``docs/entropy-method.md``); a pixel whose every candidate lies in the valley
+      (``width >= plateau_width``, the span of all candidates) joins with weight 0: a plateau
+      has no minimum, so it is filled from its surroundings.
 
     ``(H, W)`` maps in (``width`` px/view); ``(joined bool, weight float64 in [0, 1])`` out.
     """
@@ -131,9 +132,9 @@ def valley_weights(width: np.ndarray, *, flat: np.ndarray, no_data: np.ndarray |
     wide = holes | (width > unsure_width)
     if no_data is not None:
         wide &= ~np.asarray(no_data, bool)
-    wide &= width < plateau_width - 1e-9
-    joined = holes | wide
-    weight = np.where(wide, np.minimum(1.0, (hole_width / np.maximum(width, 1e-9)) ** 2), 0.0)
+    joined = holes | wide  # a plateau joins with weight 0: filled from its surroundings
+    weight = np.where(wide & (width < plateau_width - 1e-9),
+                      np.minimum(1.0, (hole_width / np.maximum(width, 1e-9)) ** 2), 0.0)
     return joined, weight
 
 
