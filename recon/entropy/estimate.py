@@ -21,7 +21,7 @@ import numpy as np
 
 from recon.entropy.aperture import informative_strips
 from recon.entropy.boundary import snap_boundaries
-from recon.entropy.confidence import confidence_map
+from recon.entropy.calibration import matching_cost, probability_right
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
 from recon.entropy.noise import (filter_flat_views, noise_limited_windows, soften_views,
@@ -274,8 +274,8 @@ class EntropyResult:
     entropy, cost
         float32 matching entropy of the chosen window and matching cost at the chosen disparity.
     confidence
-        float32 in ``[0, 1]`` from the cost curve's valley and the refinement's change
-        (:mod:`recon.entropy.confidence`); ``None`` when stopped before the refinement.
+        float32 in ``[0, 1]``: the probability that the pixel's disparity is within 0.07 px/view of
+        the truth (:mod:`recon.entropy.calibration`); ``None`` when stopped before the refinement.
     disparity_range
         ``(min, max)`` searched.
     timings
@@ -297,8 +297,8 @@ class EntropyResult:
     timings: dict[str, float]
     options: EntropyOptions
     info: dict = field(default_factory=dict)
-    #: ``(H, W)`` float32 confidence of :attr:`disparity` in ``[0, 1]``
-    #: (:func:`recon.entropy.confidence.confidence_map`); ``None`` before the refinement.
+    #: ``(H, W)`` float32 probability that :attr:`disparity` is within 0.07 px/view of the truth
+    #: (:func:`recon.entropy.calibration.probability_right`); ``None`` before the refinement.
     confidence: np.ndarray | None = None
 
     @property
@@ -641,10 +641,13 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                        no_data=no_data_pixels(raw_gray[u0, v0], noise_limited,
                                                               noise=noise, options=opts),
                                        disparity_range=rng)
-        confidence = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity,
-                                    step=opts.step, disparity_range=rng, holes=holes,
-                                    valley_px=opts.hole_width, hole_support=opts.hole_support,
-                                    hole_ramp=opts.hole_ramp)
+        confidence = probability_right(  # recon/entropy/calibration.py
+            refined=refined, matched=matched, initial=d0, ambiguity=ambiguity, labels=labels,
+            holes=holes, noise_limited=noise_limited, window_size=size_map,
+            cost=matching_cost(cost, entropy, lambda_entropy=opts.lambda_entropy,
+                               intensity_scale=opts.intensity_scale),
+            noise_sigma=noise, step=opts.step, disparity_range=rng, valley_px=opts.hole_width,
+            hole_support=opts.hole_support, hole_ramp=opts.hole_ramp)
         lap("refine")
         reporter.done()
 
@@ -655,6 +658,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         view_set=set_map.astype(np.uint8), entropy=entropy, cost=cost, disparity_range=rng,
         timings=timings, options=opts,
         info={"ambiguity": ambiguity, "initial_ambiguity": ambiguity0, "holes": holes,
+              "noise_limited": noise_limited,
               "initial_holes": holes0, "hole_delta": hole_delta, "flat": flat,
               "noise_sigma": region_info["noise_sigma"],
               "smooth_tolerance_abs": region_info["smooth_tolerance_abs"]},
