@@ -260,9 +260,10 @@ def add_vertex_property(path, name: str, values: np.ndarray) -> Path:
     return path
 
 
-#: Pixels whose confidence (``confidence.pfm``, :mod:`recon.entropy.confidence`) is below this are left
-#: out of exports unless the caller keeps everything.
-MIN_CONFIDENCE = 0.4
+#: Pixels whose confidence (``confidence.pfm``: the probability that the disparity is within 0.07
+#: px/view of the truth, :mod:`recon.entropy.calibration`) is below this are left out of exports
+#: unless the caller keeps everything: 0.5 keeps a pixel that is more likely right than wrong.
+MIN_CONFIDENCE = 0.5
 
 
 def trusted_pixels(disparity_px: np.ndarray, *, confidence: np.ndarray | None = None,
