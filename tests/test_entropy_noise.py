@@ -278,3 +278,13 @@ def test_a_flat_spot_smaller_than_the_largest_window_is_left_alone():
     new = estimate_disparity(lf).disparity
     old = estimate_disparity(lf, noise_filter=0.0, flat_windows="all").disparity
     np.testing.assert_array_equal(new, old)
+
+
+def test_the_estimate_leaves_the_callers_views_alone():
+    """The weak-texture filter writes into the estimator's copy of the views, never into a light
+    field whose views are already float grey (lf.gray() then returns the views themselves)."""
+    lf = _faint_wall(40, -1.75, seed=5, texture_levels=1.5)
+    before = np.array(lf.views, copy=True)
+    assert lf.views.dtype == np.float32 and lf.views.ndim == 4  # lf.gray() is lf.views
+    estimate_disparity(lf)
+    np.testing.assert_array_equal(lf.views, before)

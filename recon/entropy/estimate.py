@@ -509,7 +509,8 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     flat, flat_info = flat_pixels(gray[u0, v0], size=opts.smooth_neighbourhood,
                                   tolerance=opts.smooth_tolerance, sigma=noise_sigma)
     noise = flat_info["noise_sigma"]
-    raw_gray = gray
+    raw_gray = gray  # the unfiltered views; dropped once filtered (read again from lf for the boundary test)
+    raw_centre = gray[u0, v0].copy()
     hole_delta = hole_tolerance(opts, noise)
     known = opts.disparity_range or lf.disparity_range
     initial_rng = known if known is not None else opts.initial_range
@@ -555,12 +556,16 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
                                  texture_ratio=opts.noise_texture_ratio if texture else None,
                                  radius_px=max(opts.window_sizes) // 2)
     if opts.weak_texture_filter > 0:  # the rest of the weak texture, mildly
-        weak = weak_texture_pixels(_texture_ratio(raw_gray[u0, v0], noise, opts),
+        weak = weak_texture_pixels(_texture_ratio(raw_centre, noise, opts),
                                    texture_ratio=opts.weak_texture_ratio) & ~noise_limited
         if weak.any():
             gray = soften_views(gray, sigma_px=opts.weak_texture_filter,
                                 where=warp_mask_to_views(weak, d0, (U, V)),
-                                out=None if gray is raw_gray else gray)  # raw_gray is used later
+                                # in place (one copy of the views, not two) unless they are lf's own
+                                out=None if np.shares_memory(gray, lf.views) else gray)
+            raw_gray = None
+    if gray is not raw_gray:
+        raw_gray = None
     lap("initial")
     if known is not None:
         rng = (float(known[0]), float(known[1]))
@@ -572,14 +577,14 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
 
     reporter.step("regions", "region types")
     labels, region_info = region_labels(
-        raw_gray, d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
+        np.broadcast_to(raw_centre, (U, V, H, W)), d0, layer_gap=opts.layer_gap, layer_median=opts.layer_median,
         smooth_neighbourhood=opts.smooth_neighbourhood, smooth_tolerance=opts.smooth_tolerance,
         occlusion_views=opts.occlusion_views, noise=noise,
         keep=_layer_keep(ambiguity0, flat, opts))
     lap("regions")
 
     reporter.step("windows", "window selection (matching entropy)")
-    grey_q = quantise_grey(raw_gray[U // 2, V // 2], opts.grey_bins)
+    grey_q = quantise_grey(raw_centre, opts.grey_bins)
     disp_q = quantise_disparity(region_info["layers"], opts.disparity_bin, origin=disparity_origin)
     sizes = tuple(sorted(opts.window_sizes))
     if opts.side_windows == "edges":
@@ -610,7 +615,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         matched, cost, k, ambiguity = joint_line_search(  # penalty: a temporary, freed in there
             gray, candidates, windows=windows,
             penalty=_gate_strips_if(_search_penalty(all_entropy, noise_limited, opts, len(sizes)),
-                                    raw_gray[u0, v0], sizes=sizes, noise=noise, opts=opts),
+                                    raw_centre, sizes=sizes, noise=noise, opts=opts),
             use_shape_set=occluded, intensity_scale=opts.intensity_scale,
             ambiguity_delta=hole_delta, progress=reporter.within)
         shape_map = k // len(sizes)
@@ -630,7 +635,9 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
         matched = centroid_correction(matched, rect_table[shape_map, size_map],
                                       max_residual=opts.centroid_max_residual, max_shift=opts.step * 10)
     if opts.boundary_snap:  # docs/entropy-method.md, "Boundaries"
-        matched = _snap(raw_gray, matched, noise, rng, opts)
+        gray = None  # the matching's views: the test reads the unfiltered ones
+        matched = _snap(np.ascontiguousarray(lf.gray(), dtype=np.float32) if raw_gray is None else raw_gray,
+                        matched, noise, rng, opts)
     lap("matching")
 
     if stop_after == "matching":
@@ -638,7 +645,7 @@ def estimate_disparity(lf: LightField, *, options: EntropyOptions | None = None,
     else:
         reporter.step("refine", "TV refinement of smooth regions")
         refined, holes = refine_global(matched, labels, flat, ambiguity, options=opts,
-                                       no_data=no_data_pixels(raw_gray[u0, v0], noise_limited,
+                                       no_data=no_data_pixels(raw_centre, noise_limited,
                                                               noise=noise, options=opts),
                                        disparity_range=rng)
         confidence = probability_right(  # recon/entropy/calibration.py
