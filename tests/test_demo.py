@@ -27,7 +27,7 @@ def test_session_reports_depth_within_half_a_percent_on_textured_surfaces(sessio
 
 
 def test_exported_cloud_meets_issue_14s_targets(session):
-    """The exported cloud (what `lfrig export` keeps by default: confidence >= 0.4, inside the searched
+    """The exported cloud (what `lfrig export` keeps by default: confidence >= 0.5, inside the searched
     range): no point outside the true depth range +-5 %, mean |dZ|/Z <= 0.3 %, >= 95 % of pixels kept.
     Before the strips' aperture test and the holes' rim support: 337 points outside (the thin white
     pole), 0.36 %."""
