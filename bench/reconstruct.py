@@ -13,7 +13,10 @@ Scenes: every folder under ``--data`` with ``input_Cam000.png`` and ``gt_disp_lo
 
 Each run is a fresh process (so peak memory is that run's own: loading or rendering the scene
 included, as a user would see it) that estimates the centre view's disparity and scores it
-(BadPix0.07 % / MSE x100, 15-px border, a non-finite estimate counts as wrong). One warm-up run
+(BadPix0.07 % / MSE x100, 15-px border, a non-finite estimate counts as wrong) and, for a method
+with a confidence map, how well it works as a probability of being right (``ECE``: expected
+calibration error over 10 equal bins; ``BP>=.5``: BadPix0.07 % of the pixels at confidence >= 0.5;
+``kept ok``: the share of the scene's right pixels among them). One warm-up run
 per method fills numba's compilation cache first and is not counted. Wall seconds are the median
 over the runs of the estimation alone. Runs of one scene alternate between methods (A/B/A/B...)
 so that the load other users put on the machine touches every method alike.
@@ -52,11 +55,19 @@ if method.startswith("entropy"):
     options = dict(overrides)
     if ":" in method:
         options["preset"] = method.split(":", 1)[1]
-disparity = run_method(method.split(":", 1)[0], lf, **options).disparity
+result = run_method(method.split(":", 1)[0], lf, **options)
+disparity = result.disparity
 t2 = time.perf_counter()
-print(json.dumps({"load_s": t1 - t0, "estimate_s": t2 - t1,
-                  "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "scores": score(disparity, gt)}))
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+calibration = None
+confidence = getattr(result.extras, "confidence", None)
+if confidence is not None:
+    import numpy as np
+    from recon.entropy.calibration import TOLERANCE_PX, calibration_scores
+    inner = (slice(15, -15), slice(15, -15))
+    calibration = calibration_scores(confidence[inner], (np.abs(disparity - gt) <= TOLERANCE_PX)[inner])
+print(json.dumps({"load_s": t1 - t0, "estimate_s": t2 - t1, "peak_mib": peak,
+                  "scores": score(disparity, gt), "calibration": calibration}))
 """
 
 
@@ -104,7 +115,7 @@ def main() -> None:
     print(f"machine: {cpu}, {os.cpu_count()} cores, load {load:.1f} at start; python {platform.python_version()}; "
           f"{args.threads} threads; median of {args.runs} runs; overrides {overrides}")
     header = (f"{'scene':<22} {'method':<14} {'BP0.07':>7} {'MSEx100':>8} {'wall s':>7} {'peak MiB':>9} "
-              f"{'BP0.03':>7} {'BP0.01':>7}")
+              f"{'BP0.03':>7} {'BP0.01':>7} {'ECE':>6} {'BP>=.5':>7} {'kept ok':>7}")
     print(header)
     print("-" * len(header))
     kw = {"size": args.suite_size, "overrides": overrides, "threads": args.threads}
@@ -122,10 +133,12 @@ def main() -> None:
             s = rs[-1]["scores"]
             wall = statistics.median(r["estimate_s"] for r in rs)
             peak = max(r["peak_mib"] for r in rs)
+            c = rs[-1].get("calibration")
             record.append({"scene": name, "method": method, "wall_s": wall, "peak_mib": peak, "scores": s,
-                           "walls_s": [r["estimate_s"] for r in rs]})
+                           "walls_s": [r["estimate_s"] for r in rs], "calibration": c})
+            cal = "" if c is None else f" {c['ece']:6.3f} {c['bad_kept']:7.2f} {c['right_kept']:7.3f}"
             print(f"{name:<22} {method:<14} {s['badpix_0.07']:7.2f} {s['mse_x100']:8.3f} {wall:7.2f} {peak:9.0f} "
-                  f"{s['badpix_0.03']:7.2f} {s['badpix_0.01']:7.2f}", flush=True)
+                  f"{s['badpix_0.03']:7.2f} {s['badpix_0.01']:7.2f}{cal}", flush=True)
     if args.json:
         args.json.write_text(json.dumps(record, indent=1))
 

@@ -317,8 +317,9 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
             "Read RESULT_DIR (written by lfrig reconstruct: disparity.pfm and result.json with focal_px, "
             "pitch_mm, disparity_offset, source), convert disparity to depth in mm "
             "(Z = focal_px * pitch_mm / (d + disparity_offset)), and write what is asked for. Pixels without "
-            "a trustworthy disparity are left out: not finite, confidence (confidence.pfm) below --min-confidence, "
-            "or outside the range the method searched (--keep-all keeps them); the PLY carries each vertex's "
+            "a trustworthy disparity are left out: not finite, confidence (confidence.pfm, the probability that "
+            "the disparity is within 0.07 px of the truth) below --min-confidence, or outside the range the "
+            "method searched (--keep-all keeps them), and the number kept is printed; the PLY carries each vertex's "
             "confidence as a float property. The mesh is cut where the disparity breaks against its local slope "
             "(--max-step) or depth jumps (--max-jump). Coordinates are mm (float32) in the centre camera's frame "
             "(x right, y down, z forward); the PLY header records units, frame, lfrig's version, the command "
@@ -343,7 +344,8 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                         help="neighbours whose depths differ by more than this fraction are not joined "
                              "(default 0.05)")
     export.add_argument("--min-confidence", type=finite_float, default=None, metavar="C",
-                        help="leave out pixels whose confidence is below C, in [0, 1] (default 0.4)")
+                        help="leave out pixels whose confidence (the probability of being within 0.07 px of "
+                             "the truth) is below C, in [0, 1] (default 0.5)")
     export.add_argument("--keep-all", action="store_true",
                         help="keep every finite pixel, whatever its confidence or range")
     export.add_argument("--depth", type=output_file, action="append", default=[], metavar="DEPTH.{pfm,png,npy}",
@@ -385,7 +387,7 @@ def _export(args: argparse.Namespace) -> None:
     if args.max_jump is not None and not args.max_jump > 0:
         raise ExportError(f"--max-jump {args.max_jump}: give a positive fraction of depth, e.g. 0.05")
     if args.min_confidence is not None and not 0 <= args.min_confidence <= 1:
-        raise ExportError(f"--min-confidence {args.min_confidence}: give a value in [0, 1], e.g. 0.4")
+        raise ExportError(f"--min-confidence {args.min_confidence}: give a value in [0, 1], e.g. 0.5")
 
     import numpy as np
 
@@ -398,6 +400,8 @@ def _export(args: argparse.Namespace) -> None:
     min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
 
     result = read_result(args.result_dir)
+    if args.ply is not None or args.depth:
+        print(_kept_line(result, min_confidence=min_confidence, keep_all=args.keep_all))
     overrides = {"focal_px": args.focal_px, "pitch_mm": args.pitch_mm, "disparity_offset": args.disparity_offset}
     try:
         camera = result.camera(**overrides)
@@ -448,6 +452,25 @@ def _export(args: argparse.Namespace) -> None:
 
         page = report_for_result(result, args.report, camera=camera, ply=args.ply)
         print(f"wrote {page}")
+
+
+def _kept_line(result, *, min_confidence: float, keep_all: bool) -> str:
+    """One line: how many of the result's pixels the export keeps, and by what rule."""
+    import numpy as np
+
+    from recon.export import trusted_pixels
+
+    finite = np.isfinite(result.disparity_px)
+    if result.mask is not None:
+        finite &= result.mask
+    total = int(finite.sum())
+    if keep_all:
+        return f"kept {total} of {finite.size} pixels (every finite one: --keep-all)"
+    kept = int((finite & trusted_pixels(result.disparity_px, confidence=result.confidence,
+                                        min_confidence=min_confidence, search_range=result.search_range)).sum())
+    rule = (f"confidence >= {min_confidence:g} and inside the searched range" if result.confidence is not None
+            else "no confidence map: finite and inside the searched range")
+    return f"kept {kept} of {finite.size} pixels ({100.0 * kept / max(finite.size, 1):.1f} %): {rule}"
 
 
 # --------------------------------------------------------------------------------------------------

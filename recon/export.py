@@ -285,9 +285,10 @@ def poisson_mesh(cloud: PointCloud, *, depth: int = 9, density_quantile: float =
     return Mesh(vertices_mm=vertices, triangles=triangles, normals=normals, colours=colours, pixels=None)
 
 
-#: Pixels whose confidence (``confidence.pfm``, :mod:`recon.entropy.confidence`) is below this are left
-#: out of exports unless the caller keeps everything.
-MIN_CONFIDENCE = 0.4
+#: Pixels whose confidence (``confidence.pfm``: the probability that the disparity is within 0.07
+#: px/view of the truth, :mod:`recon.entropy.calibration`) is below this are left out of exports
+#: unless the caller keeps everything: 0.5 keeps a pixel that is more likely right than wrong.
+MIN_CONFIDENCE = 0.5
 
 
 def trusted_pixels(disparity_px: np.ndarray, *, confidence: np.ndarray | None = None,

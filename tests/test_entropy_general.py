@@ -4,6 +4,8 @@ windows, black-hole filling and fractional progress (docs/entropy-method.md, "Ge
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -173,6 +175,40 @@ def test_harmonic_fill_reproduces_a_plane_and_tv_fills_holes():
     refined = tv_refine(noisy, holes, gamma=0.2, iterations=100, holes=holes)
     assert np.abs(refined - plane)[holes].max() < 0.02
     assert np.array_equal(refined[~holes], noisy[~holes])
+
+
+def test_a_wide_valley_keeps_its_data_against_a_near_rim():
+    """The blob on a faint wall (blender-dev slanted-v2): a large region whose matched values are
+    right but whose cost valleys are wide. Filled from its rim alone (a black hole, no data term),
+    it takes the fixed near surface's value wherever its own measured pixels are sparse; with the
+    valley weights (Eq. 13's data term as the cost's curvature) it keeps the wall's value."""
+    from recon.entropy.options import DEFAULTS
+    from recon.entropy.steps import refine_global
+    H, W = 60, 60
+    rng = _rng()
+    truth = np.full((H, W), -1.0, np.float32)
+    matched = (truth + 0.03 * rng.standard_normal((H, W))).astype(np.float32)  # unbiased, noisy
+    labels = np.full((H, W), SMOOTH, np.uint8)
+    matched[:, :12] = 1.0  # a near surface along the left edge, sure and held (not smooth)
+    labels[:, :12] = OCCLUDING
+    flat = np.ones((H, W), bool)
+    flat[:, :12] = False
+    ambiguity = np.full((H, W), 20, np.int32)  # valleys 0.8 px/view wide on the wall (step 0.04)
+    ambiguity[:, :12] = 3
+    anchors = rng.random((H, W)) < 0.002  # a few narrow valleys on the wall
+    ambiguity[anchors] = 3
+    refined, holes = refine_global(matched, labels, flat, ambiguity, options=DEFAULTS,
+                                   no_data=np.zeros((H, W), bool))
+    wall = np.s_[:, 14:]
+    assert holes[wall].mean() > 0.99
+    assert np.mean(np.abs(refined[wall] - truth[wall]) <= 0.07) > 0.98
+    old, _ = refine_global(matched, labels, flat, ambiguity, no_data=np.zeros((H, W), bool),
+                           options=dataclasses.replace(DEFAULTS, valley_weights=False))
+    assert np.mean(np.abs(old[wall] - truth[wall]) <= 0.07) < 0.5  # the fill follows the near rim
+    # a wall without texture above the noise keeps no data term: its matched values are the noise's
+    limited, _ = refine_global(matched, labels, flat, ambiguity, options=DEFAULTS,
+                               no_data=np.ones((H, W), bool))
+    np.testing.assert_array_equal(limited, old)
 
 
 def test_cost_ambiguity_tells_a_valley_from_a_plateau():

@@ -74,7 +74,7 @@ def test_trusted_pixels():
     keep = trusted_pixels(disparity, confidence=confidence, search_range=(0.1, 0.4))
     assert keep.sum() == H * W - 10 and not keep[0, 0] and not keep[6, 9] and not keep[2, 3]
     assert trusted_pixels(disparity).sum() == H * W - 1
-    assert 0 < MIN_CONFIDENCE < 1
+    assert MIN_CONFIDENCE == 0.5  # a probability of being right: more likely right than wrong
 
 
 def test_export_command_filters_by_default_and_keeps_all_on_request(tmp_path, capsys):
@@ -86,9 +86,12 @@ def test_export_command_filters_by_default_and_keeps_all_on_request(tmp_path, ca
     (folder / "result.json").write_text(json.dumps({"focal_px": 120.0, "pitch_mm": 2.0, "method": "entropy",
                                                    "options": {"disparity_range": [0.1, 0.4]}}))
     assert main(["export", str(folder), "--ply", str(tmp_path / "a.ply"), "--points"]) == 0
-    assert "left out 9 unreliable pixels" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "left out 9 unreliable pixels" in out
+    assert f"kept {H * W - 9} of {H * W} pixels" in out and "confidence >= 0.5" in out
     assert len(o3d.io.read_point_cloud(str(tmp_path / "a.ply")).points) == H * W - 9
     assert main(["export", str(folder), "--ply", str(tmp_path / "b.ply"), "--points", "--keep-all"]) == 0
+    assert f"kept {H * W} of {H * W} pixels (every finite one: --keep-all)" in capsys.readouterr().out
     assert len(o3d.io.read_point_cloud(str(tmp_path / "b.ply")).points) == H * W
     assert main(["export", str(folder), "--ply", str(tmp_path / "c.ply"), "--points", "--min-confidence", "0.05"]) == 0
     assert len(o3d.io.read_point_cloud(str(tmp_path / "c.ply")).points) == H * W - 1

@@ -58,6 +58,24 @@ def test_full_report_writes_every_figure(tmp_path):
     assert "http" not in text.replace("http-equiv", "")  # self-contained: no network needed
 
 
+def test_confidence_with_a_truth_shows_its_reliability_sparsification_and_kept_share(tmp_path):
+    image, estimate, truth, labels, window = scene()
+    confidence = np.where(np.abs(estimate - truth) <= 0.07, 0.9, 0.2)  # the fat edge is unsure
+    confidence[:, :4] = 0.45  # right, but under the cut
+    page = write_report(tmp_path / "r", centre_view=image, disparity_px=estimate, truth_disparity_px=truth,
+                        confidence=confidence, min_confidence=0.5, border_px=0)
+    names = page_images(page)
+    assert {"confidence.png", "reliability.png", "sparsification.png"} <= set(names)
+    for name in ("reliability.png", "sparsification.png"):
+        assert cv2.imread(str(page.parent / name)) is not None
+    kept = 100.0 * np.mean(confidence >= 0.5)
+    assert f"kept by the export (confidence ≥ 0.5)" in page.read_text()
+    assert f"{kept:.1f} %" in page.read_text()
+    without = write_report(tmp_path / "n", centre_view=image, disparity_px=estimate, confidence=confidence,
+                           min_confidence=0.5)
+    assert not {"reliability.png", "sparsification.png"} & set(page_images(without))  # no truth: no figures
+
+
 def test_report_without_truth_or_camera_shows_what_it_has(tmp_path):
     image, estimate, *_ = scene()
     page = write_report(tmp_path, centre_view=image[..., 0], disparity_px=estimate)

@@ -37,7 +37,9 @@ def test_tv_refine_fast_agrees_with_reference():
     mask = rng.random(f.shape) < 0.7
     holes = np.zeros(f.shape, bool)
     holes[5:9, 10:16] = True  # a hole: data term dropped, started from the harmonic fill
-    for kwargs in ({}, {"holes": holes}):
+    weight = np.where(holes, rng.uniform(0.0, 1.0, f.shape), 0.0)  # valley weights, some 0
+    weight[5, 10:13] = 0.0
+    for kwargs in ({}, {"holes": holes}, {"holes": holes, "hole_weight": weight}):
         fast = tv_refine(f, mask, gamma=0.2, iterations=120, **kwargs)
         reference = tv_refine_reference(f, mask, gamma=0.2, iterations=120, **kwargs)
         np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-7)

@@ -45,8 +45,8 @@ class EntropyResult:
     entropy, cost
         float32 matching entropy of the chosen window and matching cost at the chosen disparity.
     confidence
-        float32 in ``[0, 1]`` from the cost curve's valley and the refinement's change
-        (:mod:`recon.entropy.confidence`); ``None`` when stopped before the refinement.
+        float32 in ``[0, 1]``: the probability that the pixel's disparity is within 0.07 px/view of
+        the truth (:mod:`recon.entropy.calibration`); ``None`` when stopped before the refinement.
     disparity_range
         ``(min, max)`` searched.
     timings
@@ -68,8 +68,8 @@ class EntropyResult:
     timings: dict[str, float]
     options: EntropyOptions
     info: dict = field(default_factory=dict)
-    #: ``(H, W)`` float32 confidence of :attr:`disparity` in ``[0, 1]``
-    #: (:func:`recon.entropy.confidence.confidence_map`); ``None`` before the refinement.
+    #: ``(H, W)`` float32 probability that :attr:`disparity` is within 0.07 px/view of the truth
+    #: (:func:`recon.entropy.calibration.probability_right`); ``None`` before the refinement.
     confidence: np.ndarray | None = None
 
     @property
@@ -130,7 +130,8 @@ def result_of(state: State) -> EntropyResult:
         view_set=w["set"].astype(np.uint8), entropy=w["entropy"], cost=state.cost,
         disparity_range=state.disparity_range, timings=state.timings, options=state.options,
         info={"ambiguity": state.ambiguity, "initial_ambiguity": state.ambiguity0, "holes": state.holes,
-              "initial_holes": state.holes0, "hole_delta": state.hole_delta, "flat": state.flat,
+              "initial_holes": state.holes0, "noise_limited": state.noise_limited,
+              "hole_delta": state.hole_delta, "flat": state.flat,
               "noise_sigma": state.region_info["noise_sigma"],
               "smooth_tolerance_abs": state.region_info["smooth_tolerance_abs"]},
         confidence=state.confidence)

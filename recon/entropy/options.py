@@ -338,6 +338,14 @@ class RefineOptions:
     hole_delta: float = _opt(0.5, "the hole tolerance: grey levels above a cost curve's least value")
     hole_delta_noise: float = _opt(
         0.2, "the hole tolerance is at least this many noise sigmas (in grey levels)")
+    valley_weights: bool = _opt(
+        True, "pixels whose cost valley is wide join the TV refinement with the data weight "
+              "(hole_width / valley width)^2, the curvature of their cost, instead of none (black holes) "
+              "or a fixed value (outside the smooth region); pixels without data (noise-limited, only noise "
+              "in their largest window, a plateau over the whole range) keep none (needs fill_holes)")
+    unsure_width: float = _opt(
+        0.6, "with valley_weights, a pixel that is not Eq. 12-flat joins the refinement when its cost "
+             "valley is wider than this (px/view)")
     centroid_correction: bool = _opt(
         True, "move each side window's estimate from the window's centroid back to the pixel with the "
               "slope of a plane fitted to the matched disparity over the window")
@@ -354,6 +362,8 @@ class RefineOptions:
               f"hole_delta and hole_delta_noise must be >= 0, got {self.hole_delta}, {self.hole_delta_noise}")
         _need(_finite(self.centroid_max_residual) and self.centroid_max_residual >= 0,
               f"centroid_max_residual must be >= 0 px/view, got {self.centroid_max_residual}")
+        _need(_finite(self.unsure_width) and self.unsure_width > 0,
+              f"unsure_width must be a valley width > 0 px/view, got {self.unsure_width}")
 
 
 @dataclass(frozen=True)
@@ -428,7 +438,7 @@ DEFAULTS = EntropyOptions()
 #: as far as its text fixes one: region labels from the median-filtered layers and the nine views,
 #: the square window alone in texture and smooth regions, W1..W8 (no strips) in occlusion regions,
 #: the window first by largest entropy and then the line search (Eqs. 6-7 read as two steps), every
-#: pixel's data term kept in Eq. 13 (no black-hole filling), no centroid correction, no filters of
+#: pixel's data term kept in Eq. 13 (no black-hole filling, no valley weights), no centroid correction, no filters of
 #: the views, no boundary test, 256 grey bins. Where the paper leaves a choice open (the initial
 #: estimate, the noise tolerance of Eq. 12) it keeps lfrig's reading.
 PRESETS: dict[str, dict[str, Any]] = {
@@ -437,7 +447,7 @@ PRESETS: dict[str, dict[str, Any]] = {
               "single_layer_windows": False, "layer_keep_width": 0.0, "joint": False,
               "centroid_correction": False, "fill_holes": False, "grey_bins": 256,
               "noise_filter": 0.0, "flat_windows": "all", "crease_tolerance": 0.0,
-              "weak_texture_filter": 0.0, "boundary_snap": False},
+              "weak_texture_filter": 0.0, "boundary_snap": False, "valley_weights": False},
 }
 
 

@@ -86,21 +86,61 @@ def tv_energy(mu: np.ndarray, data: np.ndarray, mask: np.ndarray, gamma: float) 
     return float(np.sum(((mu - data) ** 2)[mask]) + gamma * np.sum(np.sqrt(gy ** 2 + gx ** 2)))
 
 
-def _tv_problem(disparity: np.ndarray, mask: np.ndarray, holes: np.ndarray | None):
-    """Eq. 13's inputs with black holes: ``(start, mask, data weight)``; holes join the mask with
-    weight 0 and start from :func:`harmonic_fill`."""
+def _tv_problem(disparity: np.ndarray, mask: np.ndarray, holes: np.ndarray | None,
+                hole_weight: np.ndarray | None = None):
+    """Eq. 13's inputs with black holes: ``(start, data, mask, data weight)``; holes join the mask
+    with weight 0 (or ``hole_weight`` there) and start from :func:`harmonic_fill`; a hole with a
+    positive weight keeps its own value as data."""
     mask = np.asarray(mask, bool)
     weight = np.ones(mask.shape)
+    start = disparity
     if holes is not None and np.any(holes):
         holes = np.asarray(holes, bool)
-        disparity = harmonic_fill(disparity, holes)
+        start = harmonic_fill(disparity, holes)
         mask = mask | holes
-        weight[holes] = 0.0
-    return disparity, mask, weight
+        weight[holes] = 0.0 if hole_weight is None else np.asarray(hole_weight, np.float64)[holes]
+        if hole_weight is not None:
+            disparity = np.where(holes & (weight > 0), disparity, start).astype(np.float32)
+        else:
+            disparity = start
+    return start, disparity, mask, weight
+
+
+def valley_weights(width: np.ndarray, *, flat: np.ndarray, no_data: np.ndarray | None,
+                   hole_width: float, unsure_width: float, plateau_width: float = np.inf
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels join the refinement with a reduced data weight, and that weight.
+
+    Eq. 13's data term ``w (mu - d*)^2`` is a quadratic model of the matching cost around its
+    minimum ``d*``; a cost valley of width ``width`` (the disparity span within the hole tolerance
+    of the least cost) has a curvature ``~ 1 / width^2``. So a pixel whose valley is wider than
+    ``hole_width`` keeps its matched value with the weight ``(hole_width / width)^2`` instead of
+    none (a black hole) or a fixed value (outside the smooth region):
+
+    - the black holes (``flat`` and ``width > hole_width``) and the textured pixels whose valley is
+      wider than ``unsure_width`` join;
+    - a pixel without data (``no_data``: noise-limited, or nothing but noise in its window) keeps
+      weight 0 as before: its matched value is the noise's, not the surface's
+      (``docs/entropy-method.md``); a pixel whose every candidate lies in the valley
+      (``width >= plateau_width``, the span of all candidates) joins with weight 0: a plateau
+      has no minimum, so it is filled from its surroundings.
+
+    ``(H, W)`` maps in (``width`` px/view); ``(joined bool, weight float64 in [0, 1])`` out.
+    """
+    width = np.asarray(width, np.float64)
+    holes = np.asarray(flat, bool) & (width > hole_width)
+    wide = holes | (width > unsure_width)
+    if no_data is not None:
+        wide &= ~np.asarray(no_data, bool)
+    joined = holes | wide  # a plateau joins with weight 0: filled from its surroundings
+    weight = np.where(wide & (width < plateau_width - 1e-9),
+                      np.minimum(1.0, (hole_width / np.maximum(width, 1e-9)) ** 2), 0.0)
+    return joined, weight
 
 
 def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
-              iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
+              iterations: int, holes: np.ndarray | None = None,
+              hole_weight: np.ndarray | None = None) -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value (readable numpy
     reference of :func:`tv_refine`, the compiled twin).
 
@@ -117,18 +157,21 @@ def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float
     holes
         ``(H, W)`` bool, optional: pixels (inside or outside ``mask``) whose data term is dropped,
         filled from their surroundings; started from :func:`harmonic_fill`.
+    hole_weight
+        ``(H, W)`` float, optional: the data weight of the ``holes`` pixels instead of 0 (where it
+        is positive the pixel's own value stays the data; :func:`valley_weights`).
 
     Returns
     -------
     ``(H, W)`` float32 refined disparity ``mu``.
     """
-    disparity, mask, weight = _tv_problem(disparity, mask, holes)
+    start, disparity, mask, weight = _tv_problem(disparity, mask, holes, hole_weight)
     f = disparity.astype(np.float64)
     if gamma <= 0 or not mask.any() or iterations <= 0:
-        return disparity.astype(np.float32)
+        return start.astype(np.float32)
     tau = sigma = 1.0 / np.sqrt(8.0)
-    mu = f.copy()
-    bar = f.copy()
+    mu = start.astype(np.float64)
+    bar = mu.copy()
     py = np.zeros_like(f)
     px = np.zeros_like(f)
     for _ in range(iterations):
@@ -189,20 +232,22 @@ def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px):
 
 
 def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
-              iterations: int, holes: np.ndarray | None = None) -> np.ndarray:
+              iterations: int, holes: np.ndarray | None = None,
+              hole_weight: np.ndarray | None = None) -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
 
     Compiled twin of :func:`tv_refine_reference`: the same parameters and result (Chambolle-Pock in
     two sweeps per iteration instead of 300 rounds of whole-array numpy operations).
     """
     if min(np.shape(disparity)) < 2:
-        return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes)
-    disparity, mask, weight = _tv_problem(disparity, mask, holes)
+        return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes,
+                                   hole_weight=hole_weight)
+    start, disparity, mask, weight = _tv_problem(disparity, mask, holes, hole_weight)
     f = np.ascontiguousarray(disparity, dtype=np.float64)
     if gamma <= 0 or not mask.any() or iterations <= 0:
-        return disparity.astype(np.float32)
-    mu = f.copy()
-    bar = f.copy()
+        return start.astype(np.float32)
+    mu = np.ascontiguousarray(start, dtype=np.float64)
+    bar = mu.copy()
     py = np.zeros_like(f)
     px = np.zeros_like(f)
     _tv_kernel(f, np.ascontiguousarray(mask), weight, float(gamma), int(iterations), mu, bar, py, px)

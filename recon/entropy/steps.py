@@ -15,7 +15,7 @@ import numpy as np
 
 from recon.entropy.aperture import informative_strips
 from recon.entropy.boundary import boundary_reach_px, snap_boundaries
-from recon.entropy.confidence import confidence_map
+from recon.entropy.calibration import matching_cost, probability_right
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
 from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
@@ -24,7 +24,7 @@ from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limit
                                  soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
                                  weak_texture_pixels)
 from recon.entropy.options import EntropyOptions
-from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine
+from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
@@ -259,17 +259,27 @@ def boundary_reach(options: EntropyOptions, reach: Reach) -> int:
 
 
 def refine_step(s: State) -> None:
-    """``s.refined``: the TV refinement of Eq. 13, black holes ``s.holes`` filled by it."""
+    """``s.refined``: the TV refinement of Eq. 13, black holes ``s.holes`` filled by it, wide cost
+    valleys joining with their valley's weight (``valley_weights``)."""
     s.reporter.step("refine", "TV refinement of smooth regions")
-    s.refined, s.holes = refine_global(s.matched, s.labels, s.flat, s.ambiguity, options=s.options)
+    no_data = no_data_pixels(s.centre, s.noise_limited, noise=s.noise_sigma, options=s.options)
+    s.refined, s.holes = refine_global(s.matched, s.labels, s.flat, s.ambiguity, options=s.options,
+                                       no_data=no_data, disparity_range=s.disparity_range)
 
 
 def confidence_step(s: State) -> None:
-    """``s.confidence`` (:func:`recon.entropy.confidence.confidence_map`)."""
+    """``s.confidence``: the probability that the final disparity is within 0.07 px/view of the truth
+    (:func:`recon.entropy.calibration.probability_right`). A tiled run, whose whole-image state has
+    no per-pixel cost or window, makes none."""
     o = s.options
-    s.confidence = confidence_map(refined=s.refined, matched=s.matched, ambiguity=s.ambiguity, step=o.step,
-                                  disparity_range=s.disparity_range, holes=s.holes, valley_px=o.hole_width,
-                                  hole_support=o.hole_support, hole_ramp=o.hole_ramp)
+    if s.cost is not None and "size" in s.windows:
+        s.confidence = probability_right(
+            refined=s.refined, matched=s.matched, initial=s.d0, ambiguity=s.ambiguity, labels=s.labels,
+            holes=s.holes, noise_limited=s.noise_limited, window_size=s.windows["size"],
+            cost=matching_cost(s.cost, s.windows["entropy"], lambda_entropy=o.lambda_entropy,
+                               intensity_scale=o.intensity_scale),
+            noise_sigma=s.noise_sigma, step=o.step, disparity_range=s.disparity_range, valley_px=o.hole_width,
+            hole_support=o.hole_support, hole_ramp=o.hole_ramp)
     s.lap("refine")
     s.reporter.done()
 
@@ -464,17 +474,41 @@ def layer_origin(d0: np.ndarray, ambiguity0: np.ndarray, flat: np.ndarray, *,
 
 
 def refine_global(matched: np.ndarray, labels: np.ndarray, flat: np.ndarray,
-                  ambiguity: np.ndarray, *, options: EntropyOptions
+                  ambiguity: np.ndarray, *, options: EntropyOptions,
+                  no_data: np.ndarray | None = None,
+                  disparity_range: tuple[float, float] | None = None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Whole-image last step: the TV refinement of Eq. 13 over the smooth region, black holes
-    (flat pixels whose matching cost curve is flat) filled by it.
+    (flat pixels whose matching cost curve is flat) filled by it; with ``valley_weights`` the
+    pixels with a wide cost valley join it with their valley's weight
+    (:func:`recon.entropy.refine.valley_weights`; ``no_data``, the ``(H, W)`` bool mask of
+    :func:`no_data_pixels`, keep none, and so do plateaus over the whole searched
+    ``disparity_range``).
 
     ``(H, W)`` maps in (matched disparity, labels, flat mask, cost ambiguity in candidates);
-    ``(refined float32, holes bool or None)`` out."""
+    ``(refined float32, holes bool or None)`` out (the black holes, whose data term is dropped)."""
     holes = flat & (ambiguity * options.step > options.hole_width) if options.fill_holes else None
+    joined, weight = holes, None
+    if holes is not None and options.valley_weights:
+        span = (np.inf if disparity_range is None else
+                len(disparity_candidates(disparity_range[0], disparity_range[1], options.step)) * options.step)
+        joined, weight = valley_weights(ambiguity * options.step, flat=flat, no_data=no_data,
+                                        hole_width=options.hole_width, unsure_width=options.unsure_width,
+                                        plateau_width=span)
     refined = tv_refine(matched, labels == SMOOTH, gamma=options.gamma,
-                        iterations=options.tv_iterations, holes=holes)
+                        iterations=options.tv_iterations, holes=joined, hole_weight=weight)
     return refined, holes
+
+
+def no_data_pixels(centre: np.ndarray, noise_limited: np.ndarray, *, noise: float,
+                   options: EntropyOptions) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose matched value carries no information about the surface, so
+    that the refinement's valley weights give them none: the noise-limited pixels
+    (:func:`noise_limited_pixels`) and every pixel whose own largest window holds nothing but noise
+    (:func:`recon.entropy.noise.texture_to_noise` below ``noise_texture_ratio``; a textureless
+    patch narrower than the noise gate's window is not noise-limited, yet matches itself at every
+    shift). ``centre``: ``(H, W)`` grey centre view; ``noise``: its sigma, ``[0, 1]`` grey units."""
+    return np.asarray(noise_limited, bool) | (_texture_ratio(centre, noise, options) < options.noise_texture_ratio)
 
 
 def _strip_gate_px(options: EntropyOptions) -> int:

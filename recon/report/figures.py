@@ -285,6 +285,44 @@ def line_plot(x: np.ndarray, series: Sequence[tuple], *,
 
 
 
+# --------------------------------------------------------------------------------------------------
+# the confidence against the truth
+# --------------------------------------------------------------------------------------------------
+
+#: Line colour of the ideal in the confidence plots (RGB).
+IDEAL = (150, 150, 150)
+
+
+def reliability_figure(confidence: np.ndarray, right: np.ndarray, *, bins: int = 10) -> np.ndarray:
+    """Reliability diagram: per equal-width confidence bin, the share of pixels that are right
+    (``right``: ``|error| <= 0.07`` px) against the bin's mean confidence; a calibrated confidence
+    lies on the diagonal. ``confidence``, ``right``: same-shaped arrays. RGB image."""
+    from recon.entropy.calibration import reliability
+
+    mean_c, share, n = reliability(confidence, right, bins=bins)
+    used = n > 0  # empty bins have no point
+    diagonal = np.linspace(0.0, 1.0, 11)
+    k = int(used.sum())
+    return line_plot(np.concatenate([diagonal, mean_c[used]]),
+                     [("calibrated", np.concatenate([diagonal, np.full(k, np.nan)]), IDEAL, 1.0),
+                      ("observed", np.concatenate([np.full(11, np.nan), share[used]]), ESTIMATE, 2.0)],
+                     xlabel="confidence (mean of the bin)", ylabel="share right", y_range=(0.0, 1.0))
+
+
+def sparsification_figure(confidence: np.ndarray, error: np.ndarray, *, steps: int = 20) -> np.ndarray:
+    """Sparsification curve: BadPix 0.07 (%) of the pixels left when the least confident share is
+    removed, against that share; and the ideal (removing the largest errors first). RGB image."""
+    from recon.entropy.calibration import sparsification
+
+    error = np.abs(np.asarray(error, np.float64))
+    fractions, by_confidence = sparsification(confidence, error, steps=steps)
+    _, ideal = sparsification(-np.nan_to_num(error, nan=np.inf), error, steps=steps)
+    return line_plot(fractions, [("ideal (by the true error)", ideal, IDEAL, 1.0),
+                                 ("by confidence", by_confidence, ESTIMATE, 2.0)],
+                     xlabel="share of pixels removed (least confident first)", ylabel="BadPix 0.07 %")
+
+
+
 
 # --------------------------------------------------------------------------------------------------
 # the page

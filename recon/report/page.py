@@ -54,7 +54,7 @@ from recon.lf.imageio import write_bytes_atomic, write_png
 from recon.report.model import ViewerModel, decimate, write_viewer_files
 from recon.report.figures import (ESTIMATE, REGION_COLOURS, REGION_NAMES, TRUTH, UNLABELLED, as_rgb8,
                                       colourbar_figure, display_scale, image_figure, line_plot, region_picture,
-                                      shaded_relief)
+                                      reliability_figure, shaded_relief, sparsification_figure)
 from recon.errors import ExportError
 from recon.result import (REGIONS_NPY, REGIONS_PNG, WINDOW_SIZE_NPY, ResultFolder, source_folder)
 
@@ -273,6 +273,7 @@ def write_report(
     figures += _method_figures(out, maps, region_map=region_map, region_names=region_names,
                                window_size_px=window_size_px, confidence=confidence,
                                min_confidence=min_confidence)
+    figures += _confidence_figures(out, maps, confidence)
     if confidence is not None and min_confidence is not None and general is not None:
         kept = np.asarray(confidence) >= min_confidence
         region_rows = region_rows + [_score_rows(maps, kept.astype(np.int64), ("dropped by the export", "kept by the export"))[1][1]]
@@ -281,7 +282,8 @@ def write_report(
 
     parts = [f"<header><h1>{html.escape(title)}</h1>"]
     parts.append(f'<p class="sub">{html.escape(subtitle)}</p>' if subtitle else '<p class="sub"></p>')
-    parts.append(f'<div class="badges">{"".join(_badges(maps, general, region_rows))}</div></header>')
+    badges = _badges(maps, general, region_rows) + _kept_badge(confidence, min_confidence)
+    parts.append(f'<div class="badges">{"".join(badges)}</div></header>')
     parts.append(f'<div class="grid">{"".join(figures)}</div>')
     if viewer:
         parts.append(viewer)
@@ -639,7 +641,8 @@ def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequenc
         note, clipped = _clip_note(conf, 0.0, 1.0, how="0 … 1", unit="")
         write_png(out / "confidence.png", colourbar_figure(picture, low=0.0, high=1.0, lut="viridis",
                                                             label="confidence" + _CLIPPED * clipped, scale=maps.factor))
-        caption = f"from the cost curve's valley width and the refinement's change (recon.entropy.confidence); {note}"
+        caption = ("the probability that the disparity is within 0.07 px of the truth (recon.entropy.calibration); "
+                   f"{note}")
         if min_confidence is not None:
             caption += (f"; the export keeps {100.0 * np.mean(conf >= min_confidence):.1f} % of pixels "
                         f"(confidence ≥ {min_confidence:g})")
@@ -670,6 +673,33 @@ def _method_figures(out: Path, maps: _Maps, *, region_map, region_names: Sequenc
         figures.append(_figure("window_size.png", "Window size", "side of the square window chosen per pixel; "
                                + _clip_note(sizes, w_low, w_high, how="", unit="px")[0]))
     return figures
+
+
+def _kept_badge(confidence, min_confidence) -> list[str]:
+    """The headline share of pixels the export keeps (confidence at least ``min_confidence``)."""
+    if confidence is None or min_confidence is None:
+        return []
+    kept = 100.0 * float(np.mean(np.asarray(confidence) >= min_confidence))
+    return [_badge(f"kept by the export (confidence ≥ {min_confidence:g})", f"{kept:.1f} %", None)]
+
+
+def _confidence_figures(out: Path, maps: _Maps, confidence) -> list[str]:
+    """With a truth: the confidence's reliability diagram and sparsification curve (inside the
+    scoring border); returns their HTML."""
+    if confidence is None or maps.truth is None:
+        return []
+    b = maps.border_px
+    inner = (slice(b, maps.shape[0] - b or None), slice(b, maps.shape[1] - b or None))
+    conf = np.asarray(confidence, np.float64)[inner]
+    error = np.abs(maps.disparity - maps.truth)[inner]
+    ok = np.isfinite(maps.truth[inner])
+    right = error[ok] <= 0.07
+    write_png(out / "reliability.png", reliability_figure(conf[ok], right))
+    write_png(out / "sparsification.png", sparsification_figure(conf[ok], np.where(np.isfinite(error), error, np.inf)[ok]))
+    return [_figure("reliability.png", "Reliability of the confidence",
+                    "share of right pixels (|error| ≤ 0.07 px) per confidence bin; calibrated on the diagonal"),
+            _figure("sparsification.png", "Sparsification",
+                    "BadPix 0.07 of the pixels left as the least confident are removed, and the ideal")]
 
 
 def _profiles(out: Path, maps: _Maps, rows: list[int]) -> list[str]:

@@ -1,0 +1,218 @@
+"""``confidence.pfm`` as a probability: the chance that a pixel's disparity is within 0.07 px/view
+of the truth (BadPix 0.07's threshold), from what the estimator knows about the pixel.
+
+A logistic model over a few per-pixel features (:data:`FEATURES`) of the estimator's own maps:
+
+- the **cost valley's width** (``log``): the disparity span of the candidates within the hole
+  tolerance of the least objective (:func:`recon.entropy.matching.cost_ambiguity`);
+- the **refinement's change** ``|refined - matched|`` and the **disagreement with the neighbours**
+  ``|refined - median5(refined)|`` and with the **nine-view initial estimate** ``|refined - d0|``
+  (logs);
+- the **region type** (occluding, occluded, texture; smooth is the base), the **black holes** (no
+  data term) and the **noise-limited** pixels (:func:`recon.entropy.steps.noise_limited_pixels`);
+- the **matching cost** at the chosen disparity against the noise sigma (log), the **window size**,
+  the **slope** of the final map (log), and the heuristic product of
+  :func:`recon.entropy.confidence.confidence_map`.
+
+``p = 1 / (1 + exp(-(b + sum_i c_i f_i)))``; ``p = 0`` where the disparity is not finite, lies
+outside the searched range or sits on its first or last candidate. The coefficients
+(``recon/entropy/confidence_fit.py``, a constant that script writes) are fitted by
+``bench/confidence_fit.py`` on the scenes under
+``../shared/data`` and the rendered suite (``docs/entropy-method.md``, "Confidence").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.entropy.confidence import confidence_map
+from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
+from recon.entropy.median import median_filter_nearest
+
+#: The model's inputs, in the order of the coefficients.
+FEATURES = ("log_width", "log_change", "log_neighbour", "log_initial", "occluding", "occluded",
+            "texture", "hole", "noise_limited", "log_cost", "window_size", "log_slope", "heuristic")
+
+#: The disparity tolerance the probability is about (px/view): BadPix 0.07's.
+TOLERANCE_PX = 0.07
+
+_EPS = 0.01  # px/view (or noise sigmas) added before the logs: a floor below any difference that matters
+
+
+def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np.ndarray,
+                        ambiguity: np.ndarray, labels: np.ndarray, holes: np.ndarray | None,
+                        noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
+                        noise_sigma: float, step: float, disparity_range: tuple[float, float],
+                        heuristic: np.ndarray) -> np.ndarray:
+    """``(H, W, len(FEATURES))`` float32 features of every pixel (module docstring).
+
+    ``refined``, ``matched``, ``initial``: ``(H, W)`` final, matched and initial disparity (px/view);
+    ``ambiguity``: candidates within the hole tolerance of the least objective; ``labels``: region
+    types; ``holes``, ``noise_limited``: ``(H, W)`` bool or ``None``; ``window_size``: pixels;
+    ``cost``: matching cost (mean absolute difference, without the entropy term) at the chosen
+    disparity, ``[0, 1]`` grey units like ``noise_sigma`` (:func:`matching_cost`);
+    ``step``: candidate spacing; ``heuristic``: :func:`recon.entropy.confidence.confidence_map`.
+    """
+    refined = np.asarray(refined, np.float64)
+    finite = np.isfinite(refined)
+    d = np.where(finite, refined, 0.0)
+    width = np.maximum(np.asarray(ambiguity, np.float64) - 1, 0) * step
+    median = median_filter_nearest(d.astype(np.float32), size=5).astype(np.float64)
+    gy, gx = (np.gradient(d, axis=a) if d.shape[a] > 1 else np.zeros_like(d) for a in (0, 1))
+    zeros = np.zeros(d.shape, bool)
+    labels = np.asarray(labels)
+    noise = max(float(noise_sigma), 0.5 / 255)
+    columns = [
+        np.log(width + step),
+        np.log(np.abs(d - np.nan_to_num(np.asarray(matched, np.float64))) + _EPS),
+        np.log(np.abs(d - median) + _EPS),
+        np.log(np.abs(d - np.nan_to_num(np.asarray(initial, np.float64))) + _EPS),
+        labels == OCCLUDING, labels == OCCLUDED, labels == TEXTURE,
+        zeros if holes is None else np.asarray(holes, bool),
+        zeros if noise_limited is None else np.asarray(noise_limited, bool),
+        np.log(np.maximum(np.nan_to_num(np.asarray(cost, np.float64)), 0.0) / noise + _EPS),
+        np.asarray(window_size, np.float64) / 15.0,
+        np.log(np.hypot(gy, gx) + _EPS),
+        np.asarray(heuristic, np.float64),
+    ]
+    return np.stack([np.asarray(c, np.float32) for c in columns], axis=-1)
+
+
+def load_coefficients() -> tuple[float, tuple[float, ...]]:
+    """``(bias, coefficients)`` of the fitted model (``recon/entropy/confidence_fit.py``), in
+    :data:`FEATURES` order."""
+    from recon.entropy.confidence_fit import FIT
+
+    if tuple(FIT["features"]) != FEATURES:
+        raise ValueError(f"recon/entropy/confidence_fit.py was fitted for features {FIT['features']}, the "
+                         f"code has {list(FEATURES)}; refit with bench/confidence_fit.py")
+    return float(FIT["bias"]), tuple(float(c) for c in FIT["coefficients"])
+
+
+def logistic(features: np.ndarray, bias: float, coefficients) -> np.ndarray:
+    """``(..., F)`` features -> ``(...)`` float64 probability ``1 / (1 + exp(-(b + f . c)))``."""
+    z = bias + np.asarray(features, np.float64) @ np.asarray(coefficients, np.float64)
+    return 1.0 / (1.0 + np.exp(-np.clip(z, -40, 40)))
+
+
+def valid_pixels(refined: np.ndarray, matched: np.ndarray, *, step: float,
+                 disparity_range: tuple[float, float]) -> np.ndarray:
+    """``(H, W)`` bool: finite, inside the searched range, and not matched on its first or last
+    candidate (no minimum inside the range: the true one may lie outside)."""
+    lo, hi = disparity_range
+    refined = np.asarray(refined, np.float64)
+    matched = np.asarray(matched, np.float64)
+    on_end = (np.abs(matched - lo) < 0.5 * step) | (np.abs(matched - hi) < 0.5 * step)
+    with np.errstate(invalid="ignore"):
+        inside = np.isfinite(refined) & (refined >= lo - 1e-6) & (refined <= hi + 1e-6)
+    return inside & ~on_end
+
+
+def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.ndarray,
+                      ambiguity: np.ndarray, labels: np.ndarray, holes: np.ndarray | None,
+                      noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
+                      noise_sigma: float, step: float, disparity_range: tuple[float, float],
+                      hole_support: float = 0.25, hole_ramp: float = 0.1,
+                      valley_px: float = 0.3, coefficients: tuple[float, tuple[float, ...]] | None = None
+                      ) -> np.ndarray:
+    """``(H, W)`` float32: the probability that ``|refined - truth| <= 0.07`` px/view per pixel.
+
+    Inputs as :func:`confidence_features`; ``hole_support``, ``hole_ramp``, ``valley_px`` are the
+    heuristic's (:func:`recon.entropy.confidence.confidence_map`); ``coefficients`` ``(bias,
+    coefficients)``, default the fitted ones (:func:`load_coefficients`)."""
+    heuristic = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=step,
+                               disparity_range=disparity_range, holes=holes, valley_px=valley_px,
+                               hole_support=hole_support, hole_ramp=hole_ramp)
+    features = confidence_features(refined=refined, matched=matched, initial=initial,
+                                   ambiguity=ambiguity, labels=labels, holes=holes,
+                                   noise_limited=noise_limited, window_size=window_size, cost=cost,
+                                   noise_sigma=noise_sigma, step=step, disparity_range=disparity_range,
+                                   heuristic=heuristic)
+    bias, coef = coefficients if coefficients is not None else load_coefficients()
+    p = logistic(features, bias, coef)
+    ok = valid_pixels(refined, matched, step=step, disparity_range=disparity_range)
+    return np.where(ok, p, 0.0).astype(np.float32)
+
+
+def calibration_scores(confidence: np.ndarray, right: np.ndarray, *, bins: int = 10,
+                       threshold: float = 0.5) -> dict[str, float]:
+    """How well ``confidence`` (``(N,)`` probabilities) predicts ``right`` (``(N,)`` bool).
+
+    ``ece``: expected calibration error over ``bins`` equal-width bins (the pixel-weighted mean of
+    ``|mean confidence - share right|`` per bin); ``kept``: share of pixels at ``>= threshold``;
+    ``bad_kept``: BadPix (%) among them, against ``bad_all`` (%) of all; ``right_kept``: share of
+    the right pixels that are kept."""
+    c = np.asarray(confidence, np.float64).ravel()
+    r = np.asarray(right, bool).ravel()
+    if c.size == 0:
+        raise ValueError("no pixels to score")
+    index = np.minimum((c * bins).astype(np.int64), bins - 1)
+    ece = 0.0
+    for b in range(bins):
+        m = index == b
+        if m.any():
+            ece += m.sum() / c.size * abs(c[m].mean() - r[m].mean())
+    kept = c >= threshold
+    return {"ece": float(ece), "kept": float(kept.mean()),
+            "bad_all": float(100 * (1 - r.mean())),
+            "bad_kept": float(100 * (1 - r[kept].mean())) if kept.any() else float("nan"),
+            "right_kept": float(kept[r].mean()) if r.any() else float("nan")}
+
+
+def reliability(confidence: np.ndarray, right: np.ndarray, *, bins: int = 10
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reliability diagram data: per equal-width bin, ``(mean confidence, share right, pixels)``
+    (NaN for empty bins)."""
+    c = np.asarray(confidence, np.float64).ravel()
+    r = np.asarray(right, bool).ravel()
+    index = np.minimum((c * bins).astype(np.int64), bins - 1)
+    n = np.bincount(index, minlength=bins).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_c = np.bincount(index, c, minlength=bins) / n
+        share = np.bincount(index, r.astype(np.float64), minlength=bins) / n
+    return mean_c, share, n
+
+
+def sparsification(confidence: np.ndarray, error: np.ndarray, *, steps: int = 20
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Sparsification curve: ``(fraction removed, BadPix 0.07 % of the rest)`` when the least
+    confident pixels are removed first, at ``steps`` evenly spaced fractions in ``[0, 1)``.
+    ``error``: ``(N,)`` absolute disparity errors (non-finite counts as wrong)."""
+    c = np.asarray(confidence, np.float64).ravel()
+    bad = ~(np.abs(np.asarray(error, np.float64).ravel()) <= TOLERANCE_PX)
+    order = np.argsort(-c, kind="stable")  # most confident first
+    bad_sorted = bad[order]
+    n = c.size
+    fractions = np.arange(steps) / steps
+    out = []
+    for f in fractions:
+        keep = max(1, int(round(n * (1 - f))))
+        out.append(100.0 * bad_sorted[:keep].mean())
+    return fractions, np.asarray(out)
+
+
+def matching_cost(objective: np.ndarray, entropy: np.ndarray, *, lambda_entropy: float,
+                  intensity_scale: float) -> np.ndarray:
+    """``(H, W)`` mean absolute grey difference (``[0, 1]`` units) at the chosen disparity from Eq.
+    7's objective ``intensity_scale * cost - lambda * E`` and the chosen window's entropy ``E``."""
+    return (np.asarray(objective, np.float64) + lambda_entropy * np.asarray(entropy, np.float64)) / intensity_scale
+
+
+def result_features(result) -> tuple[np.ndarray, np.ndarray]:
+    """``(features (H, W, F) float32, valid (H, W) bool)`` of an
+    :class:`recon.entropy.estimate.EntropyResult` (its maps and ``info``), as
+    :func:`probability_right` computes them: the data of ``bench/confidence_fit.py``."""
+    opts = result.options
+    info = result.info
+    common = dict(refined=result.disparity, matched=result.matched_disparity, ambiguity=info["ambiguity"],
+                  step=opts.step, disparity_range=result.disparity_range, holes=info["holes"])
+    heuristic = confidence_map(**common, valley_px=opts.hole_width, hole_support=opts.hole_support,
+                               hole_ramp=opts.hole_ramp)
+    features = confidence_features(**common, initial=result.initial_disparity, labels=result.labels,
+                                   noise_limited=info.get("noise_limited"), window_size=result.window_size,
+                                   cost=matching_cost(result.cost, result.entropy, lambda_entropy=opts.lambda_entropy,
+                                                      intensity_scale=opts.intensity_scale),
+                                   noise_sigma=info["noise_sigma"], heuristic=heuristic)
+    valid = valid_pixels(result.disparity, result.matched_disparity, step=opts.step,
+                         disparity_range=result.disparity_range)
+    return features, valid
