@@ -487,9 +487,11 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
             "capture appears at CAPTURE only when complete."
         ),
     )
-    imp.add_argument("src", type=Path, metavar="SRC", help="folder holding the views")
+    imp.add_argument("src", type=Path, metavar="SRC",
+                     help="folder holding the views, one mosaic image (with --mosaic) or an HDF5 light field (.h5)")
     imp.add_argument("-o", "--output", type=Path, required=True, metavar="CAPTURE", help="new capture folder")
-    imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order")
+    imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order; {y}/{x} match an "
+                     "unused float position; 'stanford' for the Stanford archive's out_RR_CC_<y>_<x>_.png")
     imp.add_argument("--order", choices=("serpentine", "raster"),
                      help="files are in capture order (serpentine: every other row right to left, as lfrig captures)")
     imp.add_argument("--rows", type=int, help="grid rows (u) (not needed for a benchmark folder)")
@@ -500,8 +502,23 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--principal-point-px", type=float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
     imp.add_argument("--disparity-range", type=float, nargs=2, metavar=("MIN", "MAX"),
                      help="disparity the scene spans, pixels per view step")
+    imp.add_argument("--mosaic", type=_grid_size, metavar="ROWSxCOLS",
+                     help="SRC is one image holding every view, ROWS tiles down and COLS across")
+    imp.add_argument("--transpose", action="store_true", help="swap the grid's rows and columns (before any flip)")
+    imp.add_argument("--flip-u", action="store_true", help="reverse the grid's rows (the first row becomes the last)")
+    imp.add_argument("--flip-v", action="store_true", help="reverse the grid's columns")
+    imp.add_argument("--no-order-check", action="store_true",
+                     help="skip the check that warns when the views' order looks mirrored")
     imp.add_argument("--quiet", action="store_true", help="no progress output")
     imp.set_defaults(handler=_import)
+
+
+def _grid_size(text: str) -> tuple[int, int]:
+    """``9x9`` -> ``(9, 9)``: rows first."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) >= 1 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give the grid as ROWSxCOLS, e.g. 9x9")
+    return int(parts[0]), int(parts[1])
 
 
 def _import(args: argparse.Namespace) -> None:
@@ -513,6 +530,8 @@ def _import(args: argparse.Namespace) -> None:
             args.src, args.output, pattern=args.pattern, order=args.order, rows=args.rows, cols=args.cols,
             index_base=args.index_base, pitch_mm=args.pitch_mm, focal_px=args.focal_px,
             principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
-            disparity_range=tuple(args.disparity_range) if args.disparity_range else None, progress=bar,
+            disparity_range=tuple(args.disparity_range) if args.disparity_range else None, mosaic=args.mosaic,
+            transpose=args.transpose, flip_u=args.flip_u, flip_v=args.flip_v, check_order=not args.no_order_check,
+            warn=lambda text: print(f"lfrig: warning: {text}", file=sys.stderr), progress=bar,
         )
     print(f"{path}: imported from {args.src}, complete")
