@@ -84,7 +84,10 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     """The method flags shared by ``lfrig reconstruct`` and ``lfrig batch reconstruct``: ``--method``,
     ``--disparity-range``, ``--step``, the baseline's ``--window`` and one flag per entropy option.
     :func:`method_options` turns the parsed flags into the chosen method's options."""
-    parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
+    parser.add_argument("--config", type=Path, metavar="FILE",
+                        help="options from a TOML file of these flags' names (window_sizes = [3, 5]) or a result.json "
+                             "(its method and options, to reproduce it); a flag given here wins over the file")
+    parser.add_argument("--method", choices=list(METHODS), default=None,
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     parser.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                         help="disparities to search, pixels per view step (default: the light field's; else "
@@ -129,12 +132,43 @@ def _flag_type(kind: type):
     return finite_float if kind is float else kind
 
 
+class _ConfigParser(argparse.ArgumentParser):
+    """Parses one option of an options file as its flag; a bad value is a :class:`recon.config.ConfigError`."""
+
+    where = ""
+
+    def error(self, message: str):
+        from recon.config import ConfigError
+
+        raise ConfigError(f"{self.where}: {message}")
+
+
+def _apply_config(args: argparse.Namespace) -> None:
+    """Set the method flags the command line left unset from ``--config FILE`` (:mod:`recon.config`):
+    each option of the file is parsed as its flag would be, so it is checked the same way."""
+    path = getattr(args, "config", None)
+    if path is not None:
+        from recon.config import config_tokens, read_config
+
+        parser = _ConfigParser(add_help=False)
+        add_method_arguments(parser)
+        keys = set(vars(parser.parse_args([]))) - {"config"}
+        for key, tokens in config_tokens(read_config(path, keys=keys), path=path):
+            parser.where = f"{path}: option {key!r}"
+            if getattr(args, key) is None:  # a flag on the command line wins
+                setattr(args, key, getattr(parser.parse_args(tokens), key))
+    if args.method is None:
+        args.method = DEFAULT_METHOD
+
+
 def method_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The options the user set for the chosen method (others keep the method's defaults)."""
+    """The options the user set for the chosen method (others keep the method's defaults), from the
+    flags and ``--config``."""
     import dataclasses
 
     from recon.errors import ReconError
 
+    _apply_config(args)
     chosen: dict[str, Any] = {}
     if args.disparity_range is not None:
         if not args.disparity_range[0] < args.disparity_range[1]:
