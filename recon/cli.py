@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (finite_float, nonnegative_int, output_file, output_folder, positive_float,
+from recon.cliargs import (CommandReport, add_json_argument, finite_float, nonnegative_int, output_file, output_folder, positive_float,
                            positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
@@ -58,6 +58,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(rec)
     _add_verify_argument(rec)
     rec.set_defaults(handler=_reconstruct)
 
@@ -274,11 +275,15 @@ def _reconstruct(args: argparse.Namespace) -> None:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
                                        ply_kind="points" if args.points else "mesh", progress=bar,
                                        verify=args.verify)
-    print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
+    out = CommandReport(as_json=args.json)
+    out.line(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s",
+             output=args.output, method=args.method, seconds=folder.record.seconds,
+             disparity=args.output / DISPARITY_PFM, options=folder.record.options)
     if folder.record.scores is not None:
-        print(_format_scores(folder.record.scores))
+        out.line(_format_scores(folder.record.scores), scores=folder.record.scores)
     if folder.export is not None:
-        print(f"wrote {folder.export}")
+        out.line(f"wrote {folder.export}", ply=folder.export)
+    out.finish()
 
 
 def _format_scores(scores: dict[str, float]) -> str:
@@ -341,6 +346,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                         help="also write the views' cameras into this folder: a COLMAP text model (cameras.txt, "
                              "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
                              "camera's frame")
+    add_json_argument(export)
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
     camera.add_argument("--focal-px", type=positive_float, help="focal length of the rectified views in pixels")
     camera.add_argument("--pitch-mm", type=positive_float, help="grid pitch (distance between neighbouring views) in mm")
@@ -381,7 +387,10 @@ def _export(args: argparse.Namespace) -> None:
         from recon.poses import result_grid
 
         result_grid(result)  # before any file is written
+    out = CommandReport(as_json=args.json)
     if args.ply is not None:
+        if args.poisson:
+            print("meshing (Poisson, ~20 s for 512x512 px)...", file=sys.stderr, flush=True)
         summary = export_ply(
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
             kind=args.kind, poisson=args.poisson, ascii=args.ascii,
@@ -389,8 +398,9 @@ def _export(args: argparse.Namespace) -> None:
             confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
             keep_all=args.keep_all,
         )
-        print(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
-                                    if summary.pixels_unreliable else ""))
+        out.line(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
+                                       if summary.pixels_unreliable else ""),
+                 ply=args.ply, ply_summary=str(summary), pixels_unreliable=summary.pixels_unreliable)
     if args.depth:
         depth = camera.depth_mm(result.disparity_px)
         if result.mask is not None:
@@ -403,16 +413,20 @@ def _export(args: argparse.Namespace) -> None:
                 write_depth(path, depth)
             except ValueError as error:  # a user's path, not a bug
                 raise ExportError(f"{path}: {error}") from None
-            print(f"wrote {path} (depth in mm)")
+            out.line(f"wrote {path} (depth in mm)", depth=[str(p) for p in args.depth])
     if args.poses is not None:
         from recon.poses import export_poses
 
-        print(f"wrote {export_poses(result, args.poses, camera=camera)}")
+        poses = export_poses(result, args.poses, camera=camera)
+        out.line(f"wrote {poses}", poses=args.poses, poses_summary=str(poses))
     if args.report is not None:
         from recon.report import report_for_result
 
+        if not args.json:
+            print("writing the report (figures and 3D view)...", file=sys.stderr, flush=True)
         page = report_for_result(result, args.report, camera=camera, ply=args.ply)
-        print(f"wrote {page}")
+        out.line(f"wrote {page}", report=page)
+    out.finish()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -462,6 +476,7 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
     rec.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
                      help="local cluster: where the dashboard listens, a free port if this one is taken "
                           "(default 127.0.0.1:8787)")
+    add_json_argument(rec)
     rec.set_defaults(handler=_batch_reconstruct)
 
 
@@ -483,25 +498,30 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
                            export=None if args.export == "none" else args.export, tile=args.tile, halo=args.halo)
     plan = prepare_batch(args.captures, args.output, request=request, force=args.force)
     transfer = args.transfer if args.transfer != "auto" else ("ship" if args.scheduler else "shared")
+    lines = sys.stderr if args.json else sys.stdout  # with --json, stdout holds only the JSON object
 
     def show(outcome, done: int, total: int) -> None:
         what = {"ok": "done", "skipped": "already complete", "failed": "FAILED"}[outcome.status]
         took = f" in {outcome.seconds:.1f} s" if outcome.seconds is not None and outcome.status == "ok" else ""
         error = f": {outcome.error}" if outcome.error else ""
-        print(f"[{done}/{total}] {outcome.name}: {what}{took}{error}", flush=True)
+        print(f"[{done}/{total}] {outcome.name}: {what}{took}{error}", file=lines, flush=True)
 
     if not plan.todo:
         outcomes = run_batch(None, plan, transfer=transfer, on_outcome=show)
     else:
         with connect(scheduler=args.scheduler, workers=args.workers, tasks=None if args.tile else len(plan.todo),
                      dashboard_address=args.dashboard_address, timeout_s=args.worker_timeout_s) as connection:
-            print(connection.describe() + f"; data: {transfer}", flush=True)
-            print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
+            print(connection.describe() + f"; data: {transfer}", file=lines, flush=True)
+            print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", file=lines,
+                  flush=True)
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
-                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", flush=True),
+                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", file=lines, flush=True),
                                  no_worker_timeout_s=args.worker_timeout_s)
-    print()
-    print(format_summary(outcomes))
+    if args.json:
+        print(json.dumps({"output": str(args.output), "captures": [o.as_dict() for o in outcomes]}, indent=2, default=str))
+    else:
+        print()
+        print(format_summary(outcomes))
     failed = [o for o in outcomes if o.status == "failed"]
     for o in failed:
         if o.detail:
@@ -544,6 +564,7 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--no-order-check", action="store_true",
                      help="skip the check that warns when the views' order looks mirrored")
     imp.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(imp)
     imp.set_defaults(handler=_import)
 
 
@@ -559,6 +580,12 @@ def _import(args: argparse.Namespace) -> None:
     from recon.lf.importer import import_views
     from recon.progress import Progress
 
+    warnings: list[str] = []
+
+    def warn(text: str) -> None:
+        warnings.append(text)
+        print(f"lfrig: warning: {text}", file=sys.stderr)
+
     with Progress("import", quiet=args.quiet) as bar:
         path = import_views(
             args.src, args.output, pattern=args.pattern, order=args.order, rows=args.rows, cols=args.cols,
@@ -566,6 +593,9 @@ def _import(args: argparse.Namespace) -> None:
             principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
             disparity_range=tuple(args.disparity_range) if args.disparity_range else None, mosaic=args.mosaic,
             transpose=args.transpose, flip_u=args.flip_u, flip_v=args.flip_v, check_order=not args.no_order_check,
-            warn=lambda text: print(f"lfrig: warning: {text}", file=sys.stderr), progress=bar,
+            warn=warn, progress=bar,
         )
-    print(f"{path}: imported from {args.src}, complete")
+    out = CommandReport(as_json=args.json)
+    out.line(f"{path}: imported from {args.src}, complete", output=path, source=args.src, complete=True,
+             warnings=warnings)
+    out.finish()
