@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (CommandReport, add_json_argument, finite_float, nonnegative_int, output_file, output_folder, positive_float,
-                           positive_int)
+from recon.cliargs import (CommandReport, add_json_argument, finite_float, nonnegative_int, output_file,
+                           output_folder, positive_float, positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
 
@@ -422,8 +422,7 @@ def _export(args: argparse.Namespace) -> None:
     if args.report is not None:
         from recon.report import report_for_result
 
-        if not args.json:
-            print("writing the report (figures and 3D view)...", file=sys.stderr, flush=True)
+        print("writing the report (figures and 3D view)...", file=sys.stderr, flush=True)
         page = report_for_result(result, args.report, camera=camera, ply=args.ply)
         out.line(f"wrote {page}", report=page)
     out.finish()
