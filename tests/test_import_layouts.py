@@ -214,3 +214,16 @@ def test_benchmark_folder_keeps_ground_truth_and_scores(tmp_path, tiny):
         assert main(["reconstruct", str(lf_dir), "-o", str(rec), *FAST]) == 0
         scores.append(json.loads((rec / "result.json").read_text())["scores"])
     assert scores[0] and scores[0] == scores[1]
+
+
+def test_reorienting_a_grid_with_ground_truth_is_refused_when_it_moves_the_truth(tmp_path, tiny, capsys):
+    truth = read_pfm(TRUTH)
+    h5 = write_h5(tmp_path / "lf.h5", tiny.views, GT_DISP=truth)
+    assert main(["import", str(h5), "-o", str(tmp_path / "t"), "--transpose", "--quiet"]) == 2
+    assert "ground truth" in one_error_line(capsys.readouterr().err) and not (tmp_path / "t").exists()
+    # an odd grid's flip keeps the centre view where it is: allowed
+    assert main(["import", str(h5), "-o", str(tmp_path / "f"), "--flip-v", "--no-order-check", "--quiet"]) == 0
+    assert np.array_equal(read_lightfield(tmp_path / "f").views, tiny.views[:, ::-1])
+    even = write_h5(tmp_path / "even.h5", np.ascontiguousarray(tiny.views[:2, :2]), GT_DISP=truth)
+    assert main(["import", str(even), "-o", str(tmp_path / "e"), "--flip-v", "--quiet"]) == 2
+    assert "even grid side" in one_error_line(capsys.readouterr().err)

@@ -616,8 +616,10 @@ def import_views(
                 f"principal point ({cx}, {cy}) px lies outside the {shape[1]}x{shape[0]} views; give (cx, cy), x first"
             )
     if transpose or flip_u or flip_v:
-        if truth and transpose:
-            raise ViewImportError(f"{src}: --transpose would move the ground truth's axes too; import without it")
+        moves_centre = (flip_u and plan.rows % 2 == 0) or (flip_v and plan.cols % 2 == 0)
+        if truth and (transpose or moves_centre):
+            raise ViewImportError(f"{src}: the ground truth belongs to the centre view as the source orders the grid; "
+                                  "--transpose, or a flip of an even grid side, would not keep it true: import without them")
         plan, images = reorient(plan, images, transpose=transpose, flip_u=flip_u, flip_v=flip_v)
     if check_order:
         for text in order_warnings(images, rows=plan.rows, cols=plan.cols):
