@@ -129,13 +129,16 @@ def _intrinsics(args: argparse.Namespace) -> int:
         result.model.write(str(tmp), note=note)
     with atomic_output(picture, what="residual picture") as tmp:
         write_residual_picture(result, tmp)
-    lensmodel, intrinsics = result.model.intrinsics()
     out = CommandReport(as_json=args.json)
-    out.line(result.report(), lensmodel=lensmodel, intrinsics=[float(v) for v in intrinsics],
-             imager=[int(v) for v in result.model.imagersize()], rms_px=float(result.rms_px),
-             worst_px=float(result.worst_px), images_used=list(result.used), images_skipped=list(result.skipped),
-             outliers=len(result.outliers), corners=int(result.n_corners),
-             uncertainty_px={k: float(v) for k, v in result.uncertainty_px.items()})
+    if args.json:
+        lensmodel, intrinsics = result.model.intrinsics()
+        out.line("", lensmodel=lensmodel, intrinsics=[float(v) for v in intrinsics],
+                 imager=[int(v) for v in result.model.imagersize()], rms_px=float(result.rms_px),
+                 worst_px=float(result.worst_px), images_used=list(result.used), images_skipped=list(result.skipped),
+                 outliers=len(result.outliers), corners=int(result.n_corners),
+                 uncertainty_px={k: float(v) for k, v in result.uncertainty_px.items()})
+    else:
+        out.line(result.report())
     out.line(f"wrote {args.output} and {picture}", output=args.output, residuals=picture)
     out.finish()
     return 0
