@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from recon.cliargs import output_file, output_folder, positive_float
+from recon.cliargs import CommandReport, add_json_argument, output_file, output_folder, positive_float
 
 
 def _board_args(p: argparse.ArgumentParser) -> None:
@@ -49,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     intr.add_argument("--residuals", type=output_file, metavar="PNG",
                       help="residual picture (default: next to the model, .residuals.png)")
     intr.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(intr)
     intr.set_defaults(handler=_intrinsics)
 
     st = sub.add_parser(
@@ -66,6 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _board_args(st)
     st.add_argument("-o", "--output", type=output_file, required=True, metavar="STAGE.json")
     st.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(st)
     st.add_argument("--no-verify", dest="verify", action="store_false",
                     help="do not check the capture's views against the checksums in its journal")
     st.set_defaults(handler=_stage)
@@ -90,6 +92,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="keep the camera's image size, with black where no camera pixel maps")
     rect.add_argument("--no-verify", dest="verify", action="store_false",
                       help="do not check the capture's views against the checksums in its journal")
+    rect.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(rect)
     rect.set_defaults(handler=_rectify)
 
 
@@ -125,8 +129,18 @@ def _intrinsics(args: argparse.Namespace) -> int:
         result.model.write(str(tmp), note=note)
     with atomic_output(picture, what="residual picture") as tmp:
         write_residual_picture(result, tmp)
-    print(result.report())
-    print(f"wrote {args.output} and {picture}")
+    out = CommandReport(as_json=args.json)
+    if args.json:
+        lensmodel, intrinsics = result.model.intrinsics()
+        out.line("", lensmodel=lensmodel, intrinsics=[float(v) for v in intrinsics],
+                 imager=[int(v) for v in result.model.imagersize()], rms_px=float(result.rms_px),
+                 worst_px=float(result.worst_px), images_used=list(result.used), images_skipped=list(result.skipped),
+                 outliers=len(result.outliers), corners=int(result.n_corners),
+                 uncertainty_px={k: float(v) for k, v in result.uncertainty_px.items()})
+    else:
+        out.line(result.report())
+    out.line(f"wrote {args.output} and {picture}", output=args.output, residuals=picture)
+    out.finish()
     return 0
 
 
@@ -143,19 +157,29 @@ def _stage(args: argparse.Namespace) -> int:
         stage, _ = calibrate_stage_from_capture(args.capture, model=model, board=board, progress=bar,
                                                 verify=args.verify)
     stage.save(args.output)
-    print(stage.report())
-    print(f"wrote {args.output}")
+    out = CommandReport(as_json=args.json)
+    out.line(stage.report(), stage=stage.to_json())
+    out.line(f"wrote {args.output}", output=args.output)
+    out.finish()
     return 0
 
 
 def _rectify(args: argparse.Namespace) -> int:
     from calib.rectify import rectify_capture
+    from recon.progress import Progress
     from recon.paths import writable_folder
 
     writable_folder(args.output, what="rectified capture")  # read-only, full, a file: before the work
 
-    rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
-                           focal_px=args.focal_px, crop=args.crop, verify=args.verify)
-    print(json.dumps({"output": str(args.output), "focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
-                      "image_size": list(rect.image_size)}))
+    with Progress("rectify", quiet=args.quiet) as bar:
+        rect = rectify_capture(args.capture, args.output, model_path=args.model, stage_path=args.stage,
+                               focal_px=args.focal_px, crop=args.crop, verify=args.verify, progress=bar)
+    w, h = rect.image_size
+    cx, cy = float(rect.K_rect[0, 2]), float(rect.K_rect[1, 2])
+    out = CommandReport(as_json=args.json)
+    out.line(f"wrote {args.output}: rectified views {w}x{h} px, focal {rect.focal_px:.2f} px, principal point "
+             f"({cx:.1f}, {cy:.1f}) px, pitch {rect.pitch_mm:.5f} mm",
+             output=args.output, focal_px=rect.focal_px, pitch_mm=rect.pitch_mm, image_size=[w, h],
+             principal_point_px=[cx, cy])
+    out.finish()
     return 0

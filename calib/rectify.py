@@ -204,11 +204,14 @@ def undistortion(model: Any, *, focal_px: float | None = None, image_size: tuple
                          np.asarray(intr))
 
 
-def rectify_views(views: np.ndarray, rect: Rectification) -> np.ndarray:
+def rectify_views(views: np.ndarray, rect: Rectification, *, progress: Any = None) -> np.ndarray:
     """Resample every view with the one map: ``(U, V, H, W[, C])`` -> ``(U, V, H', W'[, C])``, same dtype.
 
-    Cubic interpolation (``cv2.INTER_CUBIC``); outside the source view the result is 0.
+    Cubic interpolation (``cv2.INTER_CUBIC``); outside the source view the result is 0. ``progress``:
+    a :class:`recon.progress.ProgressCallback`, told after each view.
     """
+    from recon.progress import report
+
     import cv2
 
     views = np.asarray(views)
@@ -220,6 +223,7 @@ def rectify_views(views: np.ndarray, rect: Rectification) -> np.ndarray:
             r = cv2.remap(work[u, v], rect.map_x, rect.map_y, interpolation=cv2.INTER_CUBIC,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             out[u, v] = r.reshape(out.shape[2:])
+            report(progress, (u * V + v + 1) / (U * V), f"u{u:02d} v{v:02d}")
     return out
 
 
@@ -267,12 +271,12 @@ def pure_translation_fit(tracks: np.ndarray) -> tuple[float, np.ndarray, np.ndar
     return rms, d, resid
 
 
-def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
+def rectify_lightfield(lf: Any, rect: Rectification, *, progress: Any = None) -> Any:
     """A rectified copy of a :class:`recon.lf.lightfield.LightField` whose ``focal_px`` and ``pitch_mm``
     are the rectification's (``metadata["rectification"]`` records the rest)."""
     from recon.lf.lightfield import LightField
 
-    views = rectify_views(lf.views, rect)
+    views = rectify_views(lf.views, rect, progress=progress)
     metadata = {"rectification": rect.metadata(), "source": str(lf.source) if lf.source else None}
     return LightField(views=views, pitch_mm=rect.pitch_mm, focal_px=rect.focal_px,
                       disparity_range=None, disparity_offset=0.0,
@@ -282,10 +286,11 @@ def rectify_lightfield(lf: Any, rect: Rectification) -> Any:
 
 def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model_path: str | os.PathLike,
                     stage_path: str | os.PathLike, focal_px: float | None = None, crop: bool = True,
-                    verify: bool = True) -> Rectification:
+                    verify: bool = True, progress: Any = None) -> Rectification:
     """Read a capture, rectify every view and write the result as a capture folder at ``out``.
 
     ``verify``: check the views against the capture's journalled checksums (``read_capture``).
+    ``progress``: told the fraction done while the views are resampled (0..0.9) and when written (1).
 
     Raises
     ------
@@ -294,6 +299,7 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
     """
     from recon.lf import read_lightfield
     from recon.lf.capture import write_lightfield
+    from recon.progress import part, report
 
     model = load_model(model_path)
     stage = StageCalibration.load(stage_path)
@@ -308,9 +314,10 @@ def rectify_capture(capture: str | os.PathLike, out: str | os.PathLike, *, model
     if lf.disparity_offset:
         raise CalibError(f"{capture}: this light field is already shifted (refocused); rectify the raw capture")
     rect = rectification(model, stage, pitch_mm=float(lf.pitch_mm), focal_px=focal_px, crop=crop)
-    rectified = rectify_lightfield(lf, rect)
+    rectified = rectify_lightfield(lf, rect, progress=part(progress, 0.0, 0.9))
     rectified.metadata["rectification"].update(model=str(model_path), stage=str(stage_path),
                                                 capture_pitch_mm=float(lf.pitch_mm))
     write_lightfield(out, rectified, header_extra={"rectification": rectified.metadata["rectification"],
                                                    "source": str(capture)})
+    report(progress, 1.0, "written")
     return rect

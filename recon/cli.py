@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from recon.cliargs import (ALL_INTERFACES, finite_float, float_range, host_port, int_range, nonnegative_int, output_file,
+from recon.cliargs import (ALL_INTERFACES, CommandReport, add_json_argument, finite_float, float_range, host_port,
+                           int_range, nonnegative_int, output_file,
                            output_folder, positive_float, positive_int)
 from recon.methods import DEFAULT_METHOD, METHODS
 
@@ -58,6 +59,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
                      help="also export a PLY mesh (or point cloud with --points) of the metric depth")
     rec.add_argument("--points", action="store_true", help="with --ply: a point cloud instead of a mesh")
     rec.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(rec)
     _add_verify_argument(rec)
     rec.set_defaults(handler=_reconstruct)
 
@@ -87,7 +89,10 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     :func:`method_options` turns the parsed flags into the chosen method's options."""
     from recon.entropy.options import PRESETS
 
-    parser.add_argument("--method", choices=list(METHODS), default=DEFAULT_METHOD,
+    parser.add_argument("--config", type=Path, metavar="FILE",
+                        help="options from a TOML file of these flags' names (window_sizes = [3, 5]) or a result.json "
+                             "(its method and options, to reproduce it); a flag given here wins over the file")
+    parser.add_argument("--method", choices=list(METHODS), default=None,
                         help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()) + f" (default {DEFAULT_METHOD})")
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="entropy: a named set of options applied before the tuning flags: 'paper' is the "
@@ -172,12 +177,43 @@ def _flag_type(kind: type):
     return finite_float if kind is float else kind
 
 
+class _ConfigParser(argparse.ArgumentParser):
+    """Parses one option of an options file as its flag; a bad value is a :class:`recon.config.ConfigError`."""
+
+    where = ""
+
+    def error(self, message: str):
+        from recon.config import ConfigError
+
+        raise ConfigError(f"{self.where}: {message}")
+
+
+def _apply_config(args: argparse.Namespace) -> None:
+    """Set the method flags the command line left unset from ``--config FILE`` (:mod:`recon.config`):
+    each option of the file is parsed as its flag would be, so it is checked the same way."""
+    path = getattr(args, "config", None)
+    if path is not None:
+        from recon.config import config_tokens, read_config
+
+        parser = _ConfigParser(add_help=False)
+        add_method_arguments(parser)
+        keys = set(vars(parser.parse_args([]))) - {"config"}
+        for key, tokens in config_tokens(read_config(path, keys=keys), path=path):
+            parser.where = f"{path}: option {key!r}"
+            if getattr(args, key) is None:  # a flag on the command line wins
+                setattr(args, key, getattr(parser.parse_args(tokens), key))
+    if args.method is None:
+        args.method = DEFAULT_METHOD
+
+
 def method_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The options the user set for the chosen method (others keep the method's defaults)."""
+    """The options the user set for the chosen method (others keep the method's defaults), from the
+    flags and ``--config``."""
     import dataclasses
 
     from recon.errors import ReconError
 
+    _apply_config(args)
     chosen: dict[str, Any] = {}
     if args.disparity_range is not None:
         if not args.disparity_range[0] < args.disparity_range[1]:
@@ -283,11 +319,15 @@ def _reconstruct(args: argparse.Namespace) -> None:
         folder = reconstruct_to_folder(args.lf_dir, args.output, method=args.method, options=options, ply=args.ply,
                                        ply_kind="points" if args.points else "mesh", progress=bar,
                                        verify=args.verify)
-    print(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s")
+    out = CommandReport(as_json=args.json)
+    out.line(f"wrote {args.output / DISPARITY_PFM} and {DISPARITY_PNG} in {folder.record.seconds:.1f} s",
+             output=args.output, method=args.method, seconds=folder.record.seconds,
+             disparity=args.output / DISPARITY_PFM, options=folder.record.options)
     if folder.record.scores is not None:
-        print(_format_scores(folder.record.scores))
+        out.line(_format_scores(folder.record.scores), scores=folder.record.scores)
     if folder.export is not None:
-        print(f"wrote {folder.export}")
+        out.line(f"wrote {folder.export}", ply=folder.export)
+    out.finish()
 
 
 def _format_scores(scores: dict[str, float]) -> str:
@@ -357,6 +397,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                         help="also write the views' cameras into this folder: a COLMAP text model (cameras.txt, "
                              "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
                              "camera's frame")
+    add_json_argument(export)
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
     focal, pitch, offset = _camera_flag_types()
     camera.add_argument("--focal-px", type=focal, help="focal length of the rectified views in pixels")
@@ -414,7 +455,10 @@ def _export(args: argparse.Namespace) -> None:
         from recon.poses import result_grid
 
         result_grid(result)  # before any file is written
+    out = CommandReport(as_json=args.json)
     if args.ply is not None:
+        if args.poisson:
+            print("meshing (Poisson, ~20 s for 512x512 px)...", file=sys.stderr, flush=True)
         summary = export_ply(
             args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
             kind=args.kind, poisson=args.poisson, ascii=args.ascii,
@@ -424,8 +468,9 @@ def _export(args: argparse.Namespace) -> None:
             confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
             keep_all=args.keep_all,
         )
-        print(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
-                                    if summary.pixels_unreliable else ""))
+        out.line(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
+                                       if summary.pixels_unreliable else ""),
+                 ply=args.ply, ply_summary=str(summary), pixels_unreliable=summary.pixels_unreliable)
     if args.depth:
         depth = camera.depth_mm(result.disparity_px)
         if result.mask is not None:
@@ -442,16 +487,19 @@ def _export(args: argparse.Namespace) -> None:
                 write_depth(path, depth)
             except ValueError as error:  # a user's path, not a bug
                 raise ExportError(f"{path}: {error}") from None
-            print(f"wrote {path} (depth in mm)")
+            out.line(f"wrote {path} (depth in mm)", depth=[str(p) for p in args.depth])
     if args.poses is not None:
         from recon.poses import export_poses
 
-        print(f"wrote {export_poses(result, args.poses, camera=camera)}")
+        poses = export_poses(result, args.poses, camera=camera)
+        out.line(f"wrote {poses}", poses=args.poses, poses_summary=str(poses))
     if args.report is not None:
         from recon.report import report_for_result
 
+        print("writing the report (figures and 3D view)...", file=sys.stderr, flush=True)
         page = report_for_result(result, args.report, camera=camera, ply=args.ply)
-        print(f"wrote {page}")
+        out.line(f"wrote {page}", report=page)
+    out.finish()
 
 
 def _kept_line(result, *, min_confidence: float, keep_all: bool) -> str:
@@ -521,6 +569,7 @@ def _register_batch(subparsers: argparse._SubParsersAction) -> None:
                      help="local cluster: where the dashboard listens, a free port if this one is taken "
                           "(default 127.0.0.1:8787; all interfaces only when asked for by name, 0.0.0.0:PORT "
                           "or [::]:PORT)")
+    add_json_argument(rec)
     rec.set_defaults(handler=_batch_reconstruct)
 
 
@@ -542,28 +591,33 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
                            export=None if args.export == "none" else args.export, tile=args.tile, halo=args.halo)
     plan = prepare_batch(args.captures, args.output, request=request, force=args.force)
     transfer = args.transfer if args.transfer != "auto" else ("ship" if args.scheduler else "shared")
+    lines = sys.stderr if args.json else sys.stdout  # with --json, stdout holds only the JSON object
 
     def show(outcome, done: int, total: int) -> None:
         what = {"ok": "done", "skipped": "already complete", "failed": "FAILED"}[outcome.status]
         took = f" in {outcome.seconds:.1f} s" if outcome.seconds is not None and outcome.status == "ok" else ""
         error = f": {outcome.error}" if outcome.error else ""
-        print(f"[{done}/{total}] {outcome.name}: {what}{took}{error}", flush=True)
+        print(f"[{done}/{total}] {outcome.name}: {what}{took}{error}", file=lines, flush=True)
 
     if not plan.todo:
         outcomes = run_batch(None, plan, transfer=transfer, on_outcome=show)
     else:
         with connect(scheduler=args.scheduler, workers=args.workers, tasks=None if args.tile else len(plan.todo),
                      dashboard_address=args.dashboard_address, timeout_s=args.worker_timeout_s) as connection:
-            print(connection.describe() + f"; data: {transfer}", flush=True)
-            print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", flush=True)
+            print(connection.describe() + f"; data: {transfer}", file=lines, flush=True)
+            print(f"dashboard: {connection.dashboard or 'none (install bokeh on the scheduler for one)'}", file=lines,
+                  flush=True)
             if args.scheduler is None and args.dashboard_address.rpartition(":")[0].strip("[]") in ALL_INTERFACES:
                 print(f"note: the dashboard listens on every interface ({args.dashboard_address}): anyone who can "
-                      "reach this machine can see it", flush=True)
+                      "reach this machine can see it", file=lines, flush=True)
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
-                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", flush=True),
+                                 on_outcome=show, on_note=lambda text: print(f"note: {text}", file=lines, flush=True),
                                  no_worker_timeout_s=args.worker_timeout_s)
-    print()
-    print(format_summary(outcomes))
+    if args.json:
+        print(json.dumps({"output": str(args.output), "captures": [o.as_dict() for o in outcomes]}, indent=2, default=str))
+    else:
+        print()
+        print(format_summary(outcomes))
     failed = [o for o in outcomes if o.status == "failed"]
     for o in failed:
         if o.detail:
@@ -585,9 +639,11 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
             "capture appears at CAPTURE only when complete."
         ),
     )
-    imp.add_argument("src", type=Path, metavar="SRC", help="folder holding the views")
+    imp.add_argument("src", type=Path, metavar="SRC",
+                     help="folder holding the views, one mosaic image (with --mosaic) or an HDF5 light field (.h5)")
     imp.add_argument("-o", "--output", type=Path, required=True, metavar="CAPTURE", help="new capture folder")
-    imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order")
+    imp.add_argument("--pattern", help="file names: {u}/{row} and {v}/{col} fields, or {i} with --order; {y}/{x} match an "
+                     "unused float position; 'stanford' for the Stanford archive's out_RR_CC_<y>_<x>_.png")
     imp.add_argument("--order", choices=("serpentine", "raster"),
                      help="files are in capture order (serpentine: every other row right to left, as lfrig captures)")
     imp.add_argument("--rows", type=int_range(1, MAX_GRID_SIDE), help="grid rows (u) (not needed for a benchmark folder)")
@@ -599,27 +655,55 @@ def _register_import(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--principal-point-px", type=finite_float, nargs=2, metavar=("CX", "CY"), help="principal point, x first")
     imp.add_argument("--disparity-range", type=finite_float, nargs=2, metavar=("MIN", "MAX"),
                      help="disparity the scene spans, pixels per view step")
+    imp.add_argument("--mosaic", type=_grid_size, metavar="ROWSxCOLS",
+                     help="SRC is one image holding every view, ROWS tiles down and COLS across")
+    imp.add_argument("--transpose", action="store_true", help="swap the grid's rows and columns (before any flip)")
+    imp.add_argument("--flip-u", action="store_true", help="reverse the grid's rows (the first row becomes the last)")
+    imp.add_argument("--flip-v", action="store_true", help="reverse the grid's columns")
+    imp.add_argument("--no-order-check", action="store_true",
+                     help="skip the check that warns when the views' order looks mirrored")
     imp.add_argument("--quiet", action="store_true", help="no progress output")
+    add_json_argument(imp)
     imp.set_defaults(handler=_import)
+
+
+def _grid_size(text: str) -> tuple[int, int]:
+    """``9x9`` -> ``(9, 9)``: rows first."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) >= 1 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give the grid as ROWSxCOLS, e.g. 9x9")
+    return int(parts[0]), int(parts[1])
 
 
 def _import(args: argparse.Namespace) -> None:
     from recon.lf.importer import import_views
     from recon.progress import Progress
 
+    warnings: list[str] = []
+
+    def warn(text: str) -> None:
+        warnings.append(text)
+        print(f"lfrig: warning: {text}", file=sys.stderr)
+
     with Progress("import", quiet=args.quiet) as bar:
         path = import_views(
             args.src, args.output, pattern=args.pattern, order=args.order, rows=args.rows, cols=args.cols,
             index_base=args.index_base, pitch_mm=args.pitch_mm, focal_px=args.focal_px,
             principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
-            disparity_range=tuple(args.disparity_range) if args.disparity_range else None, progress=bar,
+            disparity_range=tuple(args.disparity_range) if args.disparity_range else None, mosaic=args.mosaic,
+            transpose=args.transpose, flip_u=args.flip_u, flip_v=args.flip_v, check_order=not args.no_order_check,
+            warn=warn, progress=bar,
         )
-    print(f"{path}: imported from {args.src}, complete")
     from recon.pipeline import metric_camera_missing
 
     missing = metric_camera_missing(path)
     if missing:
         flags = " and ".join("--" + name.replace("_", "-") for name in missing)
-        print(f"lfrig: warning: {path} records no {' or '.join(missing)}, so it will only give disparity: no "
-              f"depth, point cloud or mesh. Import again with {flags} for metric output, or give them to "
-              "`lfrig export` later.", file=sys.stderr)
+        message = (f"{path} records no {' or '.join(missing)}, so it will only give disparity: no depth, point "
+                   f"cloud or mesh. Import again with {flags} for metric output, or give them to `lfrig export` later.")
+        print(f"lfrig: warning: {message}", file=sys.stderr)
+        warnings.append(message)
+    out = CommandReport(as_json=args.json)
+    out.line(f"{path}: imported from {args.src}, complete", output=path, source=args.src, complete=True,
+             warnings=warnings)
+    out.finish()

@@ -155,3 +155,32 @@ def output_folder(text: str) -> Path:
 def print_error(message: str) -> None:
     """Print a user's error as lfrig's one line on stderr."""
     print(f"lfrig: error: {message}", file=sys.stderr)
+
+
+def add_json_argument(parser: argparse.ArgumentParser) -> None:
+    """``--json``: the command's report as one JSON object on stdout (progress and warnings stay on stderr)."""
+    parser.add_argument("--json", action="store_true",
+                        help="print what the command reports as one JSON object on stdout (progress stays on stderr)")
+
+
+class CommandReport:
+    """What a command reports on stdout: readable lines, or with ``--json`` one JSON object printed by
+    :meth:`finish` (the fields given with each line, merged)."""
+
+    def __init__(self, *, as_json: bool) -> None:
+        self.as_json = as_json
+        self.fields: dict = {}
+
+    def line(self, text: str, **fields) -> None:
+        """Print ``text`` (readable mode) or keep ``fields`` for the JSON object."""
+        if self.as_json:
+            self.fields.update(fields)
+        else:
+            print(text, flush=True)
+
+    def finish(self) -> None:
+        """Print the JSON object (JSON mode); paths and other objects become strings."""
+        if self.as_json:
+            import json
+
+            print(json.dumps(self.fields, indent=2, default=str))

@@ -124,14 +124,15 @@ def test_too_few_boards_is_a_clear_error(board_images):
 def test_intrinsics_command_writes_model_report_and_residual_picture(board_images, tmp_path, capsys):
     out = tmp_path / "cam.cameramodel"
     status = main(["calibrate", "intrinsics", *map(str, board_images[:6]), "--board", "9x6", "--square-mm", "8",
-                   "-o", str(out), "--lensmodel", "LENSMODEL_OPENCV5", "--quiet"])
+                   "-o", str(out), "--lensmodel", "LENSMODEL_OPENCV5", "--quiet", "--json"])
     assert status == 0
     model = load_model(out)
     assert model.intrinsics()[0] == "LENSMODEL_OPENCV5"
     picture = cv2.imread(str(tmp_path / "cam.residuals.png"))
     assert picture.shape == (980, 1280, 3) and picture.min() < 255
-    printed = capsys.readouterr().out
-    assert "RMS reprojection" in printed and "uncertainty" in printed
+    printed = json.loads(capsys.readouterr().out)  # --json: one object, the report's figures
+    assert printed["lensmodel"] == "LENSMODEL_OPENCV5" and printed["output"] == str(out)
+    assert 0 < printed["rms_px"] < 0.1 and len(printed["images_used"]) == 6 and printed["uncertainty_px"]["centre"] > 0
     assert main(["calibrate", "intrinsics", str(board_images[-1]), "--board", "9x6", "--square-mm", "8",
                  "-o", str(out)]) == 2
 
@@ -175,14 +176,19 @@ def test_rectified_points_follow_pure_translation(camera, stage_files):
     assert np.all((z > 890) & (z < 1010))
 
 
-def test_rectify_command_makes_a_pure_translation_light_field(camera, stage_files, tmp_path):
+def test_rectify_command_makes_a_pure_translation_light_field(camera, stage_files, tmp_path, capsys):
     """A new board pose, captured, rectified by `lfrig rectify`: its corners follow the model."""
     model_path, stage_path = stage_files
     scene = chessboard_scene(inner=(9, 6), square_mm=8.0, centre_mm=(-20.0, 15.0, 900.0), rotation_deg=(15.0, 20.0, -8.0))
     write_capture(tmp_path / "check", camera, scene)
     assert main(["rectify", str(tmp_path / "check"), "--model", str(model_path), "--stage", str(stage_path),
                  "-o", str(tmp_path / "rect")]) == 0
+    captured = capsys.readouterr()
     lf = read_lightfield(tmp_path / "rect")
+    # a readable summary (not a raw dict) on stdout, progress on stderr
+    h, w = lf.image_shape
+    assert captured.out.startswith(f"wrote {tmp_path / 'rect'}: rectified views {w}x{h} px, focal {lf.focal_px:.2f} px")
+    assert "rectify [" in captured.err and "100.0%" in captured.err
     # Cropped to where every pixel comes from inside the camera image: a little smaller, no black wedges.
     assert lf.grid_shape == (GRID, GRID)
     assert 0.9 * 980 < lf.image_shape[0] < 980 and 0.9 * 1280 < lf.image_shape[1] < 1280

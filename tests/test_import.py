@@ -134,7 +134,7 @@ def test_pattern_matching_is_exact():
 
 
 @pytest.mark.parametrize("text,message", [
-    ("view_{x}_{y}.png", "unknown field {x}"),
+    ("view_{q}_{r}.png", "unknown field {q}"),
     ("view_{u}.png", "needs both {u} and {v}"),
     ("view_{u}_{u}_{v}.png", "appears twice"),
     ("view_{u}_{v:.2f}.png", "must be a whole number"),

@@ -28,6 +28,7 @@ import numpy as np
 
 from recon.lf.imageio import (fault_point, read_bytes, read_images, remove_stale_temporaries, sha256_file,
                              write_bytes_atomic, write_error, write_png)
+from recon.lf.benchmark import GROUND_TRUTH
 from recon.lf.lock import LOCK_NAME, FolderLock
 from recon.lf.lightfield import LightField
 from recon.errors import CaptureLayoutError
@@ -516,6 +517,8 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
     camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
     metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
                                 "views": [entries[(u, v)] for u in range(rows) for v in range(cols)]}
+    if (path / GROUND_TRUTH).is_file():  # kept by `lfrig import` from a benchmark folder or an lf.h5 file
+        metadata["ground_truth"] = str(path / GROUND_TRUTH)
     if (path / PARAMETERS).is_file():
         parameters = read_parameters(path / PARAMETERS)
         metadata["parameters"] = parameters

@@ -10,7 +10,15 @@ Three ways to say which file is which view (``docs/capture-format.md``, "Importi
   of the folder sorted naturally (``img2`` before ``img10``), or those matching a pattern with an
   index field ``{i}`` sorted by it. Serpentine is lfrig's own scan: row by row, every other row
   right to left (:func:`capture_order`, the same as ``rig.grid.scan_order``);
-- the **4D Light Field Benchmark** layout (``input_CamNNN.png`` row-major, ``parameters.cfg``).
+- the **4D Light Field Benchmark** layout (``input_CamNNN.png`` row-major, ``parameters.cfg``); its
+  ground truth (``gt_disp_lowres.pfm``, ``gt_depth_lowres.pfm``) is copied into the capture;
+- one **mosaic** image holding every view in a ``rows x cols`` tiling (``mosaic=(rows, cols)``);
+- an **HDF5** light field in the old HCI ``lf.h5`` layout (:func:`read_hdf5_lightfield`).
+
+The Stanford archive's names (``out_RR_CC_<y>_<x>_.png``) are the preset pattern ``stanford``
+(:data:`PATTERN_PRESETS`); the float fields ``{y}`` and ``{x}`` of a pattern match a position that is
+not used for placing the view. The grid can then be transposed and flipped (``transpose``, ``flip_u``,
+``flip_v``: in that order), and :func:`order_warnings` warns when the views' order looks mirrored.
 
 Indices in names start at ``index_base`` (0 unless told). Pitch, focal length and principal point come
 from the caller (the benchmark's ``parameters.cfg`` supplies them for that layout; the caller's
@@ -32,22 +40,31 @@ import shutil
 import string
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from recon.errors import LightFieldFormatError
 from recon.lf.capture import CaptureWriter, is_capture
+from recon.lf.benchmark import GROUND_TRUTH
 from recon.lf.imageio import check_total_size, read_image, sha256_file
 from recon.lf.lock import FolderLock, FolderLockedError
 from recon.lf.params import MAX_GRID_SIDE, camera_problem, disparity_range_problem
+from recon.lf.pfm import write_pfm
 from recon.progress import ProgressCallback, report
 
 #: File suffixes taken as images when no pattern names the files (any case).
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm")
 ORDERS = ("serpentine", "raster")
-_FIELD_ALIASES = {"u": "u", "row": "u", "v": "v", "col": "v", "i": "i"}
+#: The benchmark's depth ground truth, copied with the disparity's when present.
+GROUND_TRUTH_DEPTH = "gt_depth_lowres.pfm"
+_FIELD_ALIASES = {"u": "u", "row": "u", "v": "v", "col": "v", "i": "i", "y": "y", "x": "x"}
 _SPEC = re.compile(r"^(0?\d{0,2})d?$")  # a width of at most 99 digits
+#: Position fields: a signed decimal number in the name that does not place the view.
+_FLOAT_FIELDS = ("y", "x")
+_FLOAT = r"([-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?)"
+#: Named patterns accepted by ``--pattern``.
+PATTERN_PRESETS = {"stanford": "out_{u:02d}_{v:02d}_{y}_{x}_.png"}
 
 
 class ViewImportError(LightFieldFormatError):
@@ -72,15 +89,22 @@ class ViewPattern:
         m = self.regex.fullmatch(name)
         if m is None:
             return None
-        values = {written: int(m.group(k)) for k, written in enumerate(self.names, start=1)}
+        values = {written: (m.group(k) if written in _FLOAT_FIELDS else int(m.group(k)))
+                  for k, written in enumerate(self.names, start=1)}
         if self.text.format(**values) != name:  # e.g. "img_1.png" against "img_{i:03d}.png"
             return None
-        return {_FIELD_ALIASES[k]: v for k, v in values.items()}
+        return {_FIELD_ALIASES[k]: v for k, v in values.items() if k not in _FLOAT_FIELDS}
+
+    def name_of(self, **fields: int) -> str:
+        """The name of the view with these ``u``/``v`` (or ``i``) numbers (float fields shown as ``*``)."""
+        return self.text.format(**{name: ("*" if name in _FLOAT_FIELDS else fields[_FIELD_ALIASES[name]])
+                                   for name in self.names})
 
 
 def parse_pattern(text: str) -> ViewPattern:
     """Parse ``view_{u}_{v}.png``-style patterns; fields ``u``/``row``, ``v``/``col`` or ``i``, each
-    optionally with an integer format such as ``:02d``.
+    optionally with an integer format such as ``:02d``, and the position fields ``{y}``, ``{x}`` (a
+    signed decimal number, not used for placing). A name in :data:`PATTERN_PRESETS` stands for its pattern.
 
     Raises
     ------
@@ -88,6 +112,7 @@ def parse_pattern(text: str) -> ViewPattern:
         A field other than those, a non-integer format, a field given twice, a folder in the pattern,
         or neither ``u`` and ``v`` nor ``i``.
     """
+    text = PATTERN_PRESETS.get(text, text)
     if "/" in text or os.sep in text:
         raise ViewImportError(f"pattern {text!r}: give a file name pattern without folders (the folder is SRC)")
     regex = ""
@@ -103,8 +128,17 @@ def parse_pattern(text: str) -> ViewPattern:
             continue
         if name not in _FIELD_ALIASES:
             raise ViewImportError(
-                f"pattern {text!r}: unknown field {{{name}}}; use {{u}} (or {{row}}) and {{v}} (or {{col}}), or {{i}} for a running index"
+                f"pattern {text!r}: unknown field {{{name}}}; use {{u}} (or {{row}}) and {{v}} (or {{col}}), or {{i}} for a "
+                f"running index ({{y}}, {{x}}: a position that is not used; presets: {', '.join(PATTERN_PRESETS)})"
             )
+        if name in _FLOAT_FIELDS:
+            if conversion or spec:
+                raise ViewImportError(f"pattern {text!r}: the position field {{{name}}} takes no format; write {{{name}}}")
+            if name in names:
+                raise ViewImportError(f"pattern {text!r}: field {{{name}}} appears twice")
+            names.append(name)
+            regex += _FLOAT
+            continue
         if conversion or not _SPEC.match(spec or ""):
             raise ViewImportError(f"pattern {text!r}: field {{{name}:{spec}}} must be a whole number of at most 99 "
                                   f"digits, e.g. {{{name}:02d}}")
@@ -114,7 +148,7 @@ def parse_pattern(text: str) -> ViewPattern:
         fields.append(canonical)
         names.append(name)
         regex += r"(\d+)"
-    if sorted(fields) not in (["u", "v"], ["i"]):
+    if sorted(f for f in fields if f not in _FLOAT_FIELDS) not in (["u", "v"], ["i"]):
         raise ViewImportError(
             f"pattern {text!r}: needs both {{u}} and {{v}} (the view's row and column), or {{i}} (its place in "
             "capture order, with --order and the grid size)"
@@ -206,8 +240,7 @@ def plan_by_position(src: Path, pattern: ViewPattern, *, rows: int, cols: int, i
         raise ViewImportError(
             f"{path}: grid position (u={u}, v={v}) is outside the {rows}x{cols} grid; remove it or give the grid size"
         )
-    _require_all(src, rows, cols, found, lambda u, v: pattern.text.format(
-        **{name: (u if _FIELD_ALIASES[name] == "u" else v) + index_base for name in pattern.names}))
+    _require_all(src, rows, cols, found, lambda u, v: pattern.name_of(u=u + index_base, v=v + index_base))
     return ImportPlan(rows, cols, found, {"mode": "pattern", "pattern": pattern.text, "index_base": index_base})
 
 
@@ -240,7 +273,7 @@ def plan_by_order(
             )
         missing = [i for i in range(len(positions)) if i not in indexed]
         if missing:
-            names = ", ".join(pattern.text.format(**{pattern.names[0]: i + index_base}) for i in missing[:3])
+            names = ", ".join(pattern.name_of(i=i + index_base) for i in missing[:3])
             raise ViewImportError(f"{src}: {len(missing)} of {len(positions)} views missing ({names}{' ...' if len(missing) > 3 else ''})")
         files = [indexed[i] for i in range(len(positions))]
     else:
@@ -269,6 +302,80 @@ def _require_all(src: Path, rows: int, cols: int, found: dict[tuple[int, int], P
         raise ViewImportError(f"{src}: {len(missing)} of {rows * cols} views missing ({names})")
 
 
+def reorient(plan: ImportPlan, images: dict[tuple[int, int], np.ndarray], *, transpose: bool = False,
+             flip_u: bool = False, flip_v: bool = False) -> tuple[ImportPlan, dict[tuple[int, int], np.ndarray]]:
+    """Move the views to other grid positions: ``transpose`` swaps rows and columns (a source row
+    becomes a column), then ``flip_u`` reverses the rows and ``flip_v`` the columns. The views' pixels
+    are not touched. Returns the new plan (its ``how`` records the three switches) and images."""
+    rows, cols = (plan.cols, plan.rows) if transpose else (plan.rows, plan.cols)
+
+    def place(u: int, v: int) -> tuple[int, int]:
+        if transpose:
+            u, v = v, u
+        return (rows - 1 - u if flip_u else u, cols - 1 - v if flip_v else v)
+
+    files = {place(*uv): path for uv, path in plan.files.items()}
+    moved = {place(*uv): image for uv, image in images.items()}
+    how = {**plan.how, "transpose": transpose, "flip_u": flip_u, "flip_v": flip_v}
+    return ImportPlan(rows, cols, files, how), moved
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return (image.mean(axis=2) if image.ndim == 3 else image).astype(np.float32)
+
+
+def order_warnings(views: dict[tuple[int, int], np.ndarray], *, rows: int, cols: int,
+                   min_shift_px: float = 0.3) -> list[str]:
+    """Warnings when the grid's order looks mirrored; empty when it looks consistent or cannot tell.
+
+    In every row the last view is matched against the first by phase correlation (their dominant
+    image shift along x, px), and in every column the last against the first (along y); divided by
+    the number of view steps between them, each gives a coarse disparity per view step. In a
+    consistent grid all rows agree in sign, all columns agree, and rows agree with columns (the grid
+    pitch is the same along both). Rows that disagree mean the column order is reversed in some rows
+    (serpentine files read as raster, or back); rows against columns mean one axis is mirrored. A
+    shift below ``min_shift_px`` (a scene near the focus plane) says nothing and is not compared.
+
+    ``views``: ``(u, v) -> (H, W[, C])`` images of a ``rows x cols`` grid.
+    """
+    import cv2
+
+    greys: dict[tuple[int, int], np.ndarray] = {}
+
+    def grey(uv: tuple[int, int]) -> np.ndarray:
+        if uv not in greys:
+            greys[uv] = _grey(views[uv])
+        return greys[uv]
+
+    window = cv2.createHanningWindow((grey((0, 0)).shape[1], grey((0, 0)).shape[0]), cv2.CV_32F)
+
+    def slope(a: tuple[int, int], b: tuple[int, int], axis: int, steps: int) -> float | None:
+        (dx, dy), _ = cv2.phaseCorrelate(grey(a), grey(b), window)
+        shift = dx if axis == 1 else dy
+        return shift / steps if abs(shift) >= min_shift_px else None
+
+    by_row = {u: slope((u, 0), (u, cols - 1), 1, cols - 1) for u in range(rows)} if cols > 1 else {}
+    by_col = {v: slope((0, v), (rows - 1, v), 0, rows - 1) for v in range(cols)} if rows > 1 else {}
+    by_row = {k: x for k, x in by_row.items() if x is not None}
+    by_col = {k: x for k, x in by_col.items() if x is not None}
+    warnings = []
+    for name, slopes, what in (("rows", by_row, "column order is reversed in some rows (files in serpentine "
+                                 "order read as raster, or back?); check --order"),
+                               ("columns", by_col, "row order is reversed in some columns")):
+        signs = {k: x > 0 for k, x in slopes.items()}
+        if len(set(signs.values())) > 1:
+            minority = [k for k, sign in signs.items() if list(signs.values()).count(sign) <= len(signs) / 2]
+            warnings.append(f"the {name} of the grid disagree in the sign of their disparity ({name} "
+                            f"{', '.join(map(str, sorted(minority)[:5]))} against the others): the {what}")
+    if not warnings and by_row and by_col:
+        across, down = float(np.median(list(by_row.values()))), float(np.median(list(by_col.values())))
+        if (across > 0) != (down > 0):
+            warnings.append(f"the rows and the columns of the grid give disparities of opposite sign ({across:+.2f} "
+                            f"and {down:+.2f} px per view step): one axis looks mirrored; import again with "
+                            "--flip-v (or --flip-u)")
+    return warnings
+
+
 # --------------------------------------------------------------------------------------------------
 # Reading and writing
 
@@ -295,8 +402,92 @@ def _read_checked(plan: ImportPlan, progress: ProgressCallback | None) -> dict[t
                 "all views must have the same size, colour and bit depth"
             )
         images[(u, v)] = image
-        report(progress, 0.5 * (k + 1) / total, path.name)
+        report(progress, 0.4 * (k + 1) / total, path.name)
     return images
+
+
+def read_mosaic(path: Path, *, rows: int, cols: int) -> tuple[ImportPlan, dict[tuple[int, int], np.ndarray]]:
+    """Cut one image holding every view, tiled ``rows x cols`` (view ``(u, v)`` at tile row ``u``,
+    column ``v``), into its views. The image's size must be a whole multiple of the grid."""
+    _require_grid(rows, cols)
+    image = read_image(path)
+    h, w = image.shape[:2]
+    if h % rows or w % cols:
+        raise ViewImportError(
+            f"{path}: a {w}x{h} image cannot be cut into {rows}x{cols} equal views ({w}/{cols} or {h}/{rows} is not "
+            "whole); check --mosaic ROWSxCOLS (rows first)"
+        )
+    th, tw = h // rows, w // cols
+    views = {(u, v): np.ascontiguousarray(image[u * th:(u + 1) * th, v * tw:(v + 1) * tw])
+             for u in range(rows) for v in range(cols)}
+    plan = ImportPlan(rows, cols, {uv: path for uv in views}, {"mode": "mosaic", "mosaic": [rows, cols]})
+    return plan, views
+
+
+#: Names of the old HCI ``lf.h5`` layout: the views, and the ground truth when present.
+H5_VIEWS, H5_DISPARITY, H5_DEPTH = "LF", "GT_DISP", "GT_DEPTH"
+
+
+def read_hdf5_lightfield(path: Path) -> tuple[ImportPlan, dict[tuple[int, int], np.ndarray], dict[str, Any], np.ndarray | None]:
+    """Read a light field in the old HCI ``lf.h5`` layout.
+
+    Dataset ``LF`` of shape ``(U, V, H, W, 3)`` or ``(U, V, H, W)`` (8- or 16-bit integers, or floats in
+    0..1, which are scaled to 16 bit); root attributes ``dH`` (distance between neighbouring views,
+    taken as ``pitch_mm``), ``focalLength`` (px) and ``shift`` (px, the disparity offset ``d0`` of
+    ``disparity = focal * dH / Z - shift``), each optional. Ground truth of the centre view from
+    ``GT_DISP`` (disparity px) or else ``GT_DEPTH`` (depth in the units of ``dH``, converted with the
+    formula), each ``(H, W)`` or ``(U, V, H, W)``.
+
+    Returns the plan, the views, the camera values found and the ground-truth disparity (or ``None``).
+    """
+    import h5py
+
+    try:
+        file = h5py.File(path, "r")
+    except OSError as error:
+        raise ViewImportError(f"{path}: not a readable HDF5 file ({error}); pass an lf.h5 file or a folder of views") from None
+    with file:
+        data = file.get(H5_VIEWS)
+        if not isinstance(data, h5py.Dataset) or data.ndim not in (4, 5) or (data.ndim == 5 and data.shape[4] != 3):
+            raise ViewImportError(
+                f"{path}: no dataset {H5_VIEWS!r} of shape (U, V, H, W, 3) or (U, V, H, W); "
+                f"found {', '.join(f'{k} {getattr(v, "shape", "")}' for k, v in file.items()) or 'nothing'}"
+            )
+        lf = np.asarray(data[()])
+        if lf.dtype.kind == "f":
+            if not np.all(np.isfinite(lf)) or lf.min() < 0 or lf.max() > 1:
+                raise ViewImportError(f"{path}: {H5_VIEWS} holds floats outside 0..1; scale them to 0..1 or to 8/16-bit integers")
+            lf = np.round(lf * 65535).astype(np.uint16)
+        elif lf.dtype not in (np.uint8, np.uint16):
+            raise ViewImportError(f"{path}: {H5_VIEWS} holds {lf.dtype}; lfrig views are 8- or 16-bit integers")
+        attrs = {k: file.attrs[k] for k in ("dH", "focalLength", "shift") if k in file.attrs}
+        camera: dict[str, Any] = {}
+        for key, name in (("dH", "pitch_mm"), ("focalLength", "focal_px"), ("shift", "disparity_offset")):
+            if key in attrs:
+                value = float(np.asarray(attrs[key]).ravel()[0])
+                if not np.isfinite(value):
+                    raise ViewImportError(f"{path}: attribute {key} is {value}; it must be a finite number")
+                camera[name] = value
+        rows, cols = lf.shape[:2]
+        truth = None
+        for name in (H5_DISPARITY, H5_DEPTH):
+            if name in file:
+                gt = np.asarray(file[name][()], dtype=np.float64)
+                if gt.ndim == 4 and gt.shape[:2] == (rows, cols):
+                    gt = gt[rows // 2, cols // 2]
+                if gt.shape != lf.shape[2:4]:
+                    raise ViewImportError(f"{path}: {name} has shape {gt.shape}; expected (H, W) = {lf.shape[2:4]} "
+                                          "or (U, V, H, W)")
+                if name == H5_DEPTH:
+                    if "focal_px" not in camera or "pitch_mm" not in camera:
+                        raise ViewImportError(f"{path}: {H5_DEPTH} needs the attributes dH and focalLength to become disparity")
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        gt = camera["focal_px"] * camera["pitch_mm"] / gt - camera.get("disparity_offset", 0.0)
+                truth = gt.astype(np.float32)
+                break
+    views = {(u, v): np.ascontiguousarray(lf[u, v]) for u in range(rows) for v in range(cols)}
+    plan = ImportPlan(rows, cols, {uv: path for uv in views}, {"mode": "hdf5"})
+    return plan, views, camera, truth
 
 
 def _describe(image: np.ndarray) -> str:
@@ -331,6 +522,12 @@ def import_views(
     focal_px: float | None = None,
     principal_point_px: tuple[float, float] | None = None,
     disparity_range: tuple[float, float] | None = None,
+    mosaic: tuple[int, int] | None = None,
+    transpose: bool = False,
+    flip_u: bool = False,
+    flip_v: bool = False,
+    check_order: bool = True,
+    warn: Callable[[str], None] | None = None,
     progress: ProgressCallback | None = None,
 ) -> Path:
     """Import the views in folder ``src`` as a complete lfrig capture at ``target`` (see the module docstring).
@@ -352,6 +549,14 @@ def import_views(
         Focal length in pixels and ``(cx, cy)`` of the views, when known.
     disparity_range
         ``(min, max)`` disparity in pixels per view step the scene spans, when known.
+    mosaic
+        ``(rows, cols)``: ``src`` is one image holding every view (:func:`read_mosaic`).
+    transpose, flip_u, flip_v
+        Swap the grid's rows and columns, then reverse its rows, its columns (:func:`reorient`).
+    check_order, warn
+        Run :func:`order_warnings` on the placed views and pass each warning to ``warn``.
+
+    An ``src`` ending in ``.h5``/``.hdf5`` is read by :func:`read_hdf5_lightfield`.
 
     Returns
     -------
@@ -364,7 +569,13 @@ def import_views(
         Bad input, naming the file; nothing is written.
     """
     src, target = Path(src), Path(target)
-    if not src.is_dir():
+    hdf5 = src.suffix.lower() in (".h5", ".hdf5")
+    if mosaic is not None or hdf5:
+        if not src.is_file():
+            raise ViewImportError(f"{src}: no such file")
+        if pattern is not None or order is not None:
+            raise ViewImportError(f"{src}: one file holds every view; --pattern and --order are for folders of views")
+    elif not src.is_dir():
         raise ViewImportError(f"{src}: no such folder")
     _check_target(target)
     if isinstance(index_base, bool) or not isinstance(index_base, int) or index_base < 0:
@@ -378,11 +589,24 @@ def import_views(
         if problem is not None:
             raise ViewImportError(f"{problem} (pixels per view step)")
     camera: dict[str, Any] = {}
+    truth: dict[str, Path | np.ndarray] = {}
     parsed = parse_pattern(pattern) if pattern is not None else None
-    benchmark = parsed is None and order is None and (src / "input_Cam000.png").is_file()
-    if pitch_mm is None and not benchmark:
+    benchmark = not hdf5 and mosaic is None and parsed is None and order is None and (src / "input_Cam000.png").is_file()
+    if pitch_mm is None and not benchmark and not hdf5:
         raise ViewImportError("give the grid pitch with --pitch-mm: the distance between neighbouring views in mm")
-    if parsed is not None and "u" in parsed.fields:
+    if hdf5:
+        plan, images, camera, gt = read_hdf5_lightfield(src)
+        if (rows is not None or cols is not None) and (rows, cols) != (plan.rows, plan.cols):
+            raise ViewImportError(f"{src}: the file holds a {plan.rows}x{plan.cols} grid, not {rows}x{cols}")
+        if gt is not None:
+            truth[GROUND_TRUTH] = gt
+        report(progress, 0.3, src.name)
+    elif mosaic is not None:
+        if (rows is not None and rows != mosaic[0]) or (cols is not None and cols != mosaic[1]):
+            raise ViewImportError(f"--mosaic {mosaic[0]}x{mosaic[1]} and --rows/--cols {rows}x{cols} disagree; give one of them")
+        plan, images = read_mosaic(src, rows=mosaic[0], cols=mosaic[1])
+        report(progress, 0.3, src.name)
+    elif parsed is not None and "u" in parsed.fields:
         if order is not None:
             raise ViewImportError(
                 f"pattern {pattern!r} places each view by its row and column; --order is for files in capture order"
@@ -411,6 +635,7 @@ def import_views(
             raise ViewImportError(f"{src}: views are {lf.views.dtype}; lfrig views are 8- or 16-bit integers")
         camera = {"pitch_mm": lf.pitch_mm, "focal_px": lf.focal_px, "principal_point_px": lf.principal_point_px,
                   "disparity_range": lf.disparity_range, "disparity_offset": lf.disparity_offset}
+        truth = {name: src / name for name in (GROUND_TRUTH, GROUND_TRUTH_DEPTH) if (src / name).is_file()}
     else:
         raise ViewImportError(
             f"{src}: say which file is which view: --pattern 'view_{{u}}_{{v}}.png' (row and column in the name), "
@@ -433,12 +658,24 @@ def import_views(
             raise ViewImportError(
                 f"principal point ({cx}, {cy}) px lies outside the {shape[1]}x{shape[0]} views; give (cx, cy), x first"
             )
-    _write(src, target, plan, images, camera, progress)
+    if transpose or flip_u or flip_v:
+        moves_centre = (flip_u and plan.rows % 2 == 0) or (flip_v and plan.cols % 2 == 0)
+        if truth and (transpose or moves_centre):
+            raise ViewImportError(f"{src}: the ground truth belongs to the centre view as the source orders the grid; "
+                                  "--transpose, or a flip of an even grid side, would not keep it true: import without them")
+        plan, images = reorient(plan, images, transpose=transpose, flip_u=flip_u, flip_v=flip_v)
+    if check_order:
+        for text in order_warnings(images, rows=plan.rows, cols=plan.cols):
+            if warn is not None:
+                warn(f"{src}: {text}")
+        report(progress, 0.5, "order checked")
+    _write(src, target, plan, images, camera, progress, truth)
     return target
 
 
 def _write(src: Path, target: Path, plan: ImportPlan, images: dict[tuple[int, int], np.ndarray],
-           camera: dict[str, Any], progress: ProgressCallback | None) -> None:
+           camera: dict[str, Any], progress: ProgressCallback | None,
+           truth: dict[str, Path | np.ndarray] | None = None) -> None:
     """Build the capture in a temporary folder beside ``target``, then rename it into place."""
     grid = {"rows": plan.rows, "cols": plan.cols, "pitch_mm": float(camera["pitch_mm"])}
     how = {**plan.how, "source": str(src.resolve())}
@@ -450,15 +687,23 @@ def _write(src: Path, target: Path, plan: ImportPlan, images: dict[tuple[int, in
     elif tmp.exists():
         shutil.rmtree(tmp)
     lock = None
+    digests: dict[Path, str] = {}
     try:
         # Held until the capture is renamed into place: another import into the same target takes
         # this folder for a dead run's only when nobody holds its lock (remove_abandoned_imports).
         lock = FolderLock(tmp, what="import")
         with CaptureWriter(tmp, header=header, lock=lock) as writer:
+            for name, gt in (truth or {}).items():
+                if isinstance(gt, Path):
+                    shutil.copyfile(gt, tmp / name)
+                else:
+                    write_pfm(tmp / name, gt)
             total = plan.rows * plan.cols
             for k, (u, v) in enumerate((u, v) for u in range(plan.rows) for v in range(plan.cols)):
                 path = plan.files[(u, v)]
-                writer.write_view(u, v, images[(u, v)], {"source": path.name, "source_sha256": _sha256(path)})
+                if path not in digests:
+                    digests[path] = _sha256(path)
+                writer.write_view(u, v, images[(u, v)], {"source": path.name, "source_sha256": digests[path]})
                 report(progress, 0.5 + 0.5 * (k + 1) / total, f"u{u:02d} v{v:02d}")
             writer.write_parameters(
                 image_shape=next(iter(images.values())).shape[:2],
