@@ -441,8 +441,10 @@ def _export(args: argparse.Namespace) -> None:
     min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
 
     result = read_result(args.result_dir)
+    out = CommandReport(as_json=args.json)
     if args.ply is not None or args.depth:
-        print(_kept_line(result, min_confidence=min_confidence, keep_all=args.keep_all))
+        kept = _kept_line(result, min_confidence=min_confidence, keep_all=args.keep_all)
+        out.line(kept, kept=kept)
     overrides = {"focal_px": args.focal_px, "pitch_mm": args.pitch_mm, "disparity_offset": args.disparity_offset}
     try:
         camera = result.camera(**overrides)
@@ -455,7 +457,6 @@ def _export(args: argparse.Namespace) -> None:
         from recon.poses import result_grid
 
         result_grid(result)  # before any file is written
-    out = CommandReport(as_json=args.json)
     if args.ply is not None:
         if args.poisson:
             print("meshing (Poisson, ~20 s for 512x512 px)...", file=sys.stderr, flush=True)
@@ -496,7 +497,6 @@ def _export(args: argparse.Namespace) -> None:
     if args.report is not None:
         from recon.report import report_for_result
 
-        print("writing the report (figures and 3D view)...", file=sys.stderr, flush=True)
         page = report_for_result(result, args.report, camera=camera, ply=args.ply)
         out.line(f"wrote {page}", report=page)
     out.finish()

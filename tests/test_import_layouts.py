@@ -36,7 +36,8 @@ def export_as(folder: Path, views: np.ndarray, name_of) -> Path:
 
 
 def warnings_in(err: str) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith("lfrig: warning:")]
+    """The warnings about the views' order (the one that the capture lacks a focal length is not one)."""
+    return [line for line in err.splitlines() if line.startswith("lfrig: warning:") and "only give disparity" not in line]
 
 
 def one_error_line(err: str) -> str:

@@ -55,7 +55,9 @@ def test_import_json_carries_the_warnings(tmp_path, capsys):
                  "--cols", "3", "--pitch-mm", "0.5", "--json"]) == 0
     data, err = stdout_object(capsys)
     assert data["output"] == str(tmp_path / "cap") and data["complete"] is True
-    assert len(data["warnings"]) == 1 and "mirrored" in data["warnings"][0]
+    order = [w for w in data["warnings"] if "mirrored" in w]
+    assert len(order) == 1 and len(data["warnings"]) == 2  # and that it has no focal length
+    assert any("only give disparity" in w for w in data["warnings"])
     assert "lfrig: warning:" in err and "import [" in err
 
 

@@ -178,7 +178,7 @@ def test_ply_is_float32_with_confidence_and_says_what_it_holds(tmp_path, kind, a
     assert "command lfrig export R --ply 'x y.ply'" in comments
     assert "source capture /lab/cap \\xe9" in comments  # one ASCII line, escaped
     assert any(c.startswith("confidence per-vertex confidence of the disparity in [0, 1]") for c in comments)
-    assert "confidence_filter pixels below 0.4 left out" in comments
+    assert "confidence_filter pixels below 0.5 left out" in comments
     assert any(c.startswith("mesh pixel grid, cut where") for c in comments) == (kind == "mesh")
 
     vertices = plain["vertices"]
