@@ -147,6 +147,10 @@ def ply_is_complete(path: Path) -> None:
     _check_ply(path, path, vertices=counts.get("vertex", 0), faces=counts.get("face", 0), ascii="ascii" in head)
 
 
+#: Where the report's scripts and licence are copied from.
+REPORT_PACKAGE = Path(__file__).resolve().parents[1] / "recon" / "report"
+
+
 def file_is_complete(path: Path) -> None:
     """Raise (an assertion or the reader's error) unless ``path`` holds a whole file of its kind."""
     suffix = path.suffix.lower()
@@ -174,6 +178,15 @@ def file_is_complete(path: Path) -> None:
         mrcal.cameramodel(str(path))
     elif suffix in (".log", ".lock", ".jsonl"):
         pass
+    elif suffix in (".js", ".txt") and path.parent.name == "report":  # the 3D view's scripts and licence
+        from recon.report.model import MODEL_JS
+
+        text = path.read_bytes()
+        if path.name == MODEL_JS:
+            assert text.startswith(b"window.LFRIG_MODEL = ") and text.endswith(b";\n"), path
+        else:
+            sources = [p for p in (REPORT_PACKAGE / path.name, REPORT_PACKAGE / "vendor" / path.name) if p.is_file()]
+            assert sources and text == sources[0].read_bytes(), path
     else:
         raise AssertionError(f"{path}: unexpected file")
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import base64
 import json
-import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -348,10 +347,7 @@ def write_viewer_files(out_dir, model: ViewerModel) -> list[str]:
         if not source.is_file():
             raise ReconError(f"{source}: the report's 3D viewer is missing from this installation; reinstall lfrig "
                              "(or run recon/report/vendor/build.sh)")
-        target = out / name
-        if target.is_symlink():
-            target.unlink()
-        shutil.copyfile(source, target)
+        write_bytes_atomic(out / name, source.read_bytes())  # whole or not at all; a link there is replaced
     text = "window.LFRIG_MODEL = " + json.dumps(model_payload(model), separators=(",", ":")) + ";\n"
     write_bytes_atomic(out / MODEL_JS, text.encode("ascii"))
     return [LIBRARY_JS, MODEL_JS, VIEWER_JS]
