@@ -189,7 +189,13 @@ def run_jog(stage: Any, *, fd: int, write: Callable[[str], None], settings: JogS
                 if key in MOVES:
                     delta = tuple(d * settings.step_mm for d in MOVES[key])
                     try:
-                        stage.jog(delta, feed_mm_min=settings.feed_mm_min)
+                        try:
+                            stage.jog(delta, feed_mm_min=settings.feed_mm_min)
+                        except RigError as error:
+                            if getattr(error, "code", None) != 8:
+                                raise
+                            settle()  # error:8: GRBL was not Idle yet (a jog still ending): once more when it is
+                            stage.jog(delta, feed_mm_min=settings.feed_mm_min)
                     except RigError as error:
                         code = getattr(error, "code", None)
                         message = ("  beyond the travel: not moved" if code == 15
