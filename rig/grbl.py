@@ -579,6 +579,14 @@ def motion_time_s(distance_mm: float, *, rate_mm_min: float, accel_mm_s2: float)
 # The driver.
 
 
+#: Default waits of :class:`GrblStage`, in s (read when a stage is made): for ``ok`` to a line that
+#: does not move, or a status report (``reply_timeout_s``); for the first status report after the
+#: port opens (``wake_s``: an Arduino's bootloader runs 0.5-3 s); added to twice a move's estimated
+#: time before it counts as stalled (``move_timeout_margin_s``).
+REPLY_TIMEOUT_S = 2.0
+WAKE_S = 5.0
+MOVE_TIMEOUT_MARGIN_S = 5.0
+
 #: The package where pyserial finds lfrig's own URL schemes (``protocol_<scheme>`` modules), as it
 #: finds its own ``loop://`` in ``serial.urlhandler``: ``fakegrbl://`` is the simulated controller.
 URL_HANDLERS = "rig.urlhandler"
@@ -690,15 +698,20 @@ class GrblStage:
     clock
         Time source for every timeout and wait (default :class:`SystemClock`).
     reply_timeout_s
-        How long to wait for ``ok`` to a non-motion line, or for a status report.
+        How long to wait for ``ok`` to a non-motion line, or for a status report (default
+        :data:`REPLY_TIMEOUT_S`, 2 s).
     home_timeout_s
         How long the homing cycle may take; default: derived from the controller's travel, rates and
         pull-off (:func:`homing_time_bound_s`) plus a margin.
     tolerance_mm
         Largest per-axis distance between the commanded and the reported position accepted as
         "at the target".
+    move_timeout_margin_s
+        Added to twice a move's estimated time: how long :meth:`wait_until_idle` waits before the
+        move counts as stalled (default :data:`MOVE_TIMEOUT_MARGIN_S`, 5 s).
     wake_s
-        How long to keep asking GRBL for a status report (``?`` every 0.25 s) after opening the port.
+        How long to keep asking GRBL for a status report (``?`` every 0.25 s) after opening the port
+        (default :data:`WAKE_S`, 5 s).
         A controller that did not reset answers at once and the wait ends there; a board that resets
         when the port opens (Arduino) answers once its bootloader has handed over, after 0.5-3 s,
         printing its welcome line first (``reset_seen``). No answer at all within ``wake_s`` leaves
@@ -738,20 +751,21 @@ class GrblStage:
         port: Any = None,
         baudrate: int = 115200,
         clock: Clock | None = None,
-        reply_timeout_s: float = 2.0,
+        reply_timeout_s: float | None = None,
         home_timeout_s: float | None = None,
-        move_timeout_margin_s: float = 5.0,
+        move_timeout_margin_s: float | None = None,
         tolerance_mm: float = 0.005,
-        wake_s: float = 5.0,
+        wake_s: float | None = None,
         reset_on_connect: bool = True,
         read_only: bool = False,
         poll_s: float = 0.05,
     ) -> None:
         self.url = url or getattr(port, "port", "") or "<port>"
         self.clock: Clock = clock if clock is not None else SystemClock()
-        self.reply_timeout_s = reply_timeout_s
+        self.reply_timeout_s = REPLY_TIMEOUT_S if reply_timeout_s is None else reply_timeout_s
         self._home_timeout_s = home_timeout_s
-        self.move_timeout_margin_s = move_timeout_margin_s
+        self.move_timeout_margin_s = MOVE_TIMEOUT_MARGIN_S if move_timeout_margin_s is None else move_timeout_margin_s
+        wake_s = WAKE_S if wake_s is None else wake_s
         self.tolerance_mm = tolerance_mm
         self.poll_s = poll_s
         self._rx = bytearray()

@@ -8,6 +8,7 @@ variable ``CI`` is set), so a CI run can never pass by silently skipping them.
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -36,3 +37,28 @@ def _own_state_home(tmp_path_factory, monkeypatch):
     """lfrig keeps a small record per serial port under ``$XDG_STATE_HOME`` (``rig.frames``): each
     test gets its own, so no test sees another's ports (pty paths are reused) or the user's."""
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state")))
+
+
+@pytest.fixture(scope="session")
+def firmware_exe(tmp_path_factory) -> Path:
+    """GRBL 1.1h built with ``../shared/grbl-sim``, once per test session for every module that
+    needs it (``tests/grbl_devices.py``); skipped without the simulator, but a failure under CI."""
+    from grbl_devices import GRBL_SIM, build_firmware
+
+    if not (GRBL_SIM / "build.sh").is_file():
+        message = f"GRBL simulator not found at {GRBL_SIM} (it must sit in ../shared beside the checkout)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    try:
+        return build_firmware(tmp_path_factory.mktemp("grbl-sim"))
+    except (OSError, RuntimeError, subprocess.SubprocessError) as error:
+        pytest.fail(f"building the GRBL simulator failed: {error}")
+
+
+@pytest.fixture(scope="session")
+def firmware_eeprom(firmware_exe, tmp_path_factory) -> Path:
+    """An EEPROM image with ``grbl_devices.FAST`` written, for ``Firmware(eeprom=...)``."""
+    from grbl_devices import fast_eeprom
+
+    return fast_eeprom(firmware_exe, tmp_path_factory.mktemp("grbl-eeprom"))

@@ -1,6 +1,6 @@
 """``lfrig stage jog`` through a pseudo-terminal: keys in, the controller's reported position out, on
 the fake stage and on the real GRBL 1.1h firmware (``../shared/grbl-sim``, built once per test
-session by ``tests/test_stage_devices.py``'s fixture), whose own carriage report is the judge."""
+session by ``tests/conftest.py``'s fixture), whose own carriage report is the judge."""
 
 from __future__ import annotations
 
@@ -17,7 +17,6 @@ import pytest
 
 from grbl_devices import FakeOnPty, Firmware
 from rig.jog import JogSettings, decode_keys
-from tests.test_stage_devices import firmware_exe  # noqa: F401 (the fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
 RIGHT, LEFT, UP, DOWN, PGUP, PGDN = b"\x1b[C", b"\x1b[D", b"\x1b[A", b"\x1b[B", b"\x1b[5~", b"\x1b[6~"
@@ -106,7 +105,8 @@ def test_keys_are_decoded_also_when_a_sequence_is_split():
 @pytest.fixture(params=["fake", "firmware"])
 def device(request, tmp_path):
     if request.param == "firmware":
-        made = Firmware(request.getfixturevalue("firmware_exe"), tmp_path / "grbl")
+        made = Firmware(request.getfixturevalue("firmware_exe"), tmp_path / "grbl",
+                        eeprom=request.getfixturevalue("firmware_eeprom"))
     else:
         made = FakeOnPty()
     yield made

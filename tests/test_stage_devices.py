@@ -21,9 +21,11 @@ from pathlib import Path
 
 import pytest
 
-from grbl_devices import FAST, GRBL_SIM, FakeOnPty, Firmware, build_firmware
+from grbl_devices import FAST, FakeOnPty, Firmware
 from rig.main import main
-from rig.grbl import GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, port_holders, travel_limits_mm
+from rig.grbl import (GrblAlarmError, GrblConnectionError, GrblLimitError, GrblStage, encode_move, port_holders,
+                      travel_limits_mm)
+from rig.grid import GridSpec, plan_moves
 
 pytestmark = pytest.mark.slow  # real-time motion: about 3 min on the firmware, 2 on the fake
 
@@ -34,19 +36,6 @@ CAMERA = ["--camera", "fake", "--binning", "8", "--supersample", "1", "--settle-
 TOL = 0.0041  # one step at 250 steps/mm, plus rounding
 
 
-@pytest.fixture(scope="session")
-def firmware_exe(tmp_path_factory):
-    if not (GRBL_SIM / "build.sh").is_file():
-        message = f"GRBL simulator not found at {GRBL_SIM} (it must sit in ../shared beside the checkout)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
-    try:
-        return build_firmware(tmp_path_factory.mktemp("grbl-sim"))
-    except (OSError, RuntimeError, subprocess.SubprocessError) as error:
-        pytest.fail(f"building the GRBL simulator failed: {error}")
-
-
 @pytest.fixture(params=["fake", "firmware"])
 def make_device(request, tmp_path):
     """``make_device(settings=..., start_mm=...)``: a controller on a pty (stopped at teardown)."""
@@ -55,8 +44,9 @@ def make_device(request, tmp_path):
     def make(settings: dict | None = None, start_mm=None, relay: bool = False):
         merged = {**FAST, **(settings or {})}
         if request.param == "firmware":
-            exe = request.getfixturevalue("firmware_exe")
-            device = Firmware(exe, tmp_path / f"grbl{len(made)}", settings=merged, start_mm=start_mm, relay=relay)
+            exe, eeprom = request.getfixturevalue("firmware_exe"), request.getfixturevalue("firmware_eeprom")
+            device = Firmware(exe, tmp_path / f"grbl{len(made)}", settings=merged, start_mm=start_mm, relay=relay,
+                              eeprom=eeprom)
         else:
             device = FakeOnPty(settings=merged, start_mm=start_mm)
         made.append(device)
@@ -84,14 +74,28 @@ def views_in(path: Path) -> list[dict]:
     return [r for r in records if r.get("kind") == "view"]
 
 
+def grid_of(args: list[str]):
+    """The :class:`rig.grid.GridSpec` of a :func:`capture_args` command (pitch 0.5 mm)."""
+    centre = args.index("--centre-mm")
+    return GridSpec(rows=int(args[args.index("--rows") + 1]), cols=int(args[args.index("--cols") + 1]), pitch_mm=0.5,
+                    centre_mm=tuple(float(c) for c in args[centre + 1:centre + 4]))
+
+
 def capture_args(out: Path, device, *extra: str, rows: int = 9, cols: int = 9, centre=CENTRE) -> list[str]:
     return ["capture", str(out), "--stage", device.url, "--rows", str(rows), "--cols", str(cols),
             "--centre-mm", *(f"{c:g}" for c in centre), *CAMERA, *extra]
 
 
+def _default_sigint() -> None:
+    # a shell's background job starts with SIGINT ignored, and Python then leaves it ignored: the
+    # lfrig under test gets Ctrl-C as it does at a terminal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_capture(args: list[str]) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen([*LFRIG, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen([*LFRIG, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
 
 
 def wait_for_views(process: subprocess.Popen, out: Path, n: int, timeout_s: float = 120) -> None:
@@ -109,6 +113,49 @@ def check_views(out: Path, total: int) -> None:
     assert len(counts) == total and set(counts.values()) == {1}, counts
     for v in views:
         assert close_to(v["readback_mm"], v["commanded_mm"]), v
+
+
+def at_view(monkeypatch, out: Path, n: int, action=None) -> None:
+    """Make the next ``lfrig capture`` in this process call ``action()`` once ``n`` views are journalled
+    (once, the capture going on), or without an action stop cleanly then, as on a first Ctrl-C."""
+    import rig.session
+
+    real = rig.session.run_capture
+    done = []
+
+    def should_stop() -> bool:
+        if len(views_in(out)) < n:
+            return False
+        if action is None:
+            return True
+        if not done:
+            done.append(action())
+        return False
+
+    def run_capture(*args, **kwargs):
+        monkeypatch.setattr(rig.session, "run_capture", real)  # once
+        return real(*args, **kwargs, should_stop=should_stop)
+
+    monkeypatch.setattr(rig.session, "run_capture", run_capture)
+
+
+def stop_after(monkeypatch, out: Path, n: int) -> None:
+    """Make the next ``lfrig capture`` in this process stop cleanly (as on a first Ctrl-C) once ``n``
+    views are journalled."""
+    at_view(monkeypatch, out, n)
+
+
+def sigint_after_move(monkeypatch, line: str) -> None:
+    """Send this process a SIGINT (lfrig's capture handles it as a Ctrl-C) right after the move
+    ``line`` (as lfrig sends it) was accepted by GRBL, while the stage runs it."""
+    real = GrblStage.move_to
+
+    def move_to(self, position_mm, *, feed_mm_min=None):
+        real(self, position_mm, feed_mm_min=feed_mm_min)
+        if encode_move(position_mm, feed_mm_min=feed_mm_min).decode().strip() == line:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(GrblStage, "move_to", move_to)
 
 
 # -- status, move, unlock, homing -------------------------------------------------------------------
@@ -281,6 +328,7 @@ def test_the_port_is_opened_exclusively(make_device):
 # -- captures ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("make_device", ["firmware"], indirect=True)  # the fake's: tests/test_rig_session.py
 def test_full_81_view_capture(make_device, tmp_path, capsys):
     device = make_device()
     out = tmp_path / "cap"
@@ -292,67 +340,62 @@ def test_full_81_view_capture(make_device, tmp_path, capsys):
     print(f"81-view capture on the {device.kind}: {elapsed:.1f} s wall")
 
 
-def test_sigint_then_resume_without_homing(make_device, tmp_path, capsys):
+def test_sigint_then_resume_without_homing(make_device, tmp_path, capsys, monkeypatch):
     device = make_device()
     out = tmp_path / "cap"
-    process = start_capture(capture_args(out, device, rows=4, cols=4))
-    wait_for_views(process, out, 3)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 130, err
-    first = len(views_in(out))
-    assert 3 <= first < 16
+    args = capture_args(out, device, rows=3, cols=3)
+    third = [m for m in plan_moves(grid_of(args)) if m.view is not None][2]
+    sigint_after_move(monkeypatch, encode_move(third.target_mm).decode().strip())  # Ctrl-C on the way to the 3rd view
+    assert main(args) == 130, capsys.readouterr().err
+    assert len(views_in(out)) == 3  # the view under way was finished
     # the carriage sits at the last view and nothing reset: the frame is proven, no homing needed
-    assert main(capture_args(out, device, "--no-home", rows=4, cols=4)) == 0, capsys.readouterr().err
-    check_views(out, 16)
+    assert main([*args, "--no-home"]) == 0, capsys.readouterr().err
+    check_views(out, 9)
     assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
 
 
 def test_kill_9_then_resume(make_device, tmp_path, capsys):
     device = make_device()
     out = tmp_path / "cap"
-    process = start_capture(capture_args(out, device, rows=4, cols=4))
-    wait_for_views(process, out, 4)
+    process = start_capture(capture_args(out, device, rows=3, cols=3))
+    wait_for_views(process, out, 3)
     process.kill()
     process.communicate(timeout=30)
     first = len(views_in(out))
     time.sleep(0.3)  # the move under way when the process died ends
     proven = close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
-    code = main(capture_args(out, device, "--no-home", rows=4, cols=4))
+    code = main(capture_args(out, device, "--no-home", rows=3, cols=3))
     if not proven:  # killed during a move: the stage is not where the journal's last view was taken
         err = capsys.readouterr().err
         assert code == 2 and "last view was read back at" in err, err
         assert len(views_in(out)) == first
-        code = main(capture_args(out, device, rows=4, cols=4))
+        code = main(capture_args(out, device, rows=3, cols=3))
     assert code == 0, capsys.readouterr().err
-    check_views(out, 16)
+    check_views(out, 9)
     assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
 
 
 @pytest.mark.parametrize("homing", [False, True], ids=["no-homing", "homing"])
-def test_controller_restart_between_runs(make_device, tmp_path, capsys, homing):
+def test_controller_restart_between_runs(make_device, tmp_path, capsys, monkeypatch, homing):
     """A reset between runs (power dip, Arduino reset on open) restarts GRBL's position at 0 where
     the carriage stands: a resume must re-home or refuse, never take views in a shifted frame."""
     device = make_device({22: 1} if homing else {22: 0, 20: 0})
     out = tmp_path / "cap"
     if homing:
-        args = capture_args(out, device, rows=4, cols=4)
+        args = capture_args(out, device, rows=3, cols=3)
     else:  # the frame is wherever GRBL powered up: the lab's --no-home habit with $22=0
-        args = capture_args(out, device, "--no-home", rows=4, cols=4, centre=(-3.0, -3.0, -2.0))
-    process = start_capture(args)
-    wait_for_views(process, out, 3)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 130, err
+        args = capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-3.0, -3.0, -2.0))
+    stop_after(monkeypatch, out, 3)
+    assert main(args) == 130, capsys.readouterr().err
     first = len(views_in(out))
-    assert first < 16
+    assert first == 3
     # power cycle with the carriage a little off (moved by hand while the controller was off)
     device.restart(start_mm=tuple(c + d for c, d in zip(device.carriage_mm(), (2.0, 1.5, -0.5))))
     code = main(args)
     err = capsys.readouterr().err
     if homing:
         assert code == 0, err
-        check_views(out, 16)
+        check_views(out, 9)
         assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
     else:
         assert code == 2 and "cannot prove" in err, err
@@ -385,20 +428,6 @@ def test_ctrl_c_twice_during_a_long_slow_move(make_device, tmp_path):
 
 
 # -- the machine frame is part of a capture's identity ----------------------------------------------
-
-
-def stop_after(monkeypatch, out: Path, n: int) -> None:
-    """Make the next ``lfrig capture`` in this process stop cleanly (as on a first Ctrl-C) once ``n``
-    views are journalled."""
-    import rig.session
-
-    real = rig.session.run_capture
-
-    def run_capture(*args, **kwargs):
-        monkeypatch.setattr(rig.session, "run_capture", real)  # once
-        return real(*args, **kwargs, should_stop=lambda: len(views_in(out)) >= n)
-
-    monkeypatch.setattr(rig.session, "run_capture", run_capture)
 
 
 def current_views(out: Path) -> list[dict]:
@@ -437,22 +466,25 @@ def test_homing_a_capture_taken_without_homing_is_refused(make_device, tmp_path,
     assert {(v["u"], v["v"]): v["sha256"] for v in read} == {(v["u"], v["v"]): v["sha256"] for v in views}
 
 
-@pytest.mark.parametrize("change", [{100: 200}, {23: 1}, {130: 18}], ids=["steps-per-mm", "homing-dir", "travel"])
-def test_a_changed_frame_setting_is_refused(make_device, tmp_path, capsys, monkeypatch, change):
+def test_a_changed_frame_setting_is_refused(make_device, tmp_path, capsys, monkeypatch):
     """#21.3: $100 250 -> 200 between runs put the resumed views at 0.8x their X; $23 and $130 move
-    the homed origin."""
+    the homed origin. Each changed alone, then set back."""
     device = make_device()
     out = tmp_path / "cap"
     args = capture_args(out, device, rows=3, cols=3)
     stop_after(monkeypatch, out, 2)
     assert main(args) == 130, capsys.readouterr().err
-    device.configure(change)
-    for extra in ([], ["--no-home"]):
-        assert main([*args, *extra]) == 2
-        err = capsys.readouterr().err
-        (key, value), = change.items()
-        assert "settings that place a step" in err and f"${key} was " in err and f"now {value}" in err, err
+    for (key, value) in ((100, 200), (23, 1), (130, 18)):
+        was = FAST[key]
+        device.configure({key: value})
+        for extra in ([], ["--no-home"]):
+            assert main([*args, *extra]) == 2
+            err = capsys.readouterr().err
+            assert "settings that place a step" in err and f"${key} was " in err and f"now {value}" in err, err
+        device.configure({key: was})
     assert len(views_in(out)) == 2
+    assert main(args) == 0, capsys.readouterr().err  # set back: the same frame, homed again
+    check_views(out, 9)
 
 
 def test_unlock_and_a_move_do_not_fake_the_frame_proof(make_device, tmp_path, capsys, monkeypatch):
@@ -529,53 +561,33 @@ def test_ctrl_c_stops_stage_home_by_a_reset(make_device):
     assert here[2] < -1.5, here  # Z, homed first, is short of its switch: the cycle did not go on
 
 
-def test_stage_status_does_not_stop_a_homing_cycle(make_device, capsys):
-    """`stage status` only looks: a homing cycle left running by a killed process goes on."""
-    device = make_device({25: 120}, start_mm=(-15.0, -15.0, -8.0))  # at least 11 s of homing
-    process = start_capture(["stage", "home", "--stage", device.url])
-    wait_until_open(process, device)
-    time.sleep(2.0)
-    process.kill()
-    process.communicate(timeout=30)
+def test_stage_status_does_not_stop_a_homing_cycle(make_device, capsys, monkeypatch):
+    """`stage status` only looks: a homing cycle left running by a process that died goes on."""
+    device = make_device({25: 120}, start_mm=(-9.0, -9.0, -6.0))  # seek at 2 mm/s: about 7 s of homing
+    os.write(device.slave, b"$H\n")  # sent by a process that then died
+    time.sleep(0.2)
+    short_waits(monkeypatch)
     assert main(["stage", "status", "--stage", device.url]) == 2
     err = capsys.readouterr().err
     assert "no status report" in err and "homing" in err and "nothing that would stop it" in err, err
+    assert not close_to(device.carriage_mm(), (-1.0, -1.0, -1.0), tol=0.01)  # still on its way
     deadline = time.monotonic() + 40
     while not close_to(device.carriage_mm(), (-1.0, -1.0, -1.0), tol=0.01):
         assert time.monotonic() < deadline, device.carriage_mm()
-        time.sleep(0.5)
+        time.sleep(0.2)
 
 
-def take_up_before_a_view(rows: int, cols: int, after_views: int) -> tuple[int, str]:
-    """The first backlash take-up move of a grid after ``after_views`` views, as the index of its
-    view among the views and the line lfrig sends for it (at the test feed)."""
-    from rig.grbl import encode_move
-    from rig.grid import GridSpec, plan_moves
-
-    moves = plan_moves(GridSpec(rows=rows, cols=cols, pitch_mm=0.5, centre_mm=CENTRE))
-    views = 0
-    for i, move in enumerate(moves):
-        if move.view is None and views >= after_views:
-            return views, encode_move(move.target_mm, feed_mm_min=60).decode().strip()
-        views += move.view is not None
-    raise AssertionError("no take-up move")
-
-
-def test_ctrl_c_during_a_backlash_take_up_still_resumes_without_homing(make_device, tmp_path, capsys):
+def test_ctrl_c_during_a_backlash_take_up_still_resumes_without_homing(make_device, tmp_path, capsys, monkeypatch):
+    """#21.5: a first Ctrl-C while a backlash take-up runs: the view it leads to is taken, so the stage
+    stops on the journal's last view and a resume without homing is proven."""
     device = make_device()
     out = tmp_path / "cap"
-    args = capture_args(out, device, "--feed-mm-min", "60", rows=3, cols=3)  # 1 mm/s: a take-up lasts 0.7 s
-    views_before, line = take_up_before_a_view(3, 3, after_views=3)
-    process = start_capture(args)
-    deadline = time.monotonic() + 120
-    log = out / "session.log"
-    while line not in (log.read_text() if log.exists() else ""):
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline, "the take-up move was not sent"
-        time.sleep(0.01)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 130, err
+    args = capture_args(out, device, rows=3, cols=3)
+    moves = plan_moves(grid_of(args))
+    index = next(i for i, m in enumerate(moves) if m.view is None and i > 0)  # the first take-up after a view
+    views_before = sum(m.view is not None for m in moves[:index])
+    sigint_after_move(monkeypatch, encode_move(moves[index].target_mm).decode().strip())
+    assert main(args) == 130, capsys.readouterr().err
     assert len(views_in(out)) == views_before + 1  # the view the take-up led to was taken
     assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
     assert main(args + ["--no-home"]) == 0, capsys.readouterr().err
@@ -592,31 +604,40 @@ def test_a_reset_on_open_is_seen_however_long_the_board_boots(make_device, boot_
         assert stage.status()["state"] == "Alarm"  # $22=1: locked after power-up
 
 
-def test_garbled_status_reports_are_asked_again(make_device, tmp_path):
+def test_garbled_status_reports_are_asked_again(make_device, tmp_path, capsys, monkeypatch, caplog):
     device = make_device(relay=True)
     out = tmp_path / "cap"
-    process = start_capture(capture_args(out, device, rows=3, cols=3))
-    wait_for_views(process, out, 2)
-    device.garble_reports = 2  # two reports in a row lose a digit on the way
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 0, err
-    assert len(device.garbled) == 2 and err.count("garbled status report") == 2, err
+    # two reports in a row lose a digit on the way, from the third view on
+    at_view(monkeypatch, out, 2, lambda: setattr(device, "garble_reports", 2))
+    assert main(capture_args(out, device, rows=3, cols=3)) == 0, capsys.readouterr().err
+    asked_again = [r for r in caplog.records if "garbled status report" in r.getMessage()]
+    assert len(device.garbled) == 2 and len(asked_again) == 2, caplog.text
     check_views(out, 9)
 
 
-def test_a_controller_that_dies_mid_capture_is_named_as_the_cause(make_device, tmp_path, capsys):
+def short_waits(monkeypatch, *, wake_s: float = 1.0) -> None:
+    """Shorter waits for a test that waits them out (a controller that does not answer): the
+    first status report after opening (5 s) and a move's margin (5 s); a reply's own 2 s: 1 s."""
+    import rig.grbl
+
+    monkeypatch.setattr(rig.grbl, "WAKE_S", wake_s)
+    monkeypatch.setattr(rig.grbl, "MOVE_TIMEOUT_MARGIN_S", 1.0)
+    monkeypatch.setattr(rig.grbl, "REPLY_TIMEOUT_S", 1.0)
+
+
+def test_a_controller_that_dies_mid_capture_is_named_as_the_cause(make_device, tmp_path, capsys, monkeypatch):
     device = make_device()
     out = tmp_path / "cap"
-    process = start_capture(capture_args(out, device, rows=3, cols=3))
-    wait_for_views(process, out, 2)
-    device.power_off()
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 2, err
+    short_waits(monkeypatch)
+    at_view(monkeypatch, out, 2, device.power_off)
+    assert main(capture_args(out, device, rows=3, cols=3)) == 2
+    err = capsys.readouterr().err
     assert "does not answer a status query either" in err or "stopped answering" in err, err
     assert "last report" not in err and "Ctrl-C" not in err, err
+    assert len(views_in(out)) == 2
     assert main(["stage", "status", "--stage", device.url]) == 2  # read-only: says what may be wrong
     err = capsys.readouterr().err
-    assert "no status report within 5 s" in err and "off" in err, err
+    assert "no status report within 1 s" in err and "off" in err, err
 
 
 def test_the_port_is_closed_to_other_programs_while_lfrig_holds_it(make_device):
