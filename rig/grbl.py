@@ -782,6 +782,7 @@ class GrblStage:
         #: An alarm after which the position may be lost (:data:`FRAME_LOSING_ALARMS`), seen on this connection.
         self.frame_alarm: str | None = None
         self.open_state: str | None = None
+        self._empty_buffer: tuple[int, int] | None = None  # Bf of a GRBL with nothing queued (if reported)
         self.silent_on_open = False
         self.read_only = read_only
         self._homing = False  # a $H sent and not yet answered
@@ -817,6 +818,17 @@ class GrblStage:
 
     # -- low level I/O ------------------------------------------------------------------------
     def _io_error(self, error: Exception) -> GrblConnectionError:
+        holders = port_holders(self.url)
+        if "multiple access" in str(error) or holders:
+            # pyserial's "ready to read but returned no data": another reader took the bytes first
+            names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
+            who = (f"{names} also has the port open and reads GRBL's replies" if names else
+                   "another program may be reading GRBL's replies (one run as root can open the port although lfrig "
+                   "holds it exclusively, and other users cannot see it: `sudo fuser -v` on the device names it)")
+            return GrblConnectionError(
+                f"lost GRBL's replies on {self.url}: {error}; {who}: close it, or check the cable and power, "
+                "then run again"
+            )
         return GrblConnectionError(
             f"lost the connection to GRBL on {self.url}: {error}; check the cable and power, then run again"
         )
@@ -931,15 +943,35 @@ class GrblStage:
     def _silence_cause(self) -> str:
         """Why GRBL may have gone quiet, for a message: whether it still answers ``?``, and the other
         programs that have the port open (they may have read the reply)."""
-        parts = []
         try:
             status = self._query_status(timeout_s=min(self.reply_timeout_s, 1.0), attempts=1)
         except GrblError:
             status = None
-        parts.append("; it does not answer a status query either (power, cable?)" if status is None
-                     else f"; it reports {_describe(status)}")
-        parts.append(self._holders_note())
-        return "".join(parts)
+        if status is None:
+            return "; it does not answer a status query either (power, cable?)" + self._holders_note()
+        if status.state == "Idle":
+            return f"; it reports {_describe(status)}: {self._lost_reply(status)}"
+        return f"; it reports {_describe(status)}{self._holders_note()}"
+
+    def _lost_reply(self, status: Status) -> str:
+        """The likely cause of a reply that went missing while GRBL is ``Idle`` (``status``), for a
+        message. In GRBL's send-response streaming only one line is outstanding, so any reply is
+        lfrig's; an Idle GRBL (with ``Bf`` in its reports: the counts of empty buffers, as when the
+        port opened) has answered every line it received, so another reader took the reply, or the
+        line garbled it."""
+        empty = status.buffer is not None and status.buffer == self._empty_buffer
+        proof = (f" (its planner and serial buffers are as empty as when the port opened, Bf:{status.buffer[0]},"
+                 f"{status.buffer[1]})" if empty and status.buffer else "")
+        holders = port_holders(self.url)
+        if holders:
+            names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
+            reader = f"{names}, which also has the port open, read it: close it"
+        else:
+            reader = ("another program read it: one run as root can open the port although lfrig holds it "
+                      "exclusively, and other users cannot see it (`sudo fuser -v` on the device names it); close it "
+                      "(or the reply was garbled on the line: check the cable)")
+        return (f"GRBL is Idle with nothing left to run{proof}, so it has answered every line it received, and the "
+                f"reply went elsewhere; {reader}")
 
     def _connect(self, *, wake_s: float, reset: bool) -> None:
         # GRBL's interface: wake it up with blank lines and let it initialise. Then ask for a status
@@ -977,7 +1009,10 @@ class GrblStage:
                 if isinstance(reply, Message) and reply.kind == "VER":
                     self.version = reply.text.split(":")[0] or None
         try:
-            self.open_state = self.status_report().state
+            opened = self.status_report()
+            self.open_state = opened.state
+            if opened.state in ("Idle", "Alarm"):  # nothing queued: the Bf counts of empty buffers
+                self._empty_buffer = opened.buffer
         except GrblTimeoutError:  # a critical alarm without the reset: GRBL answers nothing but 0x18
             self.open_state = None
 
@@ -1302,6 +1337,12 @@ class GrblStage:
                     f"GRBL on {self.url} stopped answering during the move to {_fmt(target)}: no reply to 'G4 P0' "
                     f"within {timeout_s:.1f} s and none to a status query{self._holders_note()}. Check its power "
                     "and cable; then home the stage and run again"
+                ) from None
+            if status.state == "Idle":
+                raise GrblTimeoutError(
+                    f"GRBL on {self.url} did not answer 'G4 P0' after the move to {_fmt(target)} within "
+                    f"{timeout_s:.1f} s, yet reports {_describe(status)}: {self._lost_reply(status)}. Nothing was "
+                    "resent; then home the stage and run again (a capture resumes where it stopped)"
                 ) from None
             stopped = self._stop_quietly() if _is_moving(status) else ""
             raise GrblTimeoutError(

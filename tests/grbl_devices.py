@@ -11,10 +11,11 @@ carriage physically is in the machine frame homing defines (the firmware's ``%``
 fake's physical position), ``raw`` talks to the controller directly while lfrig does not hold it.
 Neither resets when the port opens (a real Arduino does: ``fakegrbl://`` models that).
 
-Two faults of the world between them, on both: ``power_cycle(boot_s=...)`` restarts the controller
+Three faults of the world between them, on both: ``power_cycle(boot_s=...)`` restarts the controller
 like a board whose bootloader runs first (bytes sent meanwhile are lost, the welcome line comes after
-``boot_s``), and ``garble_reports = N`` corrupts the next N status reports on their way to lfrig
-(the firmware's output then passes through a relay thread: ``make(relay=True)``).
+``boot_s``), ``garble_reports = N`` corrupts the next N status reports on their way to lfrig, and
+``take_oks = N`` takes the next N ``ok`` replies away, as another reader of the port would (the
+firmware's output then passes through a relay thread: ``make(relay=True)``).
 
 The test process keeps the slave side open (in raw mode) for the controller's whole life, so the
 controller never sees a hang-up between two lfrig runs; pyserial flushes what arrived meanwhile when
@@ -85,6 +86,8 @@ class _PtyDevice:
         self.settings = dict(settings)
         self.garble_reports = 0
         self.garbled: list[bytes] = []
+        self.take_oks = 0
+        self.taken: list[bytes] = []
         self._out_line = b""
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)  # no echo: the controller must not read back its own output
@@ -111,11 +114,16 @@ class _PtyDevice:
 
     def _garble(self, data: bytes) -> bytes:
         """What reaches lfrig of ``data`` from the controller: whole lines, the next
-        ``garble_reports`` status reports with a digit of their position replaced by ``#``."""
+        ``garble_reports`` status reports with a digit of their position replaced by ``#``, and
+        without the next ``take_oks`` ``ok`` lines (read by another program, kept in ``taken``)."""
         self._out_line += data
         *lines, self._out_line = self._out_line.split(b"\n")
         out = b""
         for line in lines:
+            if self.take_oks and line.strip() == b"ok":
+                self.take_oks -= 1
+                self.taken.append(line)
+                continue
             if self.garble_reports and line.startswith(b"<") and b"Pos:" in line:
                 self.garble_reports -= 1
                 at = line.index(b"Pos:") + 5

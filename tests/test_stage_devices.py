@@ -672,6 +672,52 @@ def test_a_program_that_reads_the_port_is_named(make_device):
         cat.wait()
 
 
+def test_a_reply_taken_by_another_reader_is_named_as_the_cause(make_device, tmp_path, capsys, monkeypatch):
+    """#21.7: a program the exclusive mode does not keep out (root's) reads the `ok` of a move: GRBL
+    is Idle with nothing left to run, so the error says the reply went to another reader, not that an
+    axis may be stalled."""
+    device = make_device(relay=True)
+    out = tmp_path / "cap"
+    short_waits(monkeypatch)
+    at_view(monkeypatch, out, 2, lambda: setattr(device, "take_oks", 1))  # the next move's `ok`
+    assert main(capture_args(out, device, rows=3, cols=3)) == 2
+    err = capsys.readouterr().err
+    assert len(device.taken) == 1, device.taken
+    assert "Idle with nothing left to run" in err and "another program read it" in err and "fuser" in err, err
+    assert "stalled" not in err, err
+    assert len(views_in(out)) == 2
+
+
+#: A second reader of the port that keeps reading whatever the port's settings (``cat`` sees the end
+#: of its input once lfrig sets the port up, VMIN=0, and exits).
+READER = """
+import os, select, sys
+fd = os.open(sys.argv[1], os.O_RDONLY | os.O_NOCTTY)
+while True:
+    select.select([fd], [], [])
+    os.read(fd, 4096)
+"""
+
+
+def test_a_capture_with_another_reader_on_the_port_names_it(make_device, tmp_path, capsys):
+    """#21.7 with a real second reader: a program that opened the port before lfrig (so the exclusive
+    mode cannot keep it out) takes whatever replies it reads first: the capture stops, naming it."""
+    device = make_device()
+    reader = subprocess.Popen([sys.executable, "-c", READER, device.path])
+    try:
+        deadline = time.monotonic() + 10
+        while reader.pid not in [pid for pid, _ in port_holders(device.path)]:
+            assert time.monotonic() < deadline, port_holders(device.path)
+            time.sleep(0.02)
+        name = dict(port_holders(device.path))[reader.pid]
+        assert main(capture_args(tmp_path / "cap", device, rows=3, cols=3)) == 2
+        err = capsys.readouterr().err
+        assert f"process {reader.pid} ({name})" in err, err
+    finally:
+        reader.kill()
+        reader.wait()
+
+
 def test_inch_reports_are_refused(make_device, tmp_path, capsys):
     device = make_device({13: 1})
     assert main(capture_args(tmp_path / "cap", device, "--dry-run", rows=3, cols=3)) == 2
