@@ -1003,6 +1003,7 @@ class GrblStage:
             self.open_state = status.state  # GRBL answers '$$' only when Idle or in Alarm
             return
         self.settings_values = self.read_settings()
+        self._check_listing()
         self._check_units()
         if self.version is None:  # no welcome line read: ask for the build info, [VER:1.1h.20190830:]
             for reply in self.command("$I"):
@@ -1022,6 +1023,18 @@ class GrblStage:
             return ""
         names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
         return f"; {names} also has the port open and may be reading GRBL's replies: close it"
+
+    def _check_listing(self) -> None:
+        """Refuse a ``$$`` listing without the settings that place a step in the machine frame
+        (:data:`FRAME_SETTINGS`, all reported by GRBL 1.1): lines of it were lost on the way, or read
+        by another program, and a travel check or a capture's frame built on it would be wrong."""
+        missing = [f"${n}" for n in FRAME_SETTINGS if n not in self.settings_values]
+        if missing:
+            raise GrblProtocolError(
+                f"GRBL on {self.url} listed its settings ($$) without {', '.join(missing)}: lines of its reply were "
+                f"lost{self._holders_note() or ' (another program reading the port, or noise on the line)'}; "
+                "run again"
+            )
 
     def _check_units(self) -> None:
         """Refuse a controller that reports inches (``$13=1``): every position lfrig reads, checks and

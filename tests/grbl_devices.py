@@ -87,6 +87,7 @@ class _PtyDevice:
         self.garble_reports = 0
         self.garbled: list[bytes] = []
         self.take_oks = 0
+        self.take_lines: list[bytes] = []
         self.taken: list[bytes] = []
         self._out_line = b""
         self.master, self.slave = os.openpty()
@@ -115,13 +116,19 @@ class _PtyDevice:
     def _garble(self, data: bytes) -> bytes:
         """What reaches lfrig of ``data`` from the controller: whole lines, the next
         ``garble_reports`` status reports with a digit of their position replaced by ``#``, and
-        without the next ``take_oks`` ``ok`` lines (read by another program, kept in ``taken``)."""
+        without the next ``take_oks`` ``ok`` lines and the next line that starts with each of
+        ``take_lines`` (read by another program, kept in ``taken``)."""
         self._out_line += data
         *lines, self._out_line = self._out_line.split(b"\n")
         out = b""
         for line in lines:
             if self.take_oks and line.strip() == b"ok":
                 self.take_oks -= 1
+                self.taken.append(line)
+                continue
+            taken = next((prefix for prefix in self.take_lines if line.startswith(prefix)), None)
+            if taken is not None:
+                self.take_lines.remove(taken)
                 self.taken.append(line)
                 continue
             if self.garble_reports and line.startswith(b"<") and b"Pos:" in line:

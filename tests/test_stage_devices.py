@@ -688,6 +688,16 @@ def test_a_reply_taken_by_another_reader_is_named_as_the_cause(make_device, tmp_
     assert len(views_in(out)) == 2
 
 
+def test_a_settings_listing_with_lines_taken_is_refused(make_device, capsys):
+    """#21.7: another reader took `$130=` out of the `$$` listing: no travel check or frame is built
+    on what is left."""
+    device = make_device(relay=True)
+    device.take_lines = [b"$130="]
+    assert main(["stage", "move", "-5", "-5", "-2", "--stage", device.url]) == 2
+    err = capsys.readouterr().err
+    assert device.taken and "without $130" in err and "another program reading the port" in err, err
+
+
 #: A second reader of the port that keeps reading whatever the port's settings (``cat`` sees the end
 #: of its input once lfrig sets the port up, VMIN=0, and exits).
 READER = """
