@@ -53,9 +53,9 @@ class Devices:
         finally:
             if self.stage is not None:
                 try:
-                    from rig.frames import witness
+                    from rig.frames import let_go
 
-                    witness(self.stage)  # what this connection saw (a reset, an alarm, a homing), for the next process
+                    let_go(self.stage)  # what this connection saw (a reset, an alarm, a homing, where it left the stage)
                 finally:
                     self.stage.close()
         if self.url is not None:

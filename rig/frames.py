@@ -84,9 +84,11 @@ class PortRecord:
     """What lfrig knows about a controller's frame between processes.
 
     ``epoch`` is a random token replaced at every event that may change the frame (a reset or an
-    alarm lock seen, a frame-losing alarm, a homing); ``event`` says what the last one was; ``homed``
-    holds the frame settings of the last homing when nothing cast doubt since. A capture taken
-    without homing records the epoch; a resume without homing needs the same epoch.
+    alarm lock seen, a frame-losing alarm, a homing, GRBL found elsewhere than lfrig left it);
+    ``event`` says what the last one was; ``homed`` holds the frame settings of the last homing when
+    nothing cast doubt since; ``left_mm`` is where GRBL reported the stage standing when lfrig last
+    let go of the port (``None`` while a connection holds it, or when that was not known). A capture
+    taken without homing records the epoch; a resume without homing needs the same epoch.
     """
 
     key: str
@@ -94,6 +96,7 @@ class PortRecord:
     epoch: str
     event: str | None = None
     homed: dict[str, float] | None = None
+    left_mm: list[float] | None = None
 
     @classmethod
     def open(cls, url: str) -> "PortRecord | None":
@@ -114,17 +117,29 @@ class PortRecord:
             record.note_doubt(f"lfrig's record of the port ({record.file}) was damaged")
             return record
         record.epoch, record.event, record.homed = epoch, data.get("event"), homed
+        left = data.get("left_mm")
+        if isinstance(left, list) and len(left) == 3 and all(isinstance(c, (int, float)) for c in left):
+            record.left_mm = [float(c) for c in left]
         return record
 
     def note_doubt(self, reason: str) -> None:
         """The frame may have changed (reset, alarm): a new epoch, and no homing to rely on."""
         self.epoch, self.event, self.homed = secrets.token_hex(8), f"{reason} ({_now()})", None
+        self.left_mm = None
         self._write()
 
     def note_homed(self, settings: dict[str, float]) -> None:
         """A homing completed with these frame settings."""
         self.epoch, self.event, self.homed = secrets.token_hex(8), f"homed ({_now()})", dict(settings)
+        self.left_mm = None
         self._write()
+
+    def note_position(self, position_mm: Sequence[float] | None) -> None:
+        """Where the stage stands as lfrig lets go of the port (``None``: held, or not known)."""
+        left = None if position_mm is None else [float(c) for c in position_mm]
+        if left != self.left_mm:
+            self.left_mm = left
+            self._write()
 
     # -- files: never through a link, written atomically ----------------------------------------
     def _folder_fd(self, *, create: bool) -> int | None:
@@ -187,8 +202,8 @@ class PortRecord:
         return data if isinstance(data, dict) else {}
 
     def _write(self) -> None:
-        data = json.dumps({"port": self.key, "epoch": self.epoch, "event": self.event, "homed": self.homed},
-                          sort_keys=True).encode("utf-8") + b"\n"
+        data = json.dumps({"port": self.key, "epoch": self.epoch, "event": self.event, "homed": self.homed,
+                           "left_mm": self.left_mm}, sort_keys=True).encode("utf-8") + b"\n"
         fd = self._folder_fd(create=True)
         assert fd is not None
         tmp = f".{self.file.name}.{os.getpid()}.tmp"
@@ -218,7 +233,24 @@ class PortWitness:
     def __init__(self, stage: FrameAware) -> None:
         self.record = PortRecord.open(stage.url) if isinstance(stage.url, str) else None
         self._seen: tuple[str, Any] | None = None
+        if self.record is not None and self.record.left_mm is not None:
+            # GRBL elsewhere than lfrig left it: a power cycle nobody saw ($22=0 has no alarm lock to
+            # show it) restarted its position at 0, or another program moved it
+            left, here = self.record.left_mm, stage.still_mm()
+            tolerance = getattr(stage, "tolerance_mm", 0.005)
+            if here is None or max(abs(a - b) for a, b in zip(here, left)) > tolerance:
+                self.record.note_doubt(
+                    f"GRBL on {stage.url} reported the stage at {_fmt(here)} when lfrig opened the port, but at "
+                    f"{_fmt(left)} when lfrig last let go of it: it restarted (power) or another program moved it")
+            else:
+                self.record.note_position(None)
         self.update(stage)
+
+    def let_go(self, stage: FrameAware) -> None:
+        """Record what the connection saw, and where the stage stands as the port is released."""
+        self.update(stage)
+        if self.record is not None:
+            self.record.note_position(stage.still_mm())
 
     def update(self, stage: FrameAware) -> None:
         """Record a doubt or a homing the connection saw since the last call (once each)."""
@@ -241,6 +273,15 @@ class PortWitness:
 
 
 _witnesses: "weakref.WeakKeyDictionary[Any, PortWitness]" = weakref.WeakKeyDictionary()
+
+
+def let_go(stage: Stage) -> None:
+    """Before the port of ``stage`` is closed: its record learns what the connection saw and where the
+    stage stands, for the next process that opens it."""
+    if isinstance(stage, FrameAware):
+        seen = witness(stage)
+        if seen is not None:
+            seen.let_go(stage)
 
 
 def witness(stage: Stage) -> PortWitness | None:

@@ -1199,6 +1199,19 @@ class GrblStage:
         """The controller's :data:`FRAME_SETTINGS` as ``{"$N": value}`` (those it reported)."""
         return {f"${n}": self.settings_values[n] for n in FRAME_SETTINGS if n in self.settings_values}
 
+    def still_mm(self) -> tuple[float, float, float] | None:
+        """Where the stage stands, from a fresh status report (``Idle`` or ``Alarm``), in mm; ``None``
+        when it moves, does not answer within 0.5 s, or the port is closed."""
+        if self._closed:
+            return None
+        try:
+            status = self._query_status(timeout_s=min(self.reply_timeout_s, 0.5), attempts=2)
+        except GrblError:
+            return None
+        if status is None or status.state not in ("Idle", "Alarm"):
+            return None
+        return status.mpos_mm
+
     # -- Stage protocol -----------------------------------------------------------------------
     @property
     def home_timeout_s(self) -> float:

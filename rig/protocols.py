@@ -111,6 +111,9 @@ class FrameAware(Protocol):
     def frame_settings(self) -> dict[str, float]:
         """The controller settings that place a motor step in the machine frame, ``{"$N": value}``."""
 
+    def still_mm(self) -> tuple[float, float, float] | None:
+        """The machine position in mm where the stage stands now, or ``None`` (moving, not answering)."""
+
 
 @runtime_checkable
 class StepGridded(Protocol):

@@ -511,6 +511,29 @@ def test_unlock_and_a_move_do_not_fake_the_frame_proof(make_device, tmp_path, ca
     assert close_to(device.carriage_mm(), views_in(out)[-1]["readback_mm"])
 
 
+def test_a_power_cycle_nobody_saw_at_22_0_and_a_move_to_the_last_view_are_refused(make_device, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """#21.2 with homing off ($22=0, no alarm lock after power-up): a power cycle while no lfrig
+    listens restarts GRBL's position at 0, and `stage move` to the last view's readback puts the new
+    frame's coordinates there. The port's record kept where lfrig left the stage, so the `--no-home`
+    resume is refused."""
+    device = make_device({22: 0, 20: 0})
+    out = tmp_path / "cap"
+    args = capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-3.0, -3.0, -2.0))
+    stop_after(monkeypatch, out, 3)
+    assert main(args) == 130, capsys.readouterr().err
+    last = views_in(out)[-1]["readback_mm"]
+    device.restart()  # the carriage where it stands
+    assert main(["stage", "move", *(f"{c:g}" for c in last), "--stage", device.url]) == 0
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "cannot prove" in err and "when lfrig last let go of it" in err, err
+    assert len(views_in(out)) == 3
+    assert main([*args, "--retake-all"]) == 0, capsys.readouterr().err  # the way forward
+    assert len(current_views(out)) == 9
+
+
 # -- Ctrl-C on the stage commands, resets on open, noise, other programs on the port, settings -----
 
 
