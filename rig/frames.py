@@ -239,8 +239,9 @@ class PortWitness:
             left, here = self.record.left_mm, stage.still_mm()
             tolerance = getattr(stage, "tolerance_mm", 0.005)
             if here is None or max(abs(a - b) for a, b in zip(here, left)) > tolerance:
+                found = f"at {_fmt(here)}" if here is not None else "not standing still (or did not answer)"
                 self.record.note_doubt(
-                    f"GRBL on {stage.url} reported the stage at {_fmt(here)} when lfrig opened the port, but at "
+                    f"GRBL on {stage.url} reported the stage {found} when lfrig opened the port, but at "
                     f"{_fmt(left)} when lfrig last let go of it: it restarted (power) or another program moved it")
             else:
                 self.record.note_position(None)
