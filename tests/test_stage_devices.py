@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -402,25 +403,47 @@ def test_controller_restart_between_runs(make_device, tmp_path, capsys, monkeypa
         assert len(views_in(out)) == first
 
 
-def test_ctrl_c_twice_during_a_long_slow_move(make_device, tmp_path):
+def sigint_during(monkeypatch, method: str, *delays_s: float) -> None:
+    """Send this process a SIGINT ``delays_s[0]`` s after the next call of ``GrblStage.<method>``
+    begins, then one more after each further delay (from a thread, while the call runs)."""
+    real = getattr(GrblStage, method)
+
+    def wrapped(self, *args, **kwargs):
+        monkeypatch.setattr(GrblStage, method, real)  # once
+
+        def send() -> None:
+            for delay in delays_s:
+                time.sleep(delay)
+                os.kill(os.getpid(), signal.SIGINT)
+
+        threading.Thread(target=send, daemon=True).start()
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(GrblStage, method, wrapped)
+
+
+def run_interrupted(args: list[str]) -> int:
+    """``lfrig ARGS`` in this process with Ctrl-C as at a terminal (KeyboardInterrupt), whatever
+    the test runner's own SIGINT disposition."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return main(args)
+    except KeyboardInterrupt:
+        pytest.fail("the Ctrl-C escaped lfrig")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_twice_during_a_long_slow_move(make_device, tmp_path, capsys, monkeypatch):
     device = make_device({**SLOW, 22: 0, 20: 0})
     out = tmp_path / "cap"
-    # the first move runs 12 mm from the power-up position: 1.25 s up to 5 mm/s, cruise, 1.25 s down
-    process = start_capture(capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-12.0, 0.0, 0.0)))
-    deadline = time.monotonic() + 60
-    log = out / "session.log"
-    while not re.search(r"grbl > '(G53 )?G0", log.read_text() if log.exists() else ""):
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-    time.sleep(1.6)  # cruising: a feed hold needs 1.25 s
-    assert views_in(out) == [] and process.poll() is None
-    process.send_signal(signal.SIGINT)
-    time.sleep(0.2)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 130 and "second Ctrl-C" in err, err
-    assert "ALARM:3" not in err
+    # the first move runs 12 mm from the power-up position: 1.25 s up to 5 mm/s, cruise, 1.25 s down;
+    # Ctrl-C while cruising (a feed hold needs 1.25 s), and again 0.2 s later
+    sigint_during(monkeypatch, "move_to", 1.6, 0.2)
+    assert run_interrupted(capture_args(out, device, "--no-home", rows=3, cols=3, centre=(-12.0, 0.0, 0.0))) == 130
+    err = capsys.readouterr().err
+    assert "second Ctrl-C" in err and "ALARM:3" not in err, err
+    assert views_in(out) == []
     with GrblStage(device.path) as stage:
         status = stage.status()
     assert status["state"] == "Idle", status  # stopped by a feed hold, not an abort
@@ -553,16 +576,13 @@ def standing_still(device) -> tuple[float, float, float]:
     return here
 
 
-def test_ctrl_c_stops_a_stage_move_and_says_where(make_device):
+def test_ctrl_c_stops_a_stage_move_and_says_where(make_device, capsys, monkeypatch):
     device = make_device({22: 0, 20: 0})
     start = device.carriage_mm()
-    # 15 mm at 1 mm/s from the power-up position
-    process = start_capture(["stage", "move", "-15", "0", "0", "--feed-mm-min", "60", "--stage", device.url])
-    wait_until_open(process, device)
-    time.sleep(3.0)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=30)
-    assert process.returncode == 130, err
+    # 15 mm at 1 mm/s from the power-up position, Ctrl-C after 2 s
+    sigint_during(monkeypatch, "move_to", 2.0)
+    assert run_interrupted(["stage", "move", "-15", "0", "0", "--feed-mm-min", "60", "--stage", device.url]) == 130
+    err = capsys.readouterr().err
     assert "stopped by a feed hold" in err and "ALARM" not in err, err
     reported = float(re.search(r"MPos X=(-?[0-9.]+)", err)[1])
     moved = standing_still(device)[0] - start[0]
@@ -570,15 +590,12 @@ def test_ctrl_c_stops_a_stage_move_and_says_where(make_device):
     assert abs(moved - reported) <= TOL, (moved, reported)  # and where it says
 
 
-def test_ctrl_c_stops_stage_home_by_a_reset(make_device):
-    # seek at 2 mm/s from off the switches: Z 8 mm first (4 s), then X and Y 9 mm
+def test_ctrl_c_stops_stage_home_by_a_reset(make_device, capsys, monkeypatch):
+    # seek at 2 mm/s from off the switches: Z 8 mm first (4 s), then X and Y 9 mm; Ctrl-C after 2.5 s
     device = make_device({25: 120}, start_mm=(-9.0, -9.0, -8.0))
-    process = start_capture(["stage", "home", "--stage", device.url])
-    wait_until_open(process, device)
-    time.sleep(2.5)
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=30)
-    assert process.returncode == 130, err
+    sigint_during(monkeypatch, "home", 2.5)
+    assert run_interrupted(["stage", "home", "--stage", device.url]) == 130
+    err = capsys.readouterr().err
     assert "homing stopped" in err and "ALARM:6" in err and "home it" in err, err
     here = standing_still(device)
     assert here[2] < -1.5, here  # Z, homed first, is short of its switch: the cycle did not go on
