@@ -587,6 +587,11 @@ REPLY_TIMEOUT_S = 2.0
 WAKE_S = 5.0
 MOVE_TIMEOUT_MARGIN_S = 5.0
 
+#: Who may read GRBL's replies unseen, for messages: Linux lets root open a port in exclusive mode
+#: (``TIOCEXCL``), and ``/proc`` does not show other users root's open files.
+HIDDEN_READER = ("one run as root can open the port although lfrig holds it exclusively, and other users cannot "
+                 "see it: `sudo fuser -v` on the device names it")
+
 #: The package where pyserial finds lfrig's own URL schemes (``protocol_<scheme>`` modules), as it
 #: finds its own ``loop://`` in ``serial.urlhandler``: ``fakegrbl://`` is the simulated controller.
 URL_HANDLERS = "rig.urlhandler"
@@ -818,13 +823,11 @@ class GrblStage:
 
     # -- low level I/O ------------------------------------------------------------------------
     def _io_error(self, error: Exception) -> GrblConnectionError:
-        holders = port_holders(self.url)
-        if "multiple access" in str(error) or holders:
+        names = self._holder_names()
+        if "multiple access" in str(error) or names:
             # pyserial's "ready to read but returned no data": another reader took the bytes first
-            names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
             who = (f"{names} also has the port open and reads GRBL's replies" if names else
-                   "another program may be reading GRBL's replies (one run as root can open the port although lfrig "
-                   "holds it exclusively, and other users cannot see it: `sudo fuser -v` on the device names it)")
+                   f"another program may be reading GRBL's replies ({HIDDEN_READER})")
             return GrblConnectionError(
                 f"lost GRBL's replies on {self.url}: {error}; {who}: close it, or check the cable and power, "
                 "then run again"
@@ -962,14 +965,11 @@ class GrblStage:
         empty = status.buffer is not None and status.buffer == self._empty_buffer
         proof = (f" (its planner and serial buffers are as empty as when the port opened, Bf:{status.buffer[0]},"
                  f"{status.buffer[1]})" if empty and status.buffer else "")
-        holders = port_holders(self.url)
-        if holders:
-            names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
+        names = self._holder_names()
+        if names:
             reader = f"{names}, which also has the port open, read it: close it"
         else:
-            reader = ("another program read it: one run as root can open the port although lfrig holds it "
-                      "exclusively, and other users cannot see it (`sudo fuser -v` on the device names it); close it "
-                      "(or the reply was garbled on the line: check the cable)")
+            reader = f"another program read it ({HIDDEN_READER}): close it; or the line garbled it: check the cable"
         return (f"GRBL is Idle with nothing left to run{proof}, so it has answered every line it received, and the "
                 f"reply went elsewhere; {reader}")
 
@@ -1017,12 +1017,13 @@ class GrblStage:
         except GrblTimeoutError:  # a critical alarm without the reset: GRBL answers nothing but 0x18
             self.open_state = None
 
+    def _holder_names(self) -> str:
+        """The other processes that have the port open (:func:`port_holders`), for a message, or ``""``."""
+        return ", ".join(f"process {pid} ({name})" for pid, name in port_holders(self.url))
+
     def _holders_note(self) -> str:
-        holders = port_holders(self.url)
-        if not holders:
-            return ""
-        names = ", ".join(f"process {pid} ({name})" for pid, name in holders)
-        return f"; {names} also has the port open and may be reading GRBL's replies: close it"
+        names = self._holder_names()
+        return f"; {names} also has the port open and may be reading GRBL's replies: close it" if names else ""
 
     def _check_listing(self) -> None:
         """Refuse a ``$$`` listing without the settings that place a step in the machine frame
@@ -1368,7 +1369,7 @@ class GrblStage:
                 raise GrblTimeoutError(
                     f"GRBL on {self.url} did not answer 'G4 P0' after the move to {_fmt(target)} within "
                     f"{timeout_s:.1f} s, yet reports {_describe(status)}: {self._lost_reply(status)}. Nothing was "
-                    "resent; then home the stage and run again (a capture resumes where it stopped)"
+                    "resent: home the stage and run again (a capture resumes where it stopped)"
                 ) from None
             stopped = self._stop_quietly() if _is_moving(status) else ""
             raise GrblTimeoutError(

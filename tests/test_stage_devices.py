@@ -1,10 +1,15 @@
 """The stage driver and capture sessions against two controllers on a serial device (a pty): the
-real GRBL 1.1h firmware (``../shared/grbl-sim``, built once per test session) and lfrig's fake.
+real GRBL 1.1h firmware (``../shared/grbl-sim``, built once per test session, ``tests/conftest.py``)
+and lfrig's fake.
 
-Every test runs on both (``-k fake`` / ``-k firmware``). The fake was written from the same reading
-of GRBL's documents as the driver; the firmware is the judge. Motion is real time on both: the
-settings (``grbl_devices.FAST``) are a small, fast stage. Under CI (env ``CI`` set) a missing
-``../shared/grbl-sim`` or a failed build fails the firmware half instead of skipping it.
+Every test runs on both (``-k fake`` / ``-k firmware``) but the 81-view capture, on the firmware only
+(the fake's is in ``tests/test_rig_session.py``). The fake was written from the same reading of
+GRBL's documents as the driver; the firmware is the judge. Motion is real time on both: the
+settings (``grbl_devices.FAST``) are a small, fast stage, written once into an EEPROM image each
+firmware starts from. lfrig runs in this process (``main``) unless the scenario needs a process to
+kill; Ctrl-C comes as a SIGINT at the moment in question, and the waits a dead controller makes lfrig
+sit out are shortened (``short_waits``). Under CI (env ``CI`` set) a missing ``../shared/grbl-sim``
+or a failed build fails the firmware half instead of skipping it.
 """
 
 from __future__ import annotations
