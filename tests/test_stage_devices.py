@@ -92,16 +92,10 @@ def capture_args(out: Path, device, *extra: str, rows: int = 9, cols: int = 9, c
             "--centre-mm", *(f"{c:g}" for c in centre), *CAMERA, *extra]
 
 
-def _default_sigint() -> None:
-    # a shell's background job starts with SIGINT ignored, and Python then leaves it ignored: the
-    # lfrig under test gets Ctrl-C as it does at a terminal
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def start_capture(args: list[str]) -> subprocess.Popen:
+    """``lfrig ARGS`` as a process of its own (for a scenario that kills it)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen([*LFRIG, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_default_sigint)
+    return subprocess.Popen([*LFRIG, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def wait_for_views(process: subprocess.Popen, out: Path, n: int, timeout_s: float = 120) -> None:
@@ -563,15 +557,6 @@ def test_a_power_cycle_nobody_saw_at_22_0_and_a_move_to_the_last_view_are_refuse
 
 
 # -- Ctrl-C on the stage commands, resets on open, noise, other programs on the port, settings -----
-
-
-def wait_until_open(process: subprocess.Popen, device, timeout_s: float = 60) -> None:
-    """Wait until the lfrig process ``process`` has the controller's port open."""
-    deadline = time.monotonic() + timeout_s
-    while process.pid not in [pid for pid, _ in port_holders(device.path)]:
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline, "lfrig did not open the port"
-        time.sleep(0.02)
 
 
 def standing_still(device) -> tuple[float, float, float]:
