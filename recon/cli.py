@@ -38,7 +38,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
         description="Print what a light-field folder (benchmark or capture layout) or a PFM file holds.",
     )
     info.add_argument("path", type=Path, help="light-field folder or .pfm file")
-    info.add_argument("--json", action="store_true", help="print the description as JSON")
+    add_json_argument(info)
     _add_verify_argument(info)
     info.set_defaults(handler=_info)
 
@@ -74,7 +74,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("estimate", type=Path, metavar="ESTIMATE.pfm")
     ev.add_argument("gt", type=Path, metavar="GT.pfm")
     ev.add_argument("--border", type=nonnegative_int, default=15, help="pixels left out on every side (default 15)")
-    ev.add_argument("--json", action="store_true", help="print the scores as JSON")
+    add_json_argument(ev)
     ev.set_defaults(handler=_evaluate)
 
 
@@ -285,24 +285,26 @@ def describe(path: Path, *, verify: bool = True) -> dict[str, Any]:
 
 def _info(args: argparse.Namespace) -> None:
     info = describe(args.path, verify=args.verify)
-    if args.json:
-        print(json.dumps(info, indent=2))
-        return
+    out = CommandReport(as_json=args.json)
     if info["kind"] == "pfm":
-        print(f"{info['path']}: PFM, {info['width']}x{info['height']}, {info['channels']} channel(s)")
-        print(f"  finite pixels: {info['finite_pixels']}, range: {info['min']} .. {info['max']}")
-        return
-    print(f"{info['path']}: light field ({info['layout']} layout)")
-    print(f"  grid:        {info['grid'][0]} x {info['grid'][1]} views (rows x columns)")
-    print(f"  views:       {info['image'][0]} x {info['image'][1]} px, {info['colour']}, {info['bits']}-bit")
-    print(f"  pitch:       {_or_unknown(info['pitch_mm'], '{:.4g} mm')}")
-    print(f"  focal:       {_or_unknown(info['focal_px'], '{:.6g} px')}")
-    rng = info["disparity_range"]
-    print(f"  disparity:   {'unknown' if rng is None else f'{rng[0]:g} .. {rng[1]:g} px per view step'}"
-          f" (offset d0 = {info['disparity_offset']:.4g})")
-    print(f"  ground truth: {info['ground_truth'] or 'none'}")
-    if info.get("created"):
-        print(f"  captured:    {info['created']}")
+        lines = [f"{info['path']}: PFM, {info['width']}x{info['height']}, {info['channels']} channel(s)",
+                 f"  finite pixels: {info['finite_pixels']}, range: {info['min']} .. {info['max']}"]
+    else:
+        rng = info["disparity_range"]
+        lines = [
+            f"{info['path']}: light field ({info['layout']} layout)",
+            f"  grid:        {info['grid'][0]} x {info['grid'][1]} views (rows x columns)",
+            f"  views:       {info['image'][0]} x {info['image'][1]} px, {info['colour']}, {info['bits']}-bit",
+            f"  pitch:       {_or_unknown(info['pitch_mm'], '{:.4g} mm')}",
+            f"  focal:       {_or_unknown(info['focal_px'], '{:.6g} px')}",
+            f"  disparity:   {'unknown' if rng is None else f'{rng[0]:g} .. {rng[1]:g} px per view step'}"
+            f" (offset d0 = {info['disparity_offset']:.4g})",
+            f"  ground truth: {info['ground_truth'] or 'none'}",
+        ]
+        if info.get("created"):
+            lines.append(f"  captured:    {info['created']}")
+    out.line("\n".join(lines), **info)
+    out.finish()
 
 
 def _or_unknown(value: float | None, fmt: str) -> str:
@@ -339,10 +341,9 @@ def _evaluate(args: argparse.Namespace) -> None:
     from recon.evaluate import score_files
 
     scores = score_files(args.estimate, args.gt, border=args.border)
-    if args.json:
-        print(json.dumps(scores, indent=2))
-    else:
-        print(_format_scores(scores))
+    out = CommandReport(as_json=args.json)
+    out.line(_format_scores(scores), **scores)
+    out.finish()
 
 
 # --------------------------------------------------------------------------------------------------
