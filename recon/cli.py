@@ -398,6 +398,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                         help="also write the views' cameras into this folder: a COLMAP text model (cameras.txt, "
                              "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
                              "camera's frame")
+    export.add_argument("--quiet", action="store_true", help="no progress output")
     add_json_argument(export)
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
     focal, pitch, offset = _camera_flag_types()
@@ -441,6 +442,10 @@ def _export(args: argparse.Namespace) -> None:
 
     min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
 
+    import contextlib
+
+    from recon.progress import step
+
     result = read_result(args.result_dir)
     out = CommandReport(as_json=args.json)
     if args.ply is not None or args.depth:
@@ -459,17 +464,20 @@ def _export(args: argparse.Namespace) -> None:
 
         result_grid(result)  # before any file is written
     if args.ply is not None:
-        if args.poisson:
-            print("meshing (Poisson, ~20 s for 512x512 px)...", file=sys.stderr, flush=True)
-        summary = export_ply(
-            args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
-            kind=args.kind, poisson=args.poisson, ascii=args.ascii,
-            max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
-            max_step_footprints=MAX_STEP_FOOTPRINTS if args.max_step is None else args.max_step,
-            provenance=make_provenance(input=result_input(result), timings_s={}),
-            confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
-            keep_all=args.keep_all,
-        )
+        # Poisson is one long open3d call: a line when it starts and one when it ends. (Other PLYs take about a
+        # second for 512x512 px, and a line before them would come before their one-line errors.)
+        meshing = step("export", "meshing (Poisson, ~20 s for 512x512 px)", quiet=args.quiet) if args.poisson \
+            else contextlib.nullcontext()
+        with meshing:
+            summary = export_ply(
+                args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
+                kind=args.kind, poisson=args.poisson, ascii=args.ascii,
+                max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
+                max_step_footprints=MAX_STEP_FOOTPRINTS if args.max_step is None else args.max_step,
+                provenance=make_provenance(input=result_input(result), timings_s={}),
+                confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
+                keep_all=args.keep_all,
+            )
         out.line(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
                                        if summary.pixels_unreliable else ""),
                  ply=args.ply, ply_summary=str(summary), pixels_unreliable=summary.pixels_unreliable)

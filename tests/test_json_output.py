@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -42,6 +43,10 @@ def test_export_poisson_says_it_is_meshing(tmp_path, capsys):
     assert main(["export", str(out), "--ply", str(tmp_path / "p.ply"), "--poisson", "--keep-all"]) == 0
     captured = capsys.readouterr()
     assert "meshing (Poisson" in captured.err and "wrote" in captured.out
+    assert re.search(r"export \[#+\] 100.0%  meshing \(Poisson", captured.err)  # and when it ended
+    assert main(["export", str(out), "--ply", str(tmp_path / "q.ply"), "--poisson", "--keep-all", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and "wrote" in captured.out
 
 
 def test_import_json_carries_the_warnings(tmp_path, capsys):
