@@ -172,7 +172,8 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
             write_png(path, still.frame(rig.ref_mm, scene=scene))
             paths.append(path)
             bar((i + 1) / len(poses), path.name)
-    intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
+    with Progress("finding corners", quiet=quiet) as bar:
+        intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0, progress=bar)
     with atomic_output(folder / "camera.cameramodel", what="camera model") as tmp:
         intrinsics.model.write(str(tmp), note="lfrig demo\n" + intrinsics.report())
     with atomic_output(folder / "camera.residuals.png", what="residual picture") as tmp:
@@ -188,7 +189,9 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
                                    centre_mm=(0.0, 0.0, 950.0))
     _capture(folder / "stage_capture", camera_options | {"scene": board_scene, "colour": False, "supersample": 1},
              centre_mm, quiet)
-    stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board)
+    with Progress("finding corners", quiet=quiet) as bar:
+        stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board,
+                                                progress=bar)
     stage.save(folder / "stage.json")
     summary["stage"] = _stage_summary(stage, rig)
     st = summary["stage"]
@@ -202,8 +205,9 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
 
     # 4. Rectification.
     steps.begin("rectify", "undistorting and rectifying the 81 views with one map")
-    rect = rectify_capture(folder / "capture", folder / "rectified", model_path=folder / "camera.cameramodel",
-                           stage_path=folder / "stage.json")
+    with Progress("rectify", quiet=quiet) as bar:
+        rect = rectify_capture(folder / "capture", folder / "rectified", model_path=folder / "camera.cameramodel",
+                               stage_path=folder / "stage.json", progress=bar)
     summary["rectification"] = {"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                                 "image_size": list(rect.image_size)}
     steps.end(f"focal {rect.focal_px:.1f} px, step {rect.pitch_mm:.5f} mm")
