@@ -622,11 +622,9 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
                                  on_outcome=show, on_note=lambda text: print(f"note: {text}", file=lines, flush=True),
                                  no_worker_timeout_s=args.worker_timeout_s)
-    if args.json:
-        print(json.dumps({"output": str(args.output), "captures": [o.as_dict() for o in outcomes]}, indent=2, default=str))
-    else:
-        print()
-        print(format_summary(outcomes))
+    out = CommandReport(as_json=args.json)
+    out.line("\n" + format_summary(outcomes), output=str(args.output), captures=[o.as_dict() for o in outcomes])
+    out.finish()
     failed = [o for o in outcomes if o.status == "failed"]
     for o in failed:
         if o.detail:

@@ -6,10 +6,10 @@ Long work takes ``progress`` as a keyword option: ``None``, or any callable
 "matching", "IMG_0012.png"). A function that runs another one as a part of its work hands on
 :func:`part` of its own callback.
 
-:class:`Progress` is the bar the command line shows (:func:`step` for a step without fractions): on a terminal it redraws one line on stderr;
+:class:`Progress` is the bar the command line shows: on a terminal it redraws one line on stderr;
 otherwise (a log file, CI) it prints a line at most every few seconds, so logs stay short. The ETA
 comes from this run's own rate, so resumed work (a first fraction above 0) does not count the work
-an earlier run did.
+an earlier run did. :func:`step` shows a step that reports no fraction (its start and its end).
 """
 
 from __future__ import annotations

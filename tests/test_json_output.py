@@ -145,3 +145,15 @@ def test_camera_commands_json(tmp_path, capsys):
     assert main(["camera", "list", "--dev-dir", str(tmp_path / "dev"), "--json"]) == 0
     data, _ = stdout_object(capsys)
     assert data["opencv"] == [] and isinstance(data["aravis"], list)
+
+
+def test_batch_json_holds_one_record_per_capture(tmp_path, capsys):
+    import shutil
+
+    shutil.copytree(TINY, tmp_path / "caps" / "a")
+    out = tmp_path / "results"
+    assert main(["batch", "reconstruct", str(tmp_path / "caps" / "a"), "-o", str(out), *FAST, "--workers", "1",
+                 "--export", "none", "--json"]) == 0
+    data, err = stdout_object(capsys)
+    assert data["output"] == str(out) and [(c["name"], c["status"]) for c in data["captures"]] == [("a", "ok")]
+    assert "[1/1] a: done" in err  # the per-capture lines go to stderr
