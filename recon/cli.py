@@ -38,7 +38,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
         description="Print what a light-field folder (benchmark or capture layout) or a PFM file holds.",
     )
     info.add_argument("path", type=Path, help="light-field folder or .pfm file")
-    info.add_argument("--json", action="store_true", help="print the description as JSON")
+    add_json_argument(info)
     _add_verify_argument(info)
     info.set_defaults(handler=_info)
 
@@ -74,7 +74,7 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("estimate", type=Path, metavar="ESTIMATE.pfm")
     ev.add_argument("gt", type=Path, metavar="GT.pfm")
     ev.add_argument("--border", type=nonnegative_int, default=15, help="pixels left out on every side (default 15)")
-    ev.add_argument("--json", action="store_true", help="print the scores as JSON")
+    add_json_argument(ev)
     ev.set_defaults(handler=_evaluate)
 
 
@@ -285,24 +285,26 @@ def describe(path: Path, *, verify: bool = True) -> dict[str, Any]:
 
 def _info(args: argparse.Namespace) -> None:
     info = describe(args.path, verify=args.verify)
-    if args.json:
-        print(json.dumps(info, indent=2))
-        return
+    out = CommandReport(as_json=args.json)
     if info["kind"] == "pfm":
-        print(f"{info['path']}: PFM, {info['width']}x{info['height']}, {info['channels']} channel(s)")
-        print(f"  finite pixels: {info['finite_pixels']}, range: {info['min']} .. {info['max']}")
-        return
-    print(f"{info['path']}: light field ({info['layout']} layout)")
-    print(f"  grid:        {info['grid'][0]} x {info['grid'][1]} views (rows x columns)")
-    print(f"  views:       {info['image'][0]} x {info['image'][1]} px, {info['colour']}, {info['bits']}-bit")
-    print(f"  pitch:       {_or_unknown(info['pitch_mm'], '{:.4g} mm')}")
-    print(f"  focal:       {_or_unknown(info['focal_px'], '{:.6g} px')}")
-    rng = info["disparity_range"]
-    print(f"  disparity:   {'unknown' if rng is None else f'{rng[0]:g} .. {rng[1]:g} px per view step'}"
-          f" (offset d0 = {info['disparity_offset']:.4g})")
-    print(f"  ground truth: {info['ground_truth'] or 'none'}")
-    if info.get("created"):
-        print(f"  captured:    {info['created']}")
+        lines = [f"{info['path']}: PFM, {info['width']}x{info['height']}, {info['channels']} channel(s)",
+                 f"  finite pixels: {info['finite_pixels']}, range: {info['min']} .. {info['max']}"]
+    else:
+        rng = info["disparity_range"]
+        lines = [
+            f"{info['path']}: light field ({info['layout']} layout)",
+            f"  grid:        {info['grid'][0]} x {info['grid'][1]} views (rows x columns)",
+            f"  views:       {info['image'][0]} x {info['image'][1]} px, {info['colour']}, {info['bits']}-bit",
+            f"  pitch:       {_or_unknown(info['pitch_mm'], '{:.4g} mm')}",
+            f"  focal:       {_or_unknown(info['focal_px'], '{:.6g} px')}",
+            f"  disparity:   {'unknown' if rng is None else f'{rng[0]:g} .. {rng[1]:g} px per view step'}"
+            f" (offset d0 = {info['disparity_offset']:.4g})",
+            f"  ground truth: {info['ground_truth'] or 'none'}",
+        ]
+        if info.get("created"):
+            lines.append(f"  captured:    {info['created']}")
+    out.line("\n".join(lines), **info)
+    out.finish()
 
 
 def _or_unknown(value: float | None, fmt: str) -> str:
@@ -339,10 +341,9 @@ def _evaluate(args: argparse.Namespace) -> None:
     from recon.evaluate import score_files
 
     scores = score_files(args.estimate, args.gt, border=args.border)
-    if args.json:
-        print(json.dumps(scores, indent=2))
-    else:
-        print(_format_scores(scores))
+    out = CommandReport(as_json=args.json)
+    out.line(_format_scores(scores), **scores)
+    out.finish()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -397,6 +398,7 @@ def _register_export(subparsers: argparse._SubParsersAction) -> None:
                         help="also write the views' cameras into this folder: a COLMAP text model (cameras.txt, "
                              "images.txt, points3D.txt) and a NeRF-style transforms.json, in mm in the centre "
                              "camera's frame")
+    export.add_argument("--quiet", action="store_true", help="no progress output")
     add_json_argument(export)
     camera = export.add_argument_group("camera (override result.json, e.g. for a scene without parameters.cfg)")
     focal, pitch, offset = _camera_flag_types()
@@ -440,6 +442,10 @@ def _export(args: argparse.Namespace) -> None:
 
     min_confidence = MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
 
+    import contextlib
+
+    from recon.progress import step
+
     result = read_result(args.result_dir)
     out = CommandReport(as_json=args.json)
     if args.ply is not None or args.depth:
@@ -458,17 +464,20 @@ def _export(args: argparse.Namespace) -> None:
 
         result_grid(result)  # before any file is written
     if args.ply is not None:
-        if args.poisson:
-            print("meshing (Poisson, ~20 s for 512x512 px)...", file=sys.stderr, flush=True)
-        summary = export_ply(
-            args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
-            kind=args.kind, poisson=args.poisson, ascii=args.ascii,
-            max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
-            max_step_footprints=MAX_STEP_FOOTPRINTS if args.max_step is None else args.max_step,
-            provenance=make_provenance(input=result_input(result), timings_s={}),
-            confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
-            keep_all=args.keep_all,
-        )
+        # Poisson is one long open3d call: a line when it starts and one when it ends. (Other PLYs take about a
+        # second for 512x512 px, and a line before them would come before their one-line errors.)
+        meshing = step("export", "meshing (Poisson, ~20 s for 512x512 px)", quiet=args.quiet) if args.poisson \
+            else contextlib.nullcontext()
+        with meshing:
+            summary = export_ply(
+                args.ply, disparity_px=result.disparity_px, image=result.image, camera=camera, mask=result.mask,
+                kind=args.kind, poisson=args.poisson, ascii=args.ascii,
+                max_relative_jump=MAX_RELATIVE_JUMP if args.max_jump is None else args.max_jump,
+                max_step_footprints=MAX_STEP_FOOTPRINTS if args.max_step is None else args.max_step,
+                provenance=make_provenance(input=result_input(result), timings_s={}),
+                confidence=result.confidence, min_confidence=min_confidence, search_range=result.search_range,
+                keep_all=args.keep_all,
+            )
         out.line(f"wrote {summary}" + (f"; left out {summary.pixels_unreliable} unreliable pixels (--keep-all keeps them)"
                                        if summary.pixels_unreliable else ""),
                  ply=args.ply, ply_summary=str(summary), pixels_unreliable=summary.pixels_unreliable)
@@ -613,11 +622,9 @@ def _batch_reconstruct(args: argparse.Namespace) -> int:
             outcomes = run_batch(connection.client, plan, transfer=transfer, threads=connection.task_threads,
                                  on_outcome=show, on_note=lambda text: print(f"note: {text}", file=lines, flush=True),
                                  no_worker_timeout_s=args.worker_timeout_s)
-    if args.json:
-        print(json.dumps({"output": str(args.output), "captures": [o.as_dict() for o in outcomes]}, indent=2, default=str))
-    else:
-        print()
-        print(format_summary(outcomes))
+    out = CommandReport(as_json=args.json)
+    out.line("\n" + format_summary(outcomes), output=str(args.output), captures=[o.as_dict() for o in outcomes])
+    out.finish()
     failed = [o for o in outcomes if o.status == "failed"]
     for o in failed:
         if o.detail:

@@ -9,13 +9,15 @@ Long work takes ``progress`` as a keyword option: ``None``, or any callable
 :class:`Progress` is the bar the command line shows: on a terminal it redraws one line on stderr;
 otherwise (a log file, CI) it prints a line at most every few seconds, so logs stay short. The ETA
 comes from this run's own rate, so resumed work (a first fraction above 0) does not count the work
-an earlier run did.
+an earlier run did. :func:`step` shows a step that reports no fraction (its start and its end).
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Protocol, TextIO
 
 
@@ -141,3 +143,14 @@ class Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextmanager
+def step(label: str, message: str, *, quiet: bool = False, stream: TextIO | None = None) -> Iterator["Progress"]:
+    """A step that cannot report a fraction (one call into a library, e.g. open3d's Poisson meshing):
+    a bar line ``label [...] 0.0%  message`` when it starts and one at 100 % with its time when it
+    ends; nothing when it fails (the error says why) or with ``quiet``."""
+    with Progress(label, stream=stream, quiet=quiet) as bar:
+        bar(0.0, message)
+        yield bar
+        bar(1.0, message)

@@ -9,8 +9,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from recon.cliargs import (finite_float, float_range, int_range, nonnegative_float, nonnegative_int, output_folder,
-                           positive_float, positive_int)
+from recon.cliargs import (CommandReport, add_json_argument, finite_float, float_range, int_range, nonnegative_float,
+                           nonnegative_int, output_folder, positive_float, positive_int)
 from recon.lf.params import MAX_GRID_SIDE
 from rig.devices import FAKE_BINNING, FAKE_CENTRE_MM, CameraOptions, Devices, is_fake_stage, open_camera, open_stage
 from rig.errors import RigError
@@ -56,6 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="travel to check against (default: from the controller's $130-$132 settings)")
     camera_options(cap, hw_trigger=True)
     cap.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_json_argument(cap)
     cap.set_defaults(handler=_capture)
 
     stage = subparsers.add_parser(
@@ -81,6 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     unlock = actions.add_parser("unlock", help="clear an alarm lock without homing ($X)")
     _stage_argument(unlock)
     for parser in (home, move, status, unlock):
+        add_json_argument(parser)
         parser.set_defaults(handler=_stage)
     jog = actions.add_parser(
         "jog", help="move the stage from the keyboard; c prints the --centre-mm for lfrig capture",
@@ -180,12 +182,15 @@ def _capture(args: argparse.Namespace) -> int:
 
     grid = _grid_from_args(args)
     limits = _limits_from_args(args)
+    out = CommandReport(as_json=args.json)
     if args.dry_run:
         moves = plan_moves(grid)
-        print(format_plan(moves))
-        print(plan_summary(moves))
+        out.line(format_plan(moves), moves=[{"target_mm": m.target_mm, "view": m.view} for m in moves])
+        summary = plan_summary(moves)
+        out.line(summary, summary=summary)
         extent = grid_extent_mm(moves)
-        print("extent: " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", extent)) + " mm")
+        out.line("extent: " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", extent)) + " mm",
+                 extent_mm=extent)
         off_grid: list[str] = []
         if limits is None:
             devices = open_stage(args.stage, baud=args.baud, tolerance_mm=args.tolerance_mm)
@@ -199,10 +204,13 @@ def _capture(args: argparse.Namespace) -> int:
         if len(off_grid) > 3:
             print(f"lfrig: warning: {len(off_grid) - 3} more targets lie between motor steps", file=sys.stderr)
         if limits is None:
-            print("travel limits unknown (soft limits off on the controller): not checked; pass --limits-mm")
+            out.line("travel limits unknown (soft limits off on the controller): not checked; pass --limits-mm",
+                     limits_mm=None, off_step_grid=off_grid)
         else:
             check_limits(moves, limits)
-            print("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm")
+            out.line("all moves within the travel " + ", ".join(f"{a} [{lo:.3f}, {hi:.3f}]" for a, (lo, hi) in zip("xyz", limits)) + " mm",
+                     limits_mm=limits, off_step_grid=off_grid)
+        out.finish()
         return 0
 
     from recon.lf.capture import is_capture
@@ -246,7 +254,9 @@ def _capture(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    print(f"{result.path}: {result.completed} of {result.total} views ({result.taken} taken now), complete")
+    out.line(f"{result.path}: {result.completed} of {result.total} views ({result.taken} taken now), complete",
+             path=result.path, views=result.completed, total=result.total, taken=result.taken, complete=True)
+    out.finish()
     return 0
 
 
@@ -277,7 +287,10 @@ def _stage(args: argparse.Namespace) -> int:
                 stage.wait_until_idle()
         except KeyboardInterrupt:
             return _stop_on_ctrl_c(stage)
-        print(_status_line(stage))
+        out = CommandReport(as_json=args.json)
+        line, fields = _status_report(stage)
+        out.line(line, **fields)
+        out.finish()
     finally:
         devices.close()
     return 0
@@ -321,12 +334,18 @@ def _stage_jog(args: argparse.Namespace) -> int:
     return 0
 
 
-def _status_line(stage) -> str:
+def _status_report(stage) -> tuple[str, dict]:
+    """The controller's status as one readable line and as fields (``url``, ``version``, the status dict)."""
     status = stage.status()
     position = status.get("mpos_mm")
     where = "unknown" if position is None else ", ".join(f"{a}={c:.3f}" for a, c in zip("XYZ", position))
     state = status["state"] + (f":{status['substate']}" if status.get("substate") is not None else "")
-    return f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version or '(version not read)'})"
+    line = f"{state}  MPos {where} mm  ({stage.url}, GRBL {stage.version or '(version not read)'})"
+    return line, {"url": stage.url, "version": stage.version, **status}
+
+
+def _status_line(stage) -> str:
+    return _status_report(stage)[0]
 
 
 def _stop_on_ctrl_c(stage) -> int:
@@ -365,13 +384,13 @@ def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     listing.add_argument("--fake", action="store_true", help="include Aravis's simulated camera Fake_1")
     listing.add_argument("--dev-dir", type=Path, default=Path("/dev"), metavar="DIR",
                          help="where to look for video* device nodes")
-    listing.add_argument("--json", action="store_true", help="print JSON")
+    add_json_argument(listing)
     listing.set_defaults(handler=_camera_list)
     info = actions.add_parser("info", help="identity, sensor, pixel formats, ROI/binning/exposure/gain ranges, triggers")
     info.add_argument("spec", metavar="SPEC",
                       help="aravis: (first camera), aravis:DEVICE_ID (e.g. aravis:Fake_1), or opencv:INDEX|PATH")
     info.add_argument("--all", action="store_true", help="also every GenICam feature and its current value (aravis)")
-    info.add_argument("--json", action="store_true", help="print JSON")
+    add_json_argument(info)
     info.set_defaults(handler=_camera_info)
     snap = actions.add_parser(
         "snap", help="take one frame and write it as PNG, with its size, range and clipping",
@@ -381,7 +400,7 @@ def _register_camera(subparsers: argparse._SubParsersAction) -> None:
     )
     snap.add_argument("camera", metavar="CAMERA", help="fake, opencv:INDEX|PATH, aravis: or aravis:DEVICE_ID")
     snap.add_argument("-o", "--output", required=True, type=Path, metavar="FILE", help="the PNG to write")
-    snap.add_argument("--json", action="store_true", help="print the frame's statistics as JSON")
+    add_json_argument(snap)
     camera_options(snap, hw_trigger=False)
     snap.set_defaults(handler=_camera_snap)
     preview = actions.add_parser(
@@ -409,8 +428,6 @@ def _register_camera(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _camera_list(args: argparse.Namespace) -> int:
-    import json
-
     from rig.aravis import list_devices
     from rig.v4l2 import describe_line, list_opencv_devices
 
@@ -418,26 +435,20 @@ def _camera_list(args: argparse.Namespace) -> int:
         raise RigError(f"--dev-dir {args.dev_dir}: not a folder; give the folder holding the video* device nodes")
     genicam = list_devices(include_fake=args.fake)
     video = list_opencv_devices(dev_dir=args.dev_dir)
-    if args.json:
-        print(json.dumps({"aravis": genicam, "opencv": video}, indent=2))
-        return 0
-    if not genicam:
-        print("no GenICam camera found (GigE: check the network and the camera's IP; USB3: check the cable and "
-              "udev permissions; --fake lists Aravis's simulated camera)")
-    for d in genicam:
-        print(f"aravis:{d['id']}  {d['vendor']} {d['model']}  serial {d['serial']}  {d['protocol']}"
-              + (f"  {d['address']}" if d.get("address") else ""))
-    if not video:
-        print(f"no video device found ({args.dev_dir}/video*: a USB camera needs its cable and the uvcvideo driver; "
-              "inside a container, pass the device through)")
-    for entry in video:
-        print(describe_line(entry))
+    out = CommandReport(as_json=args.json)
+    out.line("\n".join([f"aravis:{d['id']}  {d['vendor']} {d['model']}  serial {d['serial']}  {d['protocol']}"
+                        + (f"  {d['address']}" if d.get("address") else "") for d in genicam])
+             or "no GenICam camera found (GigE: check the network and the camera's IP; USB3: check the cable and "
+                "udev permissions; --fake lists Aravis's simulated camera)", aravis=genicam)
+    out.line("\n".join(describe_line(entry) for entry in video)
+             or f"no video device found ({args.dev_dir}/video*: a USB camera needs its cable and the uvcvideo driver; "
+                "inside a container, pass the device through)", opencv=video)
+    out.finish()
     return 0
 
 
 def _camera_info(args: argparse.Namespace) -> int:
-    import json
-
+    out = CommandReport(as_json=args.json)
     if args.spec.startswith("opencv:"):
         from rig.camera import parse_source
         from rig.v4l2 import describe_line, probe
@@ -449,10 +460,8 @@ def _camera_info(args: argparse.Namespace) -> int:
         if not reading["opens"]:
             raise RigError(f"camera {args.spec!r}: OpenCV cannot open it; check the index or path "
                            "(lfrig camera list) and that no other program uses it")
-        if args.json:
-            print(json.dumps(reading, indent=2))
-        else:
-            print(describe_line(reading))
+        out.line(describe_line(reading), **reading)
+        out.finish()
         return 0
 
     if not args.spec.startswith("aravis:"):
@@ -462,9 +471,6 @@ def _camera_info(args: argparse.Namespace) -> int:
 
     with AravisCamera(parse_spec(args.spec), acquire=False) as camera:
         info = describe(camera, all_features=args.all)
-    if args.json:
-        print(json.dumps(info, indent=2, default=str))
-        return 0
 
     def rng(value: list[float] | None, unit: str = "") -> str:
         return "n/a" if value is None else f"{value[0]:g} .. {value[1]:g}{unit}"
@@ -482,16 +488,17 @@ def _camera_info(args: argparse.Namespace) -> int:
         f"; software trigger {'yes' if info['software_trigger'] else 'no'}",
         f"  format now     {current['pixel_format']}, frame rate {current['frame_rate_hz']} Hz",
     ]
-    print("\n".join(lines))
     if args.all:
         def show(tree: dict, depth: int) -> None:
             for key, value in tree.items():
                 if isinstance(value, dict):
-                    print("  " * depth + f"{key}/")
+                    lines.append("  " * depth + f"{key}/")
                     show(value, depth + 1)
                 else:
-                    print("  " * depth + f"{key} = {value}")
+                    lines.append("  " * depth + f"{key} = {value}")
         show(info.get("features", {}), 1)
+    out.line("\n".join(lines), **info)
+    out.finish()
     return 0
 
 
@@ -511,13 +518,11 @@ def _camera_snap(args: argparse.Namespace) -> int:
         stats = snap(devices.camera, path)
     finally:
         devices.close()
-    if args.json:
-        import json
-        from dataclasses import asdict
+    from dataclasses import asdict
 
-        print(json.dumps({"path": str(path), **asdict(stats)}, indent=2))
-    else:
-        print(f"{path}: {stats.line()}")
+    out = CommandReport(as_json=args.json)
+    out.line(f"{path}: {stats.line()}", path=path, **asdict(stats))
+    out.finish()
     return 0
 
 

@@ -20,10 +20,11 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -46,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    from recon.cliargs import float_range, int_range, output_folder
+    from recon.cliargs import add_json_argument, float_range, int_range, output_folder
     from recon.methods import METHODS
 
     demo.add_argument("-o", "--output", type=output_folder, default=Path("runs/demo"), metavar="DIR",
@@ -57,26 +58,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument("--noise", type=float_range(0.0, 0.5), default=0.002, help="camera noise, standard deviation in full scale")
     demo.add_argument("--method", choices=list(METHODS), default="entropy", help="reconstruction method (see lfrig reconstruct --help)")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_json_argument(demo)
     demo.set_defaults(handler=_demo)
 
 
 @dataclass
 class Steps:
-    """Prints one line per step with its time, and keeps the times for the summary."""
+    """Prints one line per step with its time (on ``stream``, default stdout), and keeps the times for
+    the summary."""
 
     name: str = ""
     started: float = 0.0
     times: dict[str, float] = field(default_factory=dict)
+    stream: TextIO | None = None
 
     def begin(self, name: str, text: str) -> None:
         self.name = name
         self.started = time.perf_counter()
-        print(f"[{len(self.times) + 1}/6] {text}", flush=True)
+        print(f"[{len(self.times) + 1}/6] {text}", file=self.stream or sys.stdout, flush=True)
 
     def end(self, text: str) -> None:
         seconds = time.perf_counter() - self.started
         self.times[self.name] = round(seconds, 2)
-        print(f"      {text} ({seconds:.1f} s)", flush=True)
+        print(f"      {text} ({seconds:.1f} s)", file=self.stream or sys.stdout, flush=True)
 
 
 def _prepare(folder: Path) -> None:
@@ -93,24 +97,28 @@ def _prepare(folder: Path) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from recon.cliargs import CommandReport
+
     summary = run_demo(args.output, binning=args.binning, boards=args.boards, noise=args.noise,
-                       method=args.method, quiet=args.quiet)
+                       method=args.method, quiet=args.quiet, step_stream=sys.stderr if args.json else None)
     d = summary["depth_error"]["textured"]
-    print()
-    print(f"median depth error on textured surfaces: {d['median_abs_rel_pct']:.3f} % of the distance "
-          f"({d['within_pct']:.1f} % of pixels within 0.5 %)")
     c = summary["exported_cloud"]
-    print(f"exported cloud: {c['kept_pct']:.1f} % of pixels kept, mean depth error {c['mean_abs_rel_pct']:.3f} %, "
-          f"{c['points_outside_range_5pct']} points outside the true depth range +-5 %")
-    print(f"report: {summary['report']}")
-    print(f"PLY:    {summary['ply']['mesh']['path']}")
-    print(f"        {summary['ply']['points']['path']}")
+    out = CommandReport(as_json=args.json)
+    out.line(f"\nmedian depth error on textured surfaces: {d['median_abs_rel_pct']:.3f} % of the distance "
+             f"({d['within_pct']:.1f} % of pixels within 0.5 %)\n"
+             f"exported cloud: {c['kept_pct']:.1f} % of pixels kept, mean depth error {c['mean_abs_rel_pct']:.3f} %, "
+             f"{c['points_outside_range_5pct']} points outside the true depth range +-5 %\n"
+             f"report: {summary['report']}\n"
+             f"PLY:    {summary['ply']['mesh']['path']}\n"
+             f"        {summary['ply']['points']['path']}", **summary)  # summary.json's content
+    out.finish()
     return 0
 
 
 def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noise: float = 0.002, method: str = "entropy",
-             quiet: bool = False) -> dict[str, Any]:
-    """Run the simulated session into ``folder``; returns (and writes) the summary."""
+             quiet: bool = False, step_stream: TextIO | None = None) -> dict[str, Any]:
+    """Run the simulated session into ``folder``; returns (and writes) the summary. The step lines go to
+    ``step_stream`` (default stdout), the progress bars to stderr."""
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
@@ -142,7 +150,7 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
         raise LfrigError(f"method = {method!r}: choose one of {', '.join(METHODS)}")
     folder = Path(folder)
     _prepare(folder)
-    steps = Steps()
+    steps = Steps(stream=step_stream)
     centre_mm = _fake_centre_mm()
     rig = FakeRig.misaligned(ref_mm=centre_mm)
     summary: dict[str, Any] = {"folder": str(folder.resolve()), "rig": _rig_summary(rig, binning)}
@@ -164,7 +172,8 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
             write_png(path, still.frame(rig.ref_mm, scene=scene))
             paths.append(path)
             bar((i + 1) / len(poses), path.name)
-    intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0)
+    with Progress("finding corners", quiet=quiet) as bar:
+        intrinsics = calibrate_intrinsics_from_images(paths, board=board, working_distance_mm=950.0, progress=bar)
     with atomic_output(folder / "camera.cameramodel", what="camera model") as tmp:
         intrinsics.model.write(str(tmp), note="lfrig demo\n" + intrinsics.report())
     with atomic_output(folder / "camera.residuals.png", what="residual picture") as tmp:
@@ -180,7 +189,9 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
                                    centre_mm=(0.0, 0.0, 950.0))
     _capture(folder / "stage_capture", camera_options | {"scene": board_scene, "colour": False, "supersample": 1},
              centre_mm, quiet)
-    stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board)
+    with Progress("finding corners", quiet=quiet) as bar:
+        stage, _ = calibrate_stage_from_capture(folder / "stage_capture", model=intrinsics.model, board=stage_board,
+                                                progress=bar)
     stage.save(folder / "stage.json")
     summary["stage"] = _stage_summary(stage, rig)
     st = summary["stage"]
@@ -194,8 +205,9 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
 
     # 4. Rectification.
     steps.begin("rectify", "undistorting and rectifying the 81 views with one map")
-    rect = rectify_capture(folder / "capture", folder / "rectified", model_path=folder / "camera.cameramodel",
-                           stage_path=folder / "stage.json")
+    with Progress("rectify", quiet=quiet) as bar:
+        rect = rectify_capture(folder / "capture", folder / "rectified", model_path=folder / "camera.cameramodel",
+                               stage_path=folder / "stage.json", progress=bar)
     summary["rectification"] = {"focal_px": rect.focal_px, "pitch_mm": rect.pitch_mm,
                                 "image_size": list(rect.image_size)}
     steps.end(f"focal {rect.focal_px:.1f} px, step {rect.pitch_mm:.5f} mm")

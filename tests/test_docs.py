@@ -3,8 +3,8 @@ its ``paper`` preset value, every ``lfrig`` command line shown in README.md and 
 commands and flags that exist, every project file they name present, the user guide's boards the
 demo's own, and no words of a development diary.
 
-Commands are checked against the parser ``lfrig`` itself builds (``rig.main.build_parser``); those
-of the pages ``tests/test_docs_run.py`` lists are also run there. See ``docs/entropy-method.md`` for the option tables' form (``| `name` | `default` | `paper` |
+Commands are checked against the parser ``lfrig`` itself builds (``rig.main.build_parser``); every
+line of the pages' shell blocks is also run, by ``tests/test_docs_run.py``. See ``docs/entropy-method.md`` for the option tables' form (``| `name` | `default` | `paper` |
 meaning |``).
 """
 

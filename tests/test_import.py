@@ -93,7 +93,9 @@ def test_benchmark_layout_keeps_its_parameters(tmp_path):
     export_plain(original, bench, lambda u, v: f"input_Cam{u * 3 + v:03d}.png")
     (bench / "parameters.cfg").write_text((TINY / "parameters.cfg").read_text())
     out = tmp_path / "cap"
-    import_views(bench, out, principal_point_px=(15.0, 16.5))
+    seen = []
+    import_views(bench, out, principal_point_px=(15.0, 16.5), progress=lambda f, m="": seen.append((f, m)))
+    assert seen[0] == (0.4, "checking the order") and seen[-1][0] == 1.0  # a line before the check, not after
     back = read_lightfield(out)
     assert np.array_equal(back.views, original.views)
     assert back.focal_px == original.focal_px and back.pitch_mm == original.pitch_mm

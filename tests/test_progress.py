@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 
-from recon.progress import Progress, part, report
+from recon.progress import Progress, part, report, step
 
 
 def test_bar_shows_fraction_message_and_ends_the_line():
@@ -49,3 +49,22 @@ def test_part_maps_a_sub_task_into_its_share():
     assert seen == [(0.2, "a"), (0.4, "b"), (0.6, "c")]
     assert part(None, 0.0, 1.0) is None
     report(None, 0.5, "nothing happens")
+
+
+def test_a_step_without_fractions_shows_its_start_and_its_end():
+    stream = io.StringIO()
+    with step("export", "meshing", stream=stream):
+        pass
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2 and "  0.0%  meshing" in lines[0] and "100.0%  meshing" in lines[1]
+    quiet = io.StringIO()
+    with step("export", "meshing", stream=quiet, quiet=True):
+        pass
+    assert quiet.getvalue() == ""
+    failed = io.StringIO()
+    try:
+        with step("export", "meshing", stream=failed):
+            raise ValueError("no points")
+    except ValueError:
+        pass
+    assert "100.0%" not in failed.getvalue()  # a failed step does not claim to be done

@@ -665,6 +665,7 @@ def import_views(
                                   "--transpose, or a flip of an even grid side, would not keep it true: import without them")
         plan, images = reorient(plan, images, transpose=transpose, flip_u=flip_u, flip_v=flip_v)
     if check_order:
+        report(progress, 0.4, "checking the order")
         for text in order_warnings(images, rows=plan.rows, cols=plan.cols):
             if warn is not None:
                 warn(f"{src}: {text}")
