@@ -23,9 +23,10 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
 from rig.devices import FAKE_BINNING
 
@@ -111,6 +112,8 @@ def _demo(args: argparse.Namespace) -> int:
 def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noise: float = 0.002, method: str = "entropy",
              quiet: bool = False) -> dict[str, Any]:
     """Run the simulated session into ``folder``; returns (and writes) the summary."""
+    import numpy as np
+
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
@@ -255,6 +258,8 @@ def exported_cloud_scores(depth_mm: np.ndarray, truth_depth_mm: np.ndarray, kept
     """How the exported cloud (the ``kept`` pixels, as ``lfrig export`` chooses them) compares with the
     truth: the share of pixels kept, the points outside the true depth range widened by 5 %, and the
     mean and largest absolute depth error relative to the truth over the kept pixels."""
+    import numpy as np
+
     truth = np.asarray(truth_depth_mm, np.float64)
     depth = np.asarray(depth_mm, np.float64)
     kept = np.asarray(kept, bool) & np.isfinite(depth) & (depth > 0)
@@ -302,6 +307,8 @@ def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float,
 
 
 def _load_optional(path: Path) -> np.ndarray | None:
+    import numpy as np
+
     return np.load(path) if path.is_file() else None
 
 
@@ -314,6 +321,8 @@ def _rig_summary(rig: Any, binning: int) -> dict[str, Any]:
 def _intrinsics_summary(result: Any, camera: Any) -> dict[str, Any]:
     """RMS, and how far the recovered model projects from the true one over the imager at the
     working distance (up to the camera frame's orientation, which no calibration can see)."""
+    import numpy as np
+
     from calib.intrinsics import projection_difference
 
     diff = projection_difference(result.model, camera.model, distance_mm=950.0, gridn_width=32)
@@ -325,6 +334,8 @@ def _intrinsics_summary(result: Any, camera: Any) -> dict[str, Any]:
 
 def _stage_summary(stage: Any, rig: Any) -> dict[str, Any]:
     """Recovered step lengths against the true ones (grid columns move stage x, rows stage y)."""
+    import numpy as np
+
     true_v, true_u = (float(np.linalg.norm(rig.stage_matrix[:, i])) * stage.pitch_mm for i in (0, 1))
     return {"pitch_u_mm": stage.pitch_u_mm, "pitch_v_mm": stage.pitch_v_mm, "true_pitch_u_mm": true_u,
             "true_pitch_v_mm": true_v, "skew_deg": stage.skew_deg, "true_skew_deg": rig.skew_deg,
