@@ -204,9 +204,12 @@ def read_image(path: Path) -> np.ndarray:
     return _to_rgb(_decode(path))
 
 
-def _decode(path: Path) -> np.ndarray:
-    """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s checks."""
+def _decode(path: Path, digests: dict[Path, str] | None = None) -> np.ndarray:
+    """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s
+    checks; with ``digests``, the SHA-256 of the file's bytes as read goes into ``digests[path]``."""
     raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
+    if digests is not None:
+        digests[path] = hashlib.sha256(raw).hexdigest()
     data = np.frombuffer(raw, dtype=np.uint8)
     if raw.startswith(PNG_SIGNATURE):
         problem = png_problem(raw)
@@ -241,8 +244,11 @@ def _to_rgb(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-def read_images(paths: Sequence[Path]) -> np.ndarray:
+def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None) -> np.ndarray:
     """Read equally sized images into one ``(N, H, W[, 3])`` array; PNG decoding runs in threads.
+
+    ``digests``: a dict that receives ``path -> SHA-256`` (hex) of each file's bytes as they were
+    read, so that a record of the input needs no second pass over the files.
 
     Raises
     ------
@@ -252,14 +258,14 @@ def read_images(paths: Sequence[Path]) -> np.ndarray:
     """
     if not paths:
         raise ValueError("read_images needs at least one path")
-    decoded = _decode(paths[0])
+    decoded = _decode(paths[0], digests)
     shape = _rgb_shape(decoded)
     check_total_size(paths[0].parent, len(paths) * math.prod(shape) * decoded.dtype.itemsize)
     out = np.empty((len(paths),) + shape, dtype=decoded.dtype)
     first = _to_rgb(decoded, out[0])
 
     def load(i: int) -> None:
-        image = _decode(paths[i])  # decoded straight into its place in ``out``, colours swapped on the way
+        image = _decode(paths[i], digests)  # decoded straight into its place in ``out``, colours swapped on the way
         if _rgb_shape(image) != first.shape or image.dtype != first.dtype:
             raise LightFieldFormatError(
                 f"{paths[i]}: image is {_describe(_to_rgb(image))} but {paths[0].name} is {_describe(first)}; "
