@@ -8,7 +8,9 @@ file and the exit included), timed from outside: wall seconds, CPU seconds (user
 from ``os.wait4``: a measure the load of other users inflates less than wall time) and the child's
 peak RSS. One warm-up run per case first fills numba's compilation cache and is not counted; the
 table gives the median of ``--runs`` runs (peak RSS: the largest). The machine (CPU, cores, memory,
-Python, numba) and the load average before and after each case are recorded.
+Python, numba) and the load average before and after each case are recorded. Linux counts a child's
+peak RSS from its parent's size at the fork, so this script imports nothing heavy (~20 MiB): a
+smaller figure than that cannot show.
 
 Cases (``--cases``, default all but ``capture``, which needs the demo capture; ``all`` for every one):
 
@@ -23,7 +25,8 @@ Cases (``--cases``, default all but ``capture``, which needs the demo capture; `
 
 ``--json OUT.json`` writes every run's numbers; ``--update-docs`` rewrites the table between the
 ``<!-- speed-table -->`` markers of ``docs/entropy-results.md`` (:data:`DOC`), so the docs' figures
-come from this script and not from a hand.
+come from this script and not from a hand. ``--from-json A.json B.json ...`` runs nothing: it joins
+the results of earlier ``--json`` files (cases measured at different times) for ``--update-docs``.
 """
 
 from __future__ import annotations
@@ -85,10 +88,11 @@ def machine() -> dict:
     cpu = next((line.split(":", 1)[1].strip() for line in _lines("/proc/cpuinfo") if line.startswith("model name")),
                platform.processor() or "unknown")
     memory_kib = next((int(line.split()[1]) for line in _lines("/proc/meminfo") if line.startswith("MemTotal:")), 0)
-    try:
-        import numba
-        numba_version = numba.__version__
-    except ImportError:
+    from importlib import metadata
+
+    try:  # not imported: this process stays small, and a child's peak RSS starts from it (below)
+        numba_version = metadata.version("numba")
+    except metadata.PackageNotFoundError:
         numba_version = None
     return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": round(memory_kib / 2**20, 1),
             "python": platform.python_version(), "numba": numba_version, "system": platform.platform()}
@@ -194,9 +198,21 @@ def main() -> None:
                         help="the demo capture of bench/capture_speed.py (made when missing)")
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="write every run's numbers here")
     parser.add_argument("--update-docs", action="store_true", help=f"rewrite the speed table in {DOC.relative_to(ROOT)}")
+    parser.add_argument("--from-json", type=Path, nargs="+", metavar="REPORT.json",
+                        help="run nothing: join these --json reports (in this order) for --update-docs")
     args = parser.parse_args()
     if args.runs < 1:
         raise SystemExit(f"--runs {args.runs}: give at least 1")
+    if args.from_json:
+        reports = [json.loads(path.read_text(encoding="utf-8")) for path in args.from_json]
+        report = dict(reports[0], results=[r for rep in reports for r in rep["results"]])
+        if len({rep["runs"] for rep in reports}) != 1 or len({rep["machine"]["cpu"] for rep in reports}) != 1:
+            raise SystemExit("--from-json: the reports differ in --runs or machine; measure them alike")
+        report["date"] = max(rep["date"] for rep in reports)
+        if args.update_docs:
+            update_docs(report)
+            print(f"updated {DOC.relative_to(ROOT)}")
+        return
     names = list(CASES) if "all" in args.cases else list(dict.fromkeys(args.cases))
     for name in list(names):
         needed = CASES[name].needs
