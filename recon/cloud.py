@@ -513,11 +513,14 @@ def depth_mesh(
     mask=None,
     max_relative_jump: float = MAX_RELATIVE_JUMP,
     max_step_footprints: float = MAX_STEP_FOOTPRINTS,
+    cloud: PointCloud | None = None,
 ) -> Mesh:
     """A mesh over the depth grid, cut where the surface breaks (see :func:`grid_triangles`).
 
-    Parameters are those of :func:`point_cloud`. Vertices are the valid pixels that belong to at
-    least one triangle (isolated pixels are left out of the mesh; :func:`point_cloud` keeps them).
+    Parameters are those of :func:`point_cloud`; ``cloud`` is what :func:`point_cloud` gives for
+    the same arguments when the caller already has it (it is not computed again). Vertices are the
+    valid pixels that belong to at least one triangle (isolated pixels are left out of the mesh;
+    :func:`point_cloud` keeps them).
 
     Returns
     -------
@@ -526,7 +529,8 @@ def depth_mesh(
     depth = _check_depth(depth_mm, focal_px)
     links = {"mask": mask, "max_relative_jump": max_relative_jump, "focal_px": focal_px,
              "max_step_footprints": max_step_footprints}
-    cloud = point_cloud(depth, image, principal_point_px=principal_point_px, **links)
+    if cloud is None:
+        cloud = point_cloud(depth, image, principal_point_px=principal_point_px, **links)
     flat = grid_triangles(depth, **links)
     width = depth.shape[1]
     cloud_flat = cloud.pixels[:, 0] * width + cloud.pixels[:, 1]  # sorted: point_cloud is row-major

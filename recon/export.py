@@ -442,7 +442,7 @@ def export_ply(
         mesh = poisson_mesh(cloud, depth=poisson_depth)
         comments.append(f"mesh screened Poisson reconstruction of the oriented cloud, octree depth {poisson_depth}")
     else:
-        mesh = depth_mesh(depth, image, **options)
+        mesh = depth_mesh(depth, image, cloud=cloud, **options)
         comments.append(f"mesh pixel grid, cut where the disparity steps more than {max_step_footprints:g} pixel "
                         f"footprints beyond its local slope or depth jumps more than {max_relative_jump:g}")
     written = write_mesh_ply(path, mesh, ascii=ascii, confidence=per_vertex(mesh.pixels), comments=comments)

@@ -12,11 +12,12 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:  # annotations only: the method registry loads without numpy or OpenCV
+    import numpy as np
 
-from recon.lf.lightfield import LightField
+    from recon.lf.lightfield import LightField
 
 
 @dataclass

@@ -263,7 +263,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
             listed.append(Path(ply).resolve().relative_to(out.resolve()).as_posix())
         except ValueError:
             pass
-    identity = input_identity(lf.source)
+    identity = input_identity(lf.source, known_sha256=lf.metadata.get("views_sha256"))
     if source is not None:  # the folder the views came from, not a worker's copy of it
         identity["path"] = source
     timings = {"read": made["read"], "estimate": seconds, "write": time.perf_counter() - written}

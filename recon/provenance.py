@@ -111,13 +111,16 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def input_identity(path: str | os.PathLike | None, *, kind: str | None = None) -> dict[str, Any]:
+def input_identity(path: str | os.PathLike | None, *, kind: str | None = None,
+                   known_sha256: Mapping[str, str] | None = None) -> dict[str, Any]:
     """``{"kind", "path", "journal_sha256" | "files_sha256"}`` of a light-field folder.
 
     A capture (a folder with ``manifest.jsonl``) is identified by its journal's SHA-256; a benchmark
     folder by ``files_sha256``: SHA-256 over ``name NUL content-sha256 LF`` of every light-field file
     (:func:`lightfield_files`), so renaming, replacing or editing a view changes it. ``path`` is the
-    absolute folder. ``None`` gives ``{"kind": "unknown", "path": None}``.
+    absolute folder. ``None`` gives ``{"kind": "unknown", "path": None}``. ``known_sha256``: the
+    content SHA-256 of files already read (relative path -> hex digest, e.g. the benchmark reader's
+    ``metadata["views_sha256"]``), taken instead of reading those files again.
     """
     if path is None:
         return {"kind": kind or "unknown", "path": None}
@@ -127,7 +130,8 @@ def input_identity(path: str | os.PathLike | None, *, kind: str | None = None) -
         return {"kind": kind or "capture", "path": str(folder), "journal_sha256": file_sha256(journal)}
     digest = hashlib.sha256()
     for rel in lightfield_files(folder):
-        digest.update(f"{rel}\0{file_sha256(folder / rel)}\n".encode())
+        content = (known_sha256 or {}).get(rel) or file_sha256(folder / rel)
+        digest.update(f"{rel}\0{content}\n".encode())
     return {"kind": kind or "benchmark", "path": str(folder), "files_sha256": digest.hexdigest()}
 
 

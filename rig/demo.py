@@ -24,9 +24,10 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
 from rig.devices import FAKE_BINNING
 
@@ -119,6 +120,8 @@ def run_demo(folder: Path, *, binning: int = FAKE_BINNING, boards: int = 12, noi
              quiet: bool = False, step_stream: TextIO | None = None) -> dict[str, Any]:
     """Run the simulated session into ``folder``; returns (and writes) the summary. The step lines go to
     ``step_stream`` (default stdout), the progress bars to stderr."""
+    import numpy as np
+
     from calib.intrinsics import Board, calibrate_intrinsics_from_images, write_residual_picture
     from calib.rectify import rectify_capture
     from calib.stage import calibrate_stage_from_capture
@@ -267,6 +270,8 @@ def exported_cloud_scores(depth_mm: np.ndarray, truth_depth_mm: np.ndarray, kept
     """How the exported cloud (the ``kept`` pixels, as ``lfrig export`` chooses them) compares with the
     truth: the share of pixels kept, the points outside the true depth range widened by 5 %, and the
     mean and largest absolute depth error relative to the truth over the kept pixels."""
+    import numpy as np
+
     truth = np.asarray(truth_depth_mm, np.float64)
     depth = np.asarray(depth_mm, np.float64)
     kept = np.asarray(kept, bool) & np.isfinite(depth) & (depth > 0)
@@ -314,6 +319,8 @@ def _capture(path: Path, camera_options: dict[str, Any], centre_mm: tuple[float,
 
 
 def _load_optional(path: Path) -> np.ndarray | None:
+    import numpy as np
+
     return np.load(path) if path.is_file() else None
 
 
@@ -326,6 +333,8 @@ def _rig_summary(rig: Any, binning: int) -> dict[str, Any]:
 def _intrinsics_summary(result: Any, camera: Any) -> dict[str, Any]:
     """RMS, and how far the recovered model projects from the true one over the imager at the
     working distance (up to the camera frame's orientation, which no calibration can see)."""
+    import numpy as np
+
     from calib.intrinsics import projection_difference
 
     diff = projection_difference(result.model, camera.model, distance_mm=950.0, gridn_width=32)
@@ -337,6 +346,8 @@ def _intrinsics_summary(result: Any, camera: Any) -> dict[str, Any]:
 
 def _stage_summary(stage: Any, rig: Any) -> dict[str, Any]:
     """Recovered step lengths against the true ones (grid columns move stage x, rows stage y)."""
+    import numpy as np
+
     true_v, true_u = (float(np.linalg.norm(rig.stage_matrix[:, i])) * stage.pitch_mm for i in (0, 1))
     return {"pitch_u_mm": stage.pitch_u_mm, "pitch_v_mm": stage.pitch_v_mm, "true_pitch_u_mm": true_u,
             "true_pitch_v_mm": true_v, "skew_deg": stage.skew_deg, "true_skew_deg": rig.skew_deg,

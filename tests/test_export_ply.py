@@ -53,6 +53,29 @@ def test_point_cloud_ply_loads_with_every_trusted_pixel(tmp_path, ascii):
     np.testing.assert_allclose(colours[near], np.tile([1.0, 200 / 255, 0.0], (near.sum(), 1)), atol=1e-6)
 
 
+def test_a_mesh_export_computes_the_point_cloud_once(tmp_path, monkeypatch):
+    """The mesh reuses the cloud the export counts its pixels with: the same mesh as depth_mesh's own."""
+    import recon.cloud
+    import recon.export
+
+    disparity, image = step_scene()
+    mesh = recon.cloud.depth_mesh(CAM.depth_mm(disparity.astype(np.float64)), image, focal_px=CAM.focal_px)
+    calls = []
+    real = recon.cloud.point_cloud
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recon.cloud, "point_cloud", counted)
+    monkeypatch.setattr(recon.export, "point_cloud", counted)
+    summary = export_ply(tmp_path / "mesh.ply", disparity_px=disparity, image=image, kind="mesh", camera=CAM)
+    assert len(calls) == 1
+    written = o3d.io.read_triangle_mesh(str(summary.path))
+    assert np.array_equal(np.asarray(written.triangles), mesh.triangles)
+    assert np.allclose(np.asarray(written.vertices), mesh.vertices_mm, rtol=1e-6)
+
+
 @pytest.mark.parametrize("ascii", [False, True])
 def test_mesh_ply_loads_and_has_no_face_across_the_jump(tmp_path, ascii):
     disparity, image = step_scene()

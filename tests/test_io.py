@@ -195,3 +195,24 @@ def test_principal_point_survives_the_capture_layout(tmp_path):
     lf = LightField(views=random_views(), pitch_mm=0.5, focal_px=900.0, principal_point_px=(3.25, 2.5))
     write_lightfield(tmp_path / "cap", lf)
     assert read_lightfield(tmp_path / "cap").principal_point_px == (3.25, 2.5)
+
+
+@pytest.mark.parametrize("channels", [0, 3, 4])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_views_are_decoded_in_place_as_rgb(tmp_path, channels, dtype):
+    """Grey stays grey; BGR and BGRA files (as OpenCV writes them) come back RGB without alpha, from
+    ``read_image`` and straight into ``read_images``' array alike."""
+    from recon.lf.imageio import read_image, read_images
+
+    rng = np.random.default_rng(channels)
+    shape = (5, 7) if channels == 0 else (5, 7, channels)
+    stored = [rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True) for _ in range(3)]
+    paths = []
+    for i, image in enumerate(stored):
+        paths.append(tmp_path / f"view{i}.png")
+        assert cv2.imwrite(str(paths[-1]), image)
+    expected = [image if channels == 0 else image[:, :, 2::-1] for image in stored]
+    views = read_images(paths)
+    assert views.dtype == dtype and views.shape == (3,) + expected[0].shape
+    for i, path in enumerate(paths):
+        assert np.array_equal(read_image(path), expected[i]) and np.array_equal(views[i], expected[i])

@@ -13,11 +13,35 @@ result, and ``_name_kernel`` (or another private ``_..._kernel``) the numba loop
 :func:`~recon.entropy.cost.window_cost_reference` (prepared once, called per candidate). Kernels the
 estimator no longer calls live in :mod:`recon.entropy.legacy_matching` only while a test pins a
 current kernel to them.
+
+**Imports.** The options (:mod:`recon.entropy.options`, plain dataclasses) load with the package;
+the estimator and its writers (numba, scipy) load when one of their names is first used, so that
+the command line can build its flags from the options without compiling or loading any kernel.
 """
 
-from recon.entropy.estimate import EntropyResult, estimate_disparity
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from recon.entropy.options import DEFAULTS, EntropyOptions, make_options
-from recon.entropy.outputs import write_outputs
+
+if TYPE_CHECKING:
+    from recon.entropy.estimate import EntropyResult, estimate_disparity
+    from recon.entropy.outputs import write_outputs
 
 __all__ = ["DEFAULTS", "EntropyOptions", "EntropyResult", "estimate_disparity", "make_options",
            "write_outputs"]
+
+#: name -> the module that defines it, loaded on first use (:func:`__getattr__`).
+_LAZY = {"EntropyResult": "recon.entropy.estimate", "estimate_disparity": "recon.entropy.estimate",
+         "write_outputs": "recon.entropy.outputs"}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

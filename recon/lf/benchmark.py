@@ -29,7 +29,8 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
 
     The grid size comes from ``parameters.cfg`` (``num_cams_x``, ``num_cams_y``) when present, else
     the number of views must be a square. ``metadata["ground_truth"]`` names ``gt_disp_lowres.pfm``
-    when the folder has one.
+    when the folder has one; ``metadata["views_sha256"]`` maps each view's file name to the SHA-256 of
+    the bytes read (:func:`recon.provenance.input_identity` takes them instead of reading the views again).
     """
     path = Path(path)
     numbered: dict[int, Path] = {}
@@ -63,12 +64,14 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
     if missing:
         names = ", ".join(f"input_Cam{i:03d}.png" for i in missing[:3]) + (" ..." if len(missing) > 3 else "")
         raise LightFieldFormatError(f"{path}: {len(missing)} of {count} views missing ({names})")
-    images = read_images([numbered[i] for i in range(count)])
+    digests: dict[Path, str] = {}
+    images = read_images([numbered[i] for i in range(count)], digests=digests)
     views = images.reshape((rows, cols) + images.shape[1:])
     if cfg.is_file():
         check_camera_fits(camera, metadata["parameters"], grid=(rows, cols), image_shape=views.shape[2:4], path=cfg)
     if (path / GROUND_TRUTH).is_file():
         metadata["ground_truth"] = str(path / GROUND_TRUTH)
+    metadata["views_sha256"] = {p.name: digest for p, digest in digests.items()}  # for the input's identity
     return LightField(views=views, metadata=metadata, source=path, **camera)
 
 

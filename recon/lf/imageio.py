@@ -201,7 +201,15 @@ def read_image(path: Path) -> np.ndarray:
         :func:`check_image_size` allows, or not an image OpenCV can decode (OpenCV itself refuses other
         formats above :data:`MAX_IMAGE_PIXELS`: ``OPENCV_IO_MAX_IMAGE_PIXELS``).
     """
+    return _to_rgb(_decode(path))
+
+
+def _decode(path: Path, digests: dict[Path, str] | None = None) -> np.ndarray:
+    """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s
+    checks; with ``digests``, the SHA-256 of the file's bytes as read goes into ``digests[path]``."""
     raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
+    if digests is not None:
+        digests[path] = hashlib.sha256(raw).hexdigest()
     data = np.frombuffer(raw, dtype=np.uint8)
     if raw.startswith(PNG_SIGNATURE):
         problem = png_problem(raw)
@@ -214,15 +222,33 @@ def read_image(path: Path) -> np.ndarray:
     image = decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
-    if image.ndim == 3:
-        if image.shape[2] == 4:
-            image = image[:, :, :3]
-        image = image[:, :, ::-1]  # OpenCV decodes to BGR
-    return np.ascontiguousarray(image)
+    return image
 
 
-def read_images(paths: Sequence[Path]) -> np.ndarray:
+def _rgb_shape(image: np.ndarray) -> tuple[int, ...]:
+    """The shape :func:`_to_rgb` gives a decoded image: ``(H, W)``, or ``(H, W, 3)`` (alpha dropped)."""
+    return image.shape if image.ndim == 2 else image.shape[:2] + (3 if image.shape[2] in (3, 4) else image.shape[2],)
+
+
+def _to_rgb(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """A decoded image (grey, BGR or BGRA) as grey or RGB, into ``out`` (C-contiguous, of
+    :func:`_rgb_shape` and the image's dtype) when given: one pass, no intermediate copy."""
+    if out is None:
+        out = np.empty(_rgb_shape(image), dtype=image.dtype)
+    if image.ndim == 3 and image.shape[2] in (3, 4):  # OpenCV decodes to BGR(A); alpha is dropped
+        cv2.cvtColor(image, cv2.COLOR_BGR2RGB if image.shape[2] == 3 else cv2.COLOR_BGRA2RGB, dst=out)
+    elif image.ndim == 3:
+        out[...] = image[:, :, ::-1]
+    else:
+        out[...] = image
+    return out
+
+
+def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None) -> np.ndarray:
     """Read equally sized images into one ``(N, H, W[, 3])`` array; PNG decoding runs in threads.
+
+    ``digests``: a dict that receives ``path -> SHA-256`` (hex) of each file's bytes as they were
+    read, so that a record of the input needs no second pass over the files.
 
     Raises
     ------
@@ -232,19 +258,20 @@ def read_images(paths: Sequence[Path]) -> np.ndarray:
     """
     if not paths:
         raise ValueError("read_images needs at least one path")
-    first = read_image(paths[0])
-    check_total_size(paths[0].parent, len(paths) * first.nbytes)
-    out = np.empty((len(paths),) + first.shape, dtype=first.dtype)
-    out[0] = first
+    decoded = _decode(paths[0], digests)
+    shape = _rgb_shape(decoded)
+    check_total_size(paths[0].parent, len(paths) * math.prod(shape) * decoded.dtype.itemsize)
+    out = np.empty((len(paths),) + shape, dtype=decoded.dtype)
+    first = _to_rgb(decoded, out[0])
 
     def load(i: int) -> None:
-        image = read_image(paths[i])
-        if image.shape != first.shape or image.dtype != first.dtype:
+        image = _decode(paths[i], digests)  # decoded straight into its place in ``out``, colours swapped on the way
+        if _rgb_shape(image) != first.shape or image.dtype != first.dtype:
             raise LightFieldFormatError(
-                f"{paths[i]}: image is {_describe(image)} but {paths[0].name} is {_describe(first)}; "
+                f"{paths[i]}: image is {_describe(_to_rgb(image))} but {paths[0].name} is {_describe(first)}; "
                 "all views must have the same size, colour and bit depth"
             )
-        out[i] = image
+        _to_rgb(image, out[i])
 
     with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
         for _ in pool.map(load, range(1, len(paths))):

@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 
@@ -116,6 +115,8 @@ def to_gray(images: np.ndarray) -> np.ndarray:
     if not (images.ndim >= 3 and images.shape[-1] == 3):
         return to_float(images)
     scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(images.dtype, 1.0)
+    import cv2
+
     flat = images.reshape((-1,) + images.shape[-3:])
     out = np.empty(flat.shape[:3], dtype=np.float32)
     for i, image in enumerate(flat):  # per image keeps the float32 temporary small

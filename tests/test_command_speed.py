@@ -1,0 +1,88 @@
+"""The command's fixed costs: what ``lfrig --help`` loads, and the docs' speed table of
+``bench/command_speed.py`` (its markers and format; the numbers are the script's)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Modules that only the work itself needs: a command's parser and its --help load none of them.
+HEAVY = ("numba", "llvmlite", "numpy", "scipy", "cv2", "open3d", "dask", "distributed", "mrcal", "matplotlib")
+
+
+def _loaded_by(code: str) -> list[str]:
+    """The top-level packages of :data:`HEAVY` in ``sys.modules`` after ``code`` runs in a fresh interpreter."""
+    probe = (f"import sys\n{code}\n"
+             f"import json; print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r}))))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_help_loads_no_numba_numpy_or_opencv():
+    code = ("from rig.main import main\n"
+            "import contextlib, io\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    assert main(['--help']) == 0\n"
+            "    assert main(['reconstruct', '--help']) == 0\n"
+            "    assert main(['export', '--help']) == 0")
+    assert _loaded_by(code) == []
+
+
+def test_the_package_names_still_load_on_use():
+    """``recon.lf`` and ``recon.entropy`` keep their names; the modules behind them load when used."""
+    code = ("import recon.lf, recon.entropy\n"
+            "assert 'numba' not in sys.modules and 'cv2' not in sys.modules\n"
+            "from recon.lf import LightField, read_lightfield, read_ground_truth, write_lightfield\n"
+            "from recon.entropy import estimate_disparity, write_outputs, EntropyResult, DEFAULTS\n"
+            "assert recon.entropy.estimate_disparity is estimate_disparity\n"
+            "try:\n"
+            "    recon.lf.no_such_name\n"
+            "except AttributeError:\n"
+            "    pass\n"
+            "else:\n"
+            "    raise SystemExit('no AttributeError')")
+    assert "numba" in _loaded_by(code)
+
+
+def _bench():
+    """``bench/command_speed.py`` as a module (bench/ is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("command_speed", ROOT / "bench" / "command_speed.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_docs_speed_table_is_the_scripts_block():
+    bench = _bench()
+    block = bench.table_block(bench.DOC.read_text(encoding="utf-8"))
+    assert bench.check_block(block) == []
+    cases = [line.split(" | ")[0].lstrip("| ") for line in block.splitlines() if bench.ROW.match(line)]
+    assert set(cases) <= set(bench.CASES) and {"help", "backgammon", "baseline"} <= set(cases)
+
+
+def test_the_block_is_rewritten_in_place_and_a_hand_edit_is_caught(tmp_path):
+    bench = _bench()
+    report = {"date": "2026-01-02", "runs": 3, "machine": {"cpu": "CPU", "cores": 2, "memory_gib": 24.0,
+                                                          "python": "3.12.1", "numba": "0.60.0"},
+              "results": [{"case": "help", "command": "lfrig --help", "wall_s": 0.31, "cpu_s": 0.2, "peak_mib": 23.4,
+                           "load_before": [0.5, 0, 0], "load_after": [0.7, 0, 0]}]}
+    doc = tmp_path / "page.md"
+    doc.write_text(f"# Page\n\nbefore\n\n{bench.BEGIN}\nold\n{bench.END}\n\nafter\n", encoding="utf-8")
+    bench.update_docs(report, doc)
+    text = doc.read_text(encoding="utf-8")
+    assert text.startswith("# Page\n\nbefore\n\n") and text.endswith("\n\nafter\n") and "old" not in text
+    block = bench.table_block(text)
+    assert "| help | `lfrig --help` | 0.31 | 0.20 | 23 |" in block and bench.check_block(block) == []
+    assert bench.check_block(block.replace("| 0.31 |", "| fast |")) != []  # a number written by hand as a word
+    assert bench.check_block(block.replace("| wall s |", "| seconds |")) != []
+    with pytest.raises(ValueError):
+        bench.table_block(text.replace(bench.END, ""))
