@@ -19,3 +19,59 @@ def test_search_penalty_is_the_masked_float32_product():
         got = _search_penalty(entropy, nothing_flat, opts, 7)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
+
+
+
+def _maps(result) -> dict:
+    out = {name: getattr(result, name) for name in ("disparity", "matched_disparity", "window_size",
+                                                     "window_shape", "entropy", "cost", "confidence")}
+    out.update({f"info.{k}": v for k, v in result.info.items() if isinstance(v, np.ndarray)})
+    return out
+
+
+def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    # A budget of a few rows cuts the joint search into bands with halos; every map must be the
+    # whole image's, bit for bit (the occluding bars reach the bands' edges with depth jumps).
+    from recon.entropy import estimate_disparity, steps
+    from recon.entropy.scenes import make_scene
+    lf = make_scene("bars", size=72).lf
+    whole = _maps(estimate_disparity(lf))
+    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
+    cuts = []
+    search = steps.joint_line_search
+
+    def counted(views, *args, **kwargs):
+        cuts.append(views.shape[2])
+        return search(views, *args, **kwargs)
+
+    monkeypatch.setattr(steps, "joint_line_search", counted)
+    rows = steps.joint_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
+    monkeypatch.setattr(steps, "JOINT_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
+    banded = _maps(estimate_disparity(lf))
+    assert len(cuts) >= 3 and max(cuts) < H
+    for name, value in whole.items():
+        assert value.dtype == banded[name].dtype, name
+        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_bar_strips_in_place_is_the_gate_with_its_fallback():
+    # The strips barred where not informative; a pixel left with nothing keeps its strips.
+    from recon.entropy.steps import _bar_strips
+    from recon.entropy.windows import STRIP_SHAPES
+    rng = np.random.default_rng(4)
+    n, H, W = 3, 6, 7
+    penalty = rng.random((H, W, 11 * n)).astype(np.float32)
+    penalty[rng.random(penalty.shape) < 0.4] = np.inf
+    penalty[0, 0, :9 * n] = np.inf  # strips alone, and none informative: kept
+    ok = rng.random((H, W, 2, n)) < 0.5
+    ok[0, 0] = False
+    expected = penalty.copy()
+    for j, shape in enumerate(STRIP_SHAPES):
+        block = expected[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :]] = np.inf
+    none_left = ~np.isfinite(expected).any(axis=2)
+    expected[none_left] = penalty[none_left]
+    assert none_left[0, 0] and not none_left.all()
+    got = _bar_strips(penalty, ok, n)
+    assert got is penalty
+    np.testing.assert_array_equal(got, expected)

@@ -28,6 +28,7 @@ from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, 
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
+from recon.lf.lightfield import view_shift_px
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -202,12 +203,8 @@ def line_search_step(s: State) -> None:
                 "all": np.ones(labels.shape, bool)}[o.visible_sets]
     if o.joint:
         windows = [(sh, z) for sh in range(N_SHAPES if o.strip_windows else 9) for z in sizes]
-        s.matched, s.cost, k, s.ambiguity = joint_line_search(  # penalty: a temporary, freed in there
-            s.views, candidates, windows=windows,
-            penalty=_gate_strips_if(_search_penalty(w["all_entropy"], s.noise_limited, o, len(sizes)),
-                                    s.centre, sizes=sizes, noise=s.noise_sigma, opts=o),
-            use_shape_set=occluded, intensity_scale=o.intensity_scale, ambiguity_delta=s.hole_delta,
-            progress=s.reporter.within)
+        s.matched, s.cost, k, s.ambiguity = joint_search_in_bands(s, candidates, windows=windows,
+                                                                  use_shape_set=occluded)
         w["shape"] = k // len(sizes)
         w["size"] = np.asarray(sizes)[k % len(sizes)]
         w["entropy"] = np.take_along_axis(w["all_entropy"], k[..., None], 2)[..., 0]
@@ -218,6 +215,65 @@ def line_search_step(s: State) -> None:
                                                set_map=w["set"], return_costs=True,
                                                progress=s.reporter.within)
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
+
+
+#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
+#: per candidate), the penalty in both layouts, the summed-area tables and a copy of the views'
+#: rows. An image whose search needs more is searched in bands of rows, each with a halo of the
+#: rows its pixels' windows and views reach (the same maps bit for bit: every value of a pixel
+#: depends only on the rows within the halo). 1198x906 with 81 views, 77 windows and 120
+#: candidates: 1.7 MB a row, four bands; a 512x512 view set with 150 candidates stays whole.
+JOINT_BAND_MIB = 256
+
+
+def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
+                    budget_mib: float = JOINT_BAND_MIB) -> int:
+    """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes within
+    ``budget_mib`` (at least one): per row, ``W`` pixels of ``n_candidates`` float32 costs, the
+    ``n_windows`` float32 penalty twice (as given and window by window), nine int64 summed-area
+    tables, nine float32 block images and the ``U * V`` float32 view rows."""
+    U, V, _, W = views_shape
+    per_row = W * (4 * n_candidates + 8 * n_windows + 8 * 9 + 4 * 9 + 4 * U * V)
+    return max(int(budget_mib * 2 ** 20 // per_row), 1)
+
+
+def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tuple[int, int]],
+                          use_shape_set: np.ndarray, budget_mib: float | None = None):
+    """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
+    ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
+    when the whole image's search would take more than ``budget_mib`` (default
+    :data:`JOINT_BAND_MIB`). Each band is searched with a halo of ``largest_radius_px`` plus the
+    farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
+    whole image's values; the penalty is made band by band, and only one band's cost volume is
+    alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
+    o, w = s.options, s.windows
+    sizes = w["sizes"]
+    U, V, H, W = s.views.shape
+    rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
+                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib)
+    halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
+    core = H if rows >= H else max(rows - 2 * halo, halo)
+    gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
+
+    def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
+        p = _search_penalty(w["all_entropy"][a:b], s.noise_limited[a:b], o, len(sizes))
+        return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
+
+    starts = range(0, H, core)
+    maps = (np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
+            np.empty((H, W), np.int32))
+    for i, y0 in enumerate(starts):
+        y1 = min(y0 + core, H)
+        a, b = max(y0 - halo, 0), min(y1 + halo, H)
+        band = joint_line_search(  # the penalty a temporary, freed in there
+            s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
+            use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
+            ambiguity_delta=s.hole_delta,
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(starts)))
+        for out, got in zip(maps, band):
+            out[y0:y1] = got[y0 - a:y1 - a]
+        del band
+    return maps
 
 
 def line_search_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -333,7 +389,7 @@ def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: En
         out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
     out[~np.isfinite(all_entropy)] = np.inf
     if opts.flat_windows == "largest":
-        out = _largest_windows_only(out, noise_limited, n_sizes)
+        out = _largest_windows_only(out, noise_limited, n_sizes, in_place=True)
     return out
 
 
@@ -358,7 +414,8 @@ def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: flo
                           sure_width=options.initial_hole_width)
 
 
-def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
+def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *,
+                          in_place: bool = False) -> np.ndarray:
     """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
     size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
     size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
@@ -376,7 +433,7 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -
     bar = size_of[None, :] != largest[:, None]
     has_square = by_size[np.arange(N), 0, largest]
     bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
-    out = penalty.astype(np.float32, copy=True)
+    out = penalty if in_place else penalty.astype(np.float32, copy=True)
     out[ys, xs] = np.where(bar, np.inf, sub)
     return out
 
@@ -394,31 +451,33 @@ def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
                               floor=STRIP_FLOOR, length=opts.strip_aperture_length)
 
 
-def _gate_strips_if(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                    opts: EntropyOptions) -> np.ndarray:
-    """:func:`_gate_strips` when ``opts.strip_aperture_scope`` is ``"all"``, else ``penalty`` itself."""
+def _strip_gate(centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                opts: EntropyOptions) -> np.ndarray | None:
+    """``(H, W, 2, len(sizes))`` bool: where each strip window can measure disparity
+    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)
+    when the joint search gates its strips (``strip_aperture_scope="all"``), else ``None``."""
     if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
-        return _gate_strips(penalty, centre, sizes=sizes, noise=noise, factor=opts.strip_aperture,
-                            length=opts.strip_aperture_length)
-    return penalty
+        return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
+                                  floor=STRIP_FLOOR, length=opts.strip_aperture_length)
+    return None
 
 
-def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                 factor: float, length: int) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
-    with the strip windows barred where they cannot measure disparity
-    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
-    n = len(sizes)
-    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR,
-                            length=length)
-    out = penalty.copy()
+def _bar_strips(penalty: np.ndarray, ok: np.ndarray, n_sizes: int) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` float32 (window ``k``: shape ``k // n_sizes``, the ``k %
+    n_sizes``-th size) with the strip windows barred (``inf``) where ``ok`` (:func:`_strip_gate`)
+    says they cannot measure disparity, in place. A pixel offered nothing but uninformative strips
+    keeps them: some window must be matched."""
+    n = n_sizes
+    kept = np.zeros(penalty.shape[:2], bool)  # pixels left some window after the gate
+    for shape in range(penalty.shape[2] // n):
+        block = np.isfinite(penalty[..., shape * n:(shape + 1) * n])
+        if shape in STRIP_SHAPES:
+            block &= ok[..., STRIP_SHAPES.index(shape), :]
+        kept |= block.any(axis=2)
     for j, shape in enumerate(STRIP_SHAPES):
-        block = out[..., shape * n:(shape + 1) * n]
-        block[~ok[..., j, :]] = np.inf
-    # A pixel offered nothing but uninformative strips keeps them: some window must be matched.
-    none_left = ~np.isfinite(out).any(axis=2)
-    out[none_left] = penalty[none_left]
-    return out.astype(np.float32)
+        block = penalty[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :] & kept[..., None]] = np.inf
+    return penalty
 
 
 def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,
