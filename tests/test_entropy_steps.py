@@ -75,3 +75,45 @@ def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     got = _bar_strips(penalty, ok, n)
     assert got is penalty
     np.testing.assert_array_equal(got, expected)
+
+
+def test_view_filters_work_in_place_and_the_views_come_back():
+    # On a noisy scene both filters act: the views the line search matches must be those of the
+    # filters over a copy of the light field, made in the light field's own array, and after the
+    # search the array must hold the views as read again.
+    from recon.entropy import steps
+    from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
+    from recon.entropy.options import make_options
+    from recon.entropy.plan import PLAN, run_phase, start
+    from recon.synthetic import Layer, noise_texture, render
+    rng = np.random.default_rng(5)
+    wall = np.full((64, 64), 0.5, np.float32)  # a plain wall under noise, a textured and a faint patch
+    wall[8:30, 8:40] = noise_texture((22, 32), seed=2)
+    wall[36:60, 30:60] += 0.02 * noise_texture((24, 30), seed=3)
+    lf, _ = render([Layer(wall, 0.4)])
+    lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
+    given = lf.views.copy()
+    o = make_options()
+    s = start(lf, o)
+    for phase in PLAN[:2]:
+        run_phase(s, phase)
+    raw = s.raw.copy()
+    U, V = raw.shape[:2]
+    expected = filter_flat_views(raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                 size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                 where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
+                                 texture_ratio=o.noise_texture_ratio, radius_px=o.windows.largest_radius_px)
+    weak = weak_texture_pixels(steps._texture_ratio(s.centre, s.noise_sigma, o),
+                               texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
+    expected = soften_views(expected, sigma_px=o.weak_texture_filter, out=expected,
+                            where=warp_mask_to_views(weak, s.d0, (U, V)))
+    assert s.noise_limited.any() and weak.any()
+    steps.view_filters_step(s)
+    assert s.views is s.raw and 0 < len(s.filtered_views) <= U * V
+    np.testing.assert_array_equal(s.views, expected)
+    assert not np.array_equal(s.raw, raw)
+    np.testing.assert_array_equal(s.centre, raw[U // 2, V // 2])
+    steps.restore_views_step(s)
+    assert s.views is None
+    np.testing.assert_array_equal(s.raw, raw)
+    np.testing.assert_array_equal(lf.views, given)  # the caller's views untouched

@@ -28,7 +28,7 @@ from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, 
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
-from recon.lf.lightfield import view_shift_px
+from recon.lf.lightfield import to_gray, view_shift_px
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -110,23 +110,52 @@ def layer_origin_step(s: State) -> None:
 
 def view_filters_step(s: State) -> None:
     """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
-    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``)."""
+    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
+    place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it);
+    ``s.filtered_views`` lists the views it changed, which :func:`restore_views_step` reads anew
+    from the light field after the line search."""
     o, U, V = s.options, *s.raw.shape[:2]
+    noise_where = weak_where = None
     if o.noise_filter > 0 and s.noise_limited.any():
-        texture = o.noise_gate == "texture"
-        s.views = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
-                                    size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                    where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
-                                    texture_ratio=o.noise_texture_ratio if texture else None,
-                                    radius_px=o.windows.largest_radius_px)
+        noise_where = warp_mask_to_views(s.noise_limited, s.d0, (U, V))
     if o.weak_texture_filter > 0:  # the rest of the weak texture, mildly
         weak = weak_texture_pixels(_texture_ratio(s.centre, s.noise_sigma, o),
                                    texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
         if weak.any():
-            s.views = soften_views(s.views, sigma_px=o.weak_texture_filter,
-                                   where=warp_mask_to_views(weak, s.d0, (U, V)),
-                                   out=None if s.views is s.raw else s.views)  # raw is used later
-    s.lap("initial")
+            weak_where = warp_mask_to_views(weak, s.d0, (U, V))
+    texture = o.noise_gate == "texture"
+    if (noise_where is not None or weak_where is not None) and np.shares_memory(s.raw, s.source.views):
+        s.raw = s.raw.copy()  # float32 grey views as given: the caller's own array, not to be written
+    for u in range(U):
+        row = s.raw[u:u + 1]
+        views = row
+        if noise_where is not None:
+            views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                      size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                      where=noise_where[u:u + 1],
+                                      texture_ratio=o.noise_texture_ratio if texture else None,
+                                      radius_px=o.windows.largest_radius_px)
+        if weak_where is not None:
+            views = soften_views(views, sigma_px=o.weak_texture_filter, where=weak_where[u:u + 1],
+                                 out=None if views is row else views)
+        if views is not row:
+            touched = np.zeros(V, bool)
+            for where in (noise_where, weak_where):
+                if where is not None:
+                    touched |= where[u].any(axis=(1, 2))
+            s.filtered_views += [(u, v) for v in np.flatnonzero(touched)]
+            row[...] = views
+    s.views = s.raw
+
+
+def restore_views_step(s: State) -> None:
+    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the views of
+    ``s.filtered_views``, converted to grey from ``s.source`` as :func:`recon.entropy.plan.start`
+    did); ``s.views`` let go."""
+    for u, v in s.filtered_views:
+        s.raw[u, v] = to_gray(s.source.views[u, v])
+    s.filtered_views = []
+    s.views = None
 
 
 def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -145,6 +174,7 @@ def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
 def regions_step(s: State) -> None:
     """``s.labels`` (Eqs. 8-11) and ``s.region_info`` (the layer map, noise figures)."""
     o = s.options
+    s.lap("initial")
     s.reporter.step("regions", "region types")
     s.labels, s.region_info = region_labels(
         s.raw, s.d0, layer_gap=o.layer_gap, layer_median=o.layer_median,
@@ -356,6 +386,7 @@ NOISE_LIMITED = _step("noise_limited", noise_limited_step)
 SEARCH_RANGE = _step("search_range", search_range_step)
 LAYER_ORIGIN = _step("layer_origin", layer_origin_step)
 VIEW_FILTERS = _step("view_filters", view_filters_step, view_filters_reach)
+RESTORE_VIEWS = _step("restore_views", restore_views_step)
 REGIONS = _step("regions", regions_step, regions_reach)
 WINDOWS = _step("windows", windows_step, windows_reach)
 LINE_SEARCH = _step("line_search", line_search_step, line_search_reach)
