@@ -247,23 +247,26 @@ def line_search_step(s: State) -> None:
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
 
 
-#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
-#: per candidate), the penalty in both layouts, the summed-area tables and a copy of the views'
-#: rows. An image whose search needs more is searched in bands of rows, each with a halo of the
-#: rows its pixels' windows and views reach (the same maps bit for bit: every value of a pixel
-#: depends only on the rows within the halo). 1198x906 with 81 views, 77 windows and 120
-#: candidates: 1.7 MB a row, four bands; a 512x512 view set with 150 candidates stays whole.
+#: Working memory (MiB) the joint line search may take at once, unless the grey views take more
+#: (then as much as they): its cost volume (one float32 map per candidate), the penalty (both
+#: layouts while the second is made), the summed-area tables and a copy of the views' rows. An
+#: image whose search needs more is searched in bands of rows, each with a halo of the rows its
+#: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
+#: on the rows within the halo), so that the search's memory grows with the image, not with the
+#: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
+#: one band; 1198x906 with 126 candidates: 1.5 MB a row, five bands of 186 rows and their halos.
 JOINT_BAND_MIB = 256
 
 
 def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
                     budget_mib: float = JOINT_BAND_MIB) -> int:
     """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes within
-    ``budget_mib`` (at least one): per row, ``W`` pixels of ``n_candidates`` float32 costs, the
-    ``n_windows`` float32 penalty twice (as given and window by window), nine int64 summed-area
-    tables, nine float32 block images and the ``U * V`` float32 view rows."""
+    ``budget_mib`` (at least one). Per pixel of a row: the ``U * V`` float32 view samples, and the
+    larger of the two phases of :func:`recon.entropy.matching.joint_line_search`: the ``n_windows``
+    float32 penalty in both layouts, then one layout beside ``n_candidates`` float32 costs, nine
+    int64 summed-area tables and nine float32 block images."""
     U, V, _, W = views_shape
-    per_row = W * (4 * n_candidates + 8 * n_windows + 8 * 9 + 4 * 9 + 4 * U * V)
+    per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
 
 
@@ -279,8 +282,10 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     o, w = s.options, s.windows
     sizes = w["sizes"]
     U, V, H, W = s.views.shape
+    if budget_mib is None:
+        budget_mib = max(JOINT_BAND_MIB, s.views.nbytes / 2 ** 20)
     rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
-                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib)
+                           budget_mib=budget_mib)
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
     core = H if rows >= H else max(rows - 2 * halo, halo)
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
