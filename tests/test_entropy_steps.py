@@ -117,3 +117,24 @@ def test_view_filters_work_in_place_and_the_views_come_back():
     assert s.views is None
     np.testing.assert_array_equal(s.raw, raw)
     np.testing.assert_array_equal(lf.views, given)  # the caller's views untouched
+
+
+def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
+    from recon.entropy import volume
+    from recon.entropy.volume import SparseVolume
+    rng = np.random.default_rng(8)
+    H, W, K = 150, 9, 13  # more rows than one chunk, K not a multiple of 8
+    dense = rng.normal(size=(H, W, K)).astype(np.float32)
+    dense[rng.random(dense.shape) < 0.7] = -np.inf
+    dense[3, 4, :] = -np.inf  # a pixel offered nothing
+    dense[5, 5, 2] = np.nan
+    dense[6, 6, 1] = -0.0
+    packed = SparseVolume.pack(dense)
+    assert packed.nbytes < dense.nbytes / 2
+    for a, b in ((0, H), (60, 70), (63, 65), (149, 150)):
+        np.testing.assert_array_equal(packed.rows(a, b).view(np.uint32), dense[a:b].view(np.uint32))
+    index = rng.integers(-K, K, (H, W))
+    index[5, 5] = 2
+    expected = np.take_along_axis(dense, index[..., None], 2)[..., 0]
+    np.testing.assert_array_equal(packed.take(index).view(np.uint32), expected.view(np.uint32))
+    assert volume.CHUNK_ROWS < H

@@ -64,7 +64,7 @@ class State:
     #: The views the line search matches (``raw``, filtered in place where noise or weak texture
     #: rules; ``None`` once the raw views are restored).
     views: np.ndarray | None = None
-    #: ``(u, v)`` of the views the filters changed in :attr:`raw`, to be read again.
+    #: ``(u, v, first row, end row)`` of the views the filters changed in :attr:`raw`, to be read again.
     filtered_views: list = field(default_factory=list)
     disparity_range: tuple[float, float] | None = None
     origin: float | None = None

@@ -27,6 +27,7 @@ from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
+from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.lf.lightfield import to_gray, view_shift_px
 
@@ -112,8 +113,8 @@ def view_filters_step(s: State) -> None:
     """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
     weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
     place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it);
-    ``s.filtered_views`` lists the views it changed, which :func:`restore_views_step` reads anew
-    from the light field after the line search."""
+    ``s.filtered_views`` lists the views and rows it changed, which :func:`restore_views_step`
+    reads anew from the light field after the line search."""
     o, U, V = s.options, *s.raw.shape[:2]
     noise_where = weak_where = None
     if o.noise_filter > 0 and s.noise_limited.any():
@@ -139,21 +140,20 @@ def view_filters_step(s: State) -> None:
             views = soften_views(views, sigma_px=o.weak_texture_filter, where=weak_where[u:u + 1],
                                  out=None if views is row else views)
         if views is not row:
-            touched = np.zeros(V, bool)
-            for where in (noise_where, weak_where):
-                if where is not None:
-                    touched |= where[u].any(axis=(1, 2))
-            s.filtered_views += [(u, v) for v in np.flatnonzero(touched)]
+            for v in range(V):
+                changed = np.flatnonzero((views[0, v] != row[0, v]).any(axis=1))
+                if changed.size:
+                    s.filtered_views.append((u, v, int(changed[0]), int(changed[-1]) + 1))
             row[...] = views
     s.views = s.raw
 
 
 def restore_views_step(s: State) -> None:
-    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the views of
-    ``s.filtered_views``, converted to grey from ``s.source`` as :func:`recon.entropy.plan.start`
-    did); ``s.views`` let go."""
-    for u, v in s.filtered_views:
-        s.raw[u, v] = to_gray(s.source.views[u, v])
+    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the rows of the views
+    of ``s.filtered_views``, converted to grey from ``s.source`` as :func:`recon.entropy.plan.start`
+    did, pixel by pixel); ``s.views`` let go."""
+    for u, v, y0, y1 in s.filtered_views:
+        s.raw[u, v, y0:y1] = to_gray(s.source.views[u, v, y0:y1])
     s.filtered_views = []
     s.views = None
 
@@ -210,7 +210,7 @@ def windows_step(s: State) -> None:
         layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all=True,
         max_size=max_size)
     s.windows = {"sizes": sizes, "shape": shape_map, "size": size_map, "entropy": entropy,
-                 "all_entropy": all_entropy}
+                 "all_entropy": SparseVolume.pack(all_entropy)}  # -inf: not offered
     s.lap("windows")
 
 
@@ -237,7 +237,7 @@ def line_search_step(s: State) -> None:
                                                                   use_shape_set=occluded)
         w["shape"] = k // len(sizes)
         w["size"] = np.asarray(sizes)[k % len(sizes)]
-        w["entropy"] = np.take_along_axis(w["all_entropy"], k[..., None], 2)[..., 0]
+        w["entropy"] = w["all_entropy"].take(k)
     del w["all_entropy"]
     w["set"] = np.where(occluded, w["shape"], 0)
     if not o.joint:
@@ -291,7 +291,7 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 
     def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
-        p = _search_penalty(w["all_entropy"][a:b], s.noise_limited[a:b], o, len(sizes))
+        p = _search_penalty(w["all_entropy"].rows(a, b), s.noise_limited[a:b], o, len(sizes))
         return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
 
     starts = range(0, H, core)
