@@ -254,7 +254,8 @@ def line_search_step(s: State) -> None:
 #: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
 #: on the rows within the halo), so that the search's memory grows with the image, not with the
 #: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
-#: one band; 1198x906 with 126 candidates: 1.5 MB a row, five bands of 186 rows and their halos.
+#: one band; 1198x906 with 126 candidates (+-2.5 px/view): 1.5 MB a row, five bands of 197 rows,
+#: each with halos of 19.
 JOINT_BAND_MIB = 256
 
 
@@ -275,7 +276,7 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
     ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
     when the whole image's search would take more than ``budget_mib`` (default
-    :data:`JOINT_BAND_MIB`). Each band is searched with a halo of ``largest_radius_px`` plus the
+    :data:`JOINT_BAND_MIB` or the grey views' size, whichever is larger). Each band is searched with a halo of ``largest_radius_px`` plus the
     farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
     whole image's values; the penalty is made band by band, and only one band's cost volume is
     alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
@@ -492,10 +493,7 @@ def _strip_gate(centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
     """``(H, W, 2, len(sizes))`` bool: where each strip window can measure disparity
     (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)
     when the joint search gates its strips (``strip_aperture_scope="all"``), else ``None``."""
-    if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
-        return informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=opts.strip_aperture,
-                                  floor=STRIP_FLOOR, length=opts.strip_aperture_length)
-    return None
+    return _strip_ok(centre, sizes, noise, opts) if opts.strip_aperture_scope == "all" else None
 
 
 def _bar_strips(penalty: np.ndarray, ok: np.ndarray, n_sizes: int) -> np.ndarray:
