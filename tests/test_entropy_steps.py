@@ -19,3 +19,122 @@ def test_search_penalty_is_the_masked_float32_product():
         got = _search_penalty(entropy, nothing_flat, opts, 7)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
+
+
+
+def _maps(result) -> dict:
+    out = {name: getattr(result, name) for name in ("disparity", "matched_disparity", "window_size",
+                                                     "window_shape", "entropy", "cost", "confidence")}
+    out.update({f"info.{k}": v for k, v in result.info.items() if isinstance(v, np.ndarray)})
+    return out
+
+
+def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    # A budget of a few rows cuts the joint search into bands with halos; every map must be the
+    # whole image's, bit for bit (the occluding bars reach the bands' edges with depth jumps).
+    from recon.entropy import estimate_disparity, steps
+    from recon.entropy.scenes import make_scene
+    lf = make_scene("bars", size=72).lf
+    whole = _maps(estimate_disparity(lf))
+    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
+    cuts = []
+    search = steps.joint_line_search
+
+    def counted(views, *args, **kwargs):
+        cuts.append(views.shape[2])
+        return search(views, *args, **kwargs)
+
+    monkeypatch.setattr(steps, "joint_line_search", counted)
+    rows = steps.joint_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
+    monkeypatch.setattr(steps, "JOINT_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
+    banded = _maps(estimate_disparity(lf))
+    assert len(cuts) >= 3 and max(cuts) < H
+    for name, value in whole.items():
+        assert value.dtype == banded[name].dtype, name
+        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_bar_strips_in_place_is_the_gate_with_its_fallback():
+    # The strips barred where not informative; a pixel left with nothing keeps its strips.
+    from recon.entropy.steps import _bar_strips
+    from recon.entropy.windows import STRIP_SHAPES
+    rng = np.random.default_rng(4)
+    n, H, W = 3, 6, 7
+    penalty = rng.random((H, W, 11 * n)).astype(np.float32)
+    penalty[rng.random(penalty.shape) < 0.4] = np.inf
+    penalty[0, 0, :9 * n] = np.inf  # strips alone, and none informative: kept
+    ok = rng.random((H, W, 2, n)) < 0.5
+    ok[0, 0] = False
+    expected = penalty.copy()
+    for j, shape in enumerate(STRIP_SHAPES):
+        block = expected[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :]] = np.inf
+    none_left = ~np.isfinite(expected).any(axis=2)
+    expected[none_left] = penalty[none_left]
+    assert none_left[0, 0] and not none_left.all()
+    got = _bar_strips(penalty, ok, n)
+    assert got is penalty
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_view_filters_work_in_place_and_the_views_come_back():
+    # On a noisy scene both filters act: the views the line search matches must be those of the
+    # filters over a copy of the light field, made in the light field's own array, and after the
+    # search the array must hold the views as read again.
+    from recon.entropy import steps
+    from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
+    from recon.entropy.options import make_options
+    from recon.entropy.plan import PLAN, run_phase, start
+    from recon.synthetic import Layer, noise_texture, render
+    rng = np.random.default_rng(5)
+    wall = np.full((64, 64), 0.5, np.float32)  # a plain wall under noise, a textured and a faint patch
+    wall[8:30, 8:40] = noise_texture((22, 32), seed=2)
+    wall[36:60, 30:60] += 0.02 * noise_texture((24, 30), seed=3)
+    lf, _ = render([Layer(wall, 0.4)])
+    lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
+    given = lf.views.copy()
+    o = make_options()
+    s = start(lf, o)
+    for phase in PLAN[:2]:
+        run_phase(s, phase)
+    raw = s.raw.copy()
+    U, V = raw.shape[:2]
+    expected = filter_flat_views(raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                 size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                 where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
+                                 texture_ratio=o.noise_texture_ratio, radius_px=o.windows.largest_radius_px)
+    weak = weak_texture_pixels(steps._texture_ratio(s.centre, s.noise_sigma, o),
+                               texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
+    expected = soften_views(expected, sigma_px=o.weak_texture_filter, out=expected,
+                            where=warp_mask_to_views(weak, s.d0, (U, V)))
+    assert s.noise_limited.any() and weak.any()
+    steps.view_filters_step(s)
+    assert s.views is s.raw and 0 < len(s.filtered_views) <= U * V
+    np.testing.assert_array_equal(s.views, expected)
+    assert not np.array_equal(s.raw, raw)
+    np.testing.assert_array_equal(s.centre, raw[U // 2, V // 2])
+    steps.restore_views_step(s)
+    assert s.views is None
+    np.testing.assert_array_equal(s.raw, raw)
+    np.testing.assert_array_equal(lf.views, given)  # the caller's views untouched
+
+
+def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
+    from recon.entropy import volume
+    from recon.entropy.volume import SparseVolume
+    rng = np.random.default_rng(8)
+    H, W, K = 150, 9, 13  # more rows than one chunk, K not a multiple of 8
+    dense = rng.normal(size=(H, W, K)).astype(np.float32)
+    dense[rng.random(dense.shape) < 0.7] = -np.inf
+    dense[3, 4, :] = -np.inf  # a pixel offered nothing
+    dense[5, 5, 2] = np.nan
+    dense[6, 6, 1] = -0.0
+    packed = SparseVolume.pack(dense)
+    assert packed.nbytes < dense.nbytes / 2
+    for a, b in ((0, H), (60, 70), (63, 65), (149, 150)):
+        np.testing.assert_array_equal(packed.rows(a, b).view(np.uint32), dense[a:b].view(np.uint32))
+    index = rng.integers(-K, K, (H, W))
+    index[5, 5] = 2
+    expected = np.take_along_axis(dense, index[..., None], 2)[..., 0]
+    np.testing.assert_array_equal(packed.take(index).view(np.uint32), expected.view(np.uint32))
+    assert volume.CHUNK_ROWS < H

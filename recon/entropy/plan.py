@@ -50,8 +50,8 @@ PLAN: tuple[Phase, ...] = (
           writes={"d0": np.float32, "ambiguity0": np.int32, "flat": bool}),
     Phase("layers", (steps.FILL_INITIAL, steps.SNAP_INITIAL, steps.NOISE_LIMITED, steps.SEARCH_RANGE,
                      steps.LAYER_ORIGIN), tile_local=False),
-    Phase("matching", (steps.VIEW_FILTERS, steps.REGIONS, steps.WINDOWS, steps.LINE_SEARCH,
-                       steps.CENTROID, steps.BOUNDARY), tile_local=True,
+    Phase("matching", (steps.REGIONS, steps.WINDOWS, steps.VIEW_FILTERS, steps.LINE_SEARCH,
+                       steps.RESTORE_VIEWS, steps.CENTROID, steps.BOUNDARY), tile_local=True,
           reads=("d0", "ambiguity0", "flat", "noise_limited"),
           writes={"matched": np.float32, "labels": np.uint8, "ambiguity": np.int32}),
     Phase("refine", (steps.REFINE, steps.CONFIDENCE), tile_local=False),
@@ -84,7 +84,8 @@ def start(lf: LightField, options: EntropyOptions, *, progress: ProgressCallback
     n_initial = len(disparity_candidates(initial_rng[0], initial_rng[1], options.initial_step))
     guess = known if known is not None else initial_rng
     reporter = Reporter(progress, n_initial, len(disparity_candidates(guess[0], guess[1], options.step)))
-    state = State(options=options, raw=gray, views=gray, known=known, noise_sigma=noise,
+    state = State(options=options, source=lf, raw=gray, raw_centre=gray[U // 2, V // 2].copy(),
+                  views=gray, known=known, noise_sigma=noise,
                   hole_delta=steps.hole_tolerance(options, noise), initial_range=initial_rng,
                   reporter=reporter, _clock=t)
     for name, value in shared.items():

@@ -44,8 +44,13 @@ class State:
     disparities in px/view."""
 
     options: EntropyOptions
-    #: ``(U, V, H, W)`` float32 grey views in ``[0, 1]`` as read.
+    #: The light field the grey views were read from.
+    source: Any
+    #: ``(U, V, H, W)`` float32 grey views in ``[0, 1]`` as read (from the view filters to the
+    #: end of the line search: filtered in place, :attr:`views`).
     raw: np.ndarray
+    #: ``(H, W)`` float32 centre view of :attr:`raw` as read (:attr:`centre`).
+    raw_centre: np.ndarray
     #: The range given by the options or the light field, or ``None``.
     known: tuple[float, float] | None
     #: The centre view's noise sigma in ``[0, 1]`` grey units.
@@ -56,8 +61,11 @@ class State:
     initial_range: tuple[float, float]
     reporter: Any
     timings: dict[str, float] = field(default_factory=dict)
-    #: The views the line search matches (``raw``, filtered where noise or weak texture rules).
+    #: The views the line search matches (``raw``, filtered in place where noise or weak texture
+    #: rules; ``None`` once the raw views are restored).
     views: np.ndarray | None = None
+    #: ``(u, v, first row, end row)`` of the views the filters changed in :attr:`raw`, to be read again.
+    filtered_views: list = field(default_factory=list)
     disparity_range: tuple[float, float] | None = None
     origin: float | None = None
     flat: np.ndarray | None = None
@@ -78,9 +86,8 @@ class State:
 
     @property
     def centre(self) -> np.ndarray:
-        """The centre view of :attr:`raw`, ``(H, W)``."""
-        U, V = self.raw.shape[:2]
-        return self.raw[U // 2, V // 2]
+        """The centre view as read, ``(H, W)`` (:attr:`raw_centre`; unchanged by the view filters)."""
+        return self.raw_centre
 
     def lap(self, name: str) -> None:
         """Record the seconds since the last lap as ``timings[name]``."""

@@ -27,7 +27,9 @@ from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
+from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
+from recon.lf.lightfield import to_gray, view_shift_px
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -109,23 +111,51 @@ def layer_origin_step(s: State) -> None:
 
 def view_filters_step(s: State) -> None:
     """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
-    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``)."""
+    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
+    place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it);
+    ``s.filtered_views`` lists the views and rows it changed, which :func:`restore_views_step`
+    reads anew from the light field after the line search."""
     o, U, V = s.options, *s.raw.shape[:2]
+    noise_where = weak_where = None
     if o.noise_filter > 0 and s.noise_limited.any():
-        texture = o.noise_gate == "texture"
-        s.views = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
-                                    size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                    where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
-                                    texture_ratio=o.noise_texture_ratio if texture else None,
-                                    radius_px=o.windows.largest_radius_px)
+        noise_where = warp_mask_to_views(s.noise_limited, s.d0, (U, V))
     if o.weak_texture_filter > 0:  # the rest of the weak texture, mildly
         weak = weak_texture_pixels(_texture_ratio(s.centre, s.noise_sigma, o),
                                    texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
         if weak.any():
-            s.views = soften_views(s.views, sigma_px=o.weak_texture_filter,
-                                   where=warp_mask_to_views(weak, s.d0, (U, V)),
-                                   out=None if s.views is s.raw else s.views)  # raw is used later
-    s.lap("initial")
+            weak_where = warp_mask_to_views(weak, s.d0, (U, V))
+    texture = o.noise_gate == "texture"
+    if (noise_where is not None or weak_where is not None) and np.shares_memory(s.raw, s.source.views):
+        s.raw = s.raw.copy()  # float32 grey views as given: the caller's own array, not to be written
+    for u in range(U):
+        row = s.raw[u:u + 1]
+        views = row
+        if noise_where is not None:
+            views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                      size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                      where=noise_where[u:u + 1],
+                                      texture_ratio=o.noise_texture_ratio if texture else None,
+                                      radius_px=o.windows.largest_radius_px)
+        if weak_where is not None:
+            views = soften_views(views, sigma_px=o.weak_texture_filter, where=weak_where[u:u + 1],
+                                 out=None if views is row else views)
+        if views is not row:
+            for v in range(V):
+                changed = np.flatnonzero((views[0, v] != row[0, v]).any(axis=1))
+                if changed.size:
+                    s.filtered_views.append((u, v, int(changed[0]), int(changed[-1]) + 1))
+            row[...] = views
+    s.views = s.raw
+
+
+def restore_views_step(s: State) -> None:
+    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the rows of the views
+    of ``s.filtered_views``, converted to grey from ``s.source`` as :func:`recon.entropy.plan.start`
+    did, pixel by pixel); ``s.views`` let go."""
+    for u, v, y0, y1 in s.filtered_views:
+        s.raw[u, v, y0:y1] = to_gray(s.source.views[u, v, y0:y1])
+    s.filtered_views = []
+    s.views = None
 
 
 def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -144,6 +174,7 @@ def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
 def regions_step(s: State) -> None:
     """``s.labels`` (Eqs. 8-11) and ``s.region_info`` (the layer map, noise figures)."""
     o = s.options
+    s.lap("initial")
     s.reporter.step("regions", "region types")
     s.labels, s.region_info = region_labels(
         s.raw, s.d0, layer_gap=o.layer_gap, layer_median=o.layer_median,
@@ -179,7 +210,7 @@ def windows_step(s: State) -> None:
         layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all=True,
         max_size=max_size)
     s.windows = {"sizes": sizes, "shape": shape_map, "size": size_map, "entropy": entropy,
-                 "all_entropy": all_entropy}
+                 "all_entropy": SparseVolume.pack(all_entropy)}  # -inf: not offered
     s.lap("windows")
 
 
@@ -202,15 +233,11 @@ def line_search_step(s: State) -> None:
                 "all": np.ones(labels.shape, bool)}[o.visible_sets]
     if o.joint:
         windows = [(sh, z) for sh in range(N_SHAPES if o.strip_windows else 9) for z in sizes]
-        s.matched, s.cost, k, s.ambiguity = joint_line_search(  # penalty: a temporary, freed in there
-            s.views, candidates, windows=windows,
-            penalty=_gate_strips_if(_search_penalty(w["all_entropy"], s.noise_limited, o, len(sizes)),
-                                    s.centre, sizes=sizes, noise=s.noise_sigma, opts=o),
-            use_shape_set=occluded, intensity_scale=o.intensity_scale, ambiguity_delta=s.hole_delta,
-            progress=s.reporter.within)
+        s.matched, s.cost, k, s.ambiguity = joint_search_in_bands(s, candidates, windows=windows,
+                                                                  use_shape_set=occluded)
         w["shape"] = k // len(sizes)
         w["size"] = np.asarray(sizes)[k % len(sizes)]
-        w["entropy"] = np.take_along_axis(w["all_entropy"], k[..., None], 2)[..., 0]
+        w["entropy"] = w["all_entropy"].take(k)
     del w["all_entropy"]
     w["set"] = np.where(occluded, w["shape"], 0)
     if not o.joint:
@@ -218,6 +245,71 @@ def line_search_step(s: State) -> None:
                                                set_map=w["set"], return_costs=True,
                                                progress=s.reporter.within)
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
+
+
+#: Working memory (MiB) the joint line search may take at once, unless the grey views take more
+#: (then as much as they): its cost volume (one float32 map per candidate), the penalty (both
+#: layouts while the second is made), the summed-area tables and a copy of the views' rows. An
+#: image whose search needs more is searched in bands of rows, each with a halo of the rows its
+#: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
+#: on the rows within the halo), so that the search's memory grows with the image, not with the
+#: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
+#: one band; 1198x906 with 126 candidates (+-2.5 px/view): 1.5 MB a row, five bands of 197 rows,
+#: each with halos of 19.
+JOINT_BAND_MIB = 256
+
+
+def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
+                    budget_mib: float = JOINT_BAND_MIB) -> int:
+    """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes within
+    ``budget_mib`` (at least one). Per pixel of a row: the ``U * V`` float32 view samples, and the
+    larger of the two phases of :func:`recon.entropy.matching.joint_line_search`: the ``n_windows``
+    float32 penalty in both layouts, then one layout beside ``n_candidates`` float32 costs, nine
+    int64 summed-area tables and nine float32 block images."""
+    U, V, _, W = views_shape
+    per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
+    return max(int(budget_mib * 2 ** 20 // per_row), 1)
+
+
+def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tuple[int, int]],
+                          use_shape_set: np.ndarray, budget_mib: float | None = None):
+    """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
+    ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
+    when the whole image's search would take more than ``budget_mib`` (default
+    :data:`JOINT_BAND_MIB` or the grey views' size, whichever is larger). Each band is searched with a halo of ``largest_radius_px`` plus the
+    farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
+    whole image's values; the penalty is made band by band, and only one band's cost volume is
+    alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
+    o, w = s.options, s.windows
+    sizes = w["sizes"]
+    U, V, H, W = s.views.shape
+    if budget_mib is None:
+        budget_mib = max(JOINT_BAND_MIB, s.views.nbytes / 2 ** 20)
+    rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
+                           budget_mib=budget_mib)
+    halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
+    core = H if rows >= H else max(rows - 2 * halo, halo)
+    gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
+
+    def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
+        p = _search_penalty(w["all_entropy"].rows(a, b), s.noise_limited[a:b], o, len(sizes))
+        return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
+
+    starts = range(0, H, core)
+    maps = (np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
+            np.empty((H, W), np.int32))
+    for i, y0 in enumerate(starts):
+        y1 = min(y0 + core, H)
+        a, b = max(y0 - halo, 0), min(y1 + halo, H)
+        band = joint_line_search(  # the penalty a temporary, freed in there
+            s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
+            use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
+            ambiguity_delta=s.hole_delta,
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(starts)))
+        for out, got in zip(maps, band):
+            out[y0:y1] = got[y0 - a:y1 - a]
+        del band
+    return maps
 
 
 def line_search_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -300,6 +392,7 @@ NOISE_LIMITED = _step("noise_limited", noise_limited_step)
 SEARCH_RANGE = _step("search_range", search_range_step)
 LAYER_ORIGIN = _step("layer_origin", layer_origin_step)
 VIEW_FILTERS = _step("view_filters", view_filters_step, view_filters_reach)
+RESTORE_VIEWS = _step("restore_views", restore_views_step)
 REGIONS = _step("regions", regions_step, regions_reach)
 WINDOWS = _step("windows", windows_step, windows_reach)
 LINE_SEARCH = _step("line_search", line_search_step, line_search_reach)
@@ -333,7 +426,7 @@ def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: En
         out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
     out[~np.isfinite(all_entropy)] = np.inf
     if opts.flat_windows == "largest":
-        out = _largest_windows_only(out, noise_limited, n_sizes)
+        out = _largest_windows_only(out, noise_limited, n_sizes, in_place=True)
     return out
 
 
@@ -358,7 +451,8 @@ def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: flo
                           sure_width=options.initial_hole_width)
 
 
-def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -> np.ndarray:
+def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *,
+                          in_place: bool = False) -> np.ndarray:
     """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
     size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
     size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
@@ -376,7 +470,7 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int) -
     bar = size_of[None, :] != largest[:, None]
     has_square = by_size[np.arange(N), 0, largest]
     bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
-    out = penalty.astype(np.float32, copy=True)
+    out = penalty if in_place else penalty.astype(np.float32, copy=True)
     out[ys, xs] = np.where(bar, np.inf, sub)
     return out
 
@@ -394,31 +488,30 @@ def _strip_ok(centre: np.ndarray, sizes: tuple[int, ...], noise: float,
                               floor=STRIP_FLOOR, length=opts.strip_aperture_length)
 
 
-def _gate_strips_if(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                    opts: EntropyOptions) -> np.ndarray:
-    """:func:`_gate_strips` when ``opts.strip_aperture_scope`` is ``"all"``, else ``penalty`` itself."""
-    if opts.strip_windows and opts.strip_aperture > 0 and opts.strip_aperture_scope == "all":
-        return _gate_strips(penalty, centre, sizes=sizes, noise=noise, factor=opts.strip_aperture,
-                            length=opts.strip_aperture_length)
-    return penalty
+def _strip_gate(centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
+                opts: EntropyOptions) -> np.ndarray | None:
+    """``(H, W, 2, len(sizes))`` bool: where each strip window can measure disparity
+    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)
+    when the joint search gates its strips (``strip_aperture_scope="all"``), else ``None``."""
+    return _strip_ok(centre, sizes, noise, opts) if opts.strip_aperture_scope == "all" else None
 
 
-def _gate_strips(penalty: np.ndarray, centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
-                 factor: float, length: int) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` (window ``k``: shape ``k // len(sizes)``, size ``sizes[k % len]``)
-    with the strip windows barred where they cannot measure disparity
-    (:func:`recon.entropy.aperture.informative_strips`; the floor is Eq. 12's, half a grey level)."""
-    n = len(sizes)
-    ok = informative_strips(centre, sizes=sizes, noise_sigma=noise, factor=factor, floor=STRIP_FLOOR,
-                            length=length)
-    out = penalty.copy()
+def _bar_strips(penalty: np.ndarray, ok: np.ndarray, n_sizes: int) -> np.ndarray:
+    """``penalty`` ``(H, W, K)`` float32 (window ``k``: shape ``k // n_sizes``, the ``k %
+    n_sizes``-th size) with the strip windows barred (``inf``) where ``ok`` (:func:`_strip_gate`)
+    says they cannot measure disparity, in place. A pixel offered nothing but uninformative strips
+    keeps them: some window must be matched."""
+    n = n_sizes
+    kept = np.zeros(penalty.shape[:2], bool)  # pixels left some window after the gate
+    for shape in range(penalty.shape[2] // n):
+        block = np.isfinite(penalty[..., shape * n:(shape + 1) * n])
+        if shape in STRIP_SHAPES:
+            block &= ok[..., STRIP_SHAPES.index(shape), :]
+        kept |= block.any(axis=2)
     for j, shape in enumerate(STRIP_SHAPES):
-        block = out[..., shape * n:(shape + 1) * n]
-        block[~ok[..., j, :]] = np.inf
-    # A pixel offered nothing but uninformative strips keeps them: some window must be matched.
-    none_left = ~np.isfinite(out).any(axis=2)
-    out[none_left] = penalty[none_left]
-    return out.astype(np.float32)
+        block = penalty[..., shape * n:(shape + 1) * n]
+        block[~ok[..., j, :] & kept[..., None]] = np.inf
+    return penalty
 
 
 def noise_limited_pixels(centre: np.ndarray, flat: np.ndarray, ambiguity0: np.ndarray, *,

@@ -1,0 +1,82 @@
+"""A per-pixel volume kept between steps in the room of its few meaningful entries.
+
+The windows step scores every window at every pixel, ``(H, W, K)`` float32 with ``-inf`` for the
+windows a pixel is not offered; most pixels are offered few of the ``K`` (7 of 77 away from depth
+edges), and the line search reads the volume only a band of rows at a time and once more at each
+pixel's chosen window. :class:`SparseVolume` holds the entries that are not the fill value, bit for
+bit, with a bit mask per pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Rows packed or unpacked at a time (keeps the ``(rows, W, K)`` temporaries small).
+CHUNK_ROWS = 64
+
+
+@dataclass(frozen=True)
+class SparseVolume:
+    """An ``(H, W, K)`` float32 volume: ``fill`` everywhere but at the entries of ``mask``.
+
+    ``mask``: ``(H, W, ceil(K / 8))`` uint8, the entries that are not ``fill`` packed along ``K``
+    (:func:`numpy.packbits`); ``start``: ``(H * W + 1,)`` int64, where each pixel's entries begin
+    in ``values`` (pixels in row-major order, a pixel's entries by ascending ``k``)."""
+
+    shape: tuple[int, int, int]
+    fill: float
+    mask: np.ndarray
+    start: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def pack(cls, dense: np.ndarray, *, fill: float = -np.inf) -> SparseVolume:
+        """The entries of ``dense`` ``(H, W, K)`` float32 that are not ``fill`` (NaN is kept)."""
+        H, W, K = dense.shape
+        masks, values, counts = [], [], []
+        for y in range(0, H, CHUNK_ROWS):
+            block = dense[y:y + CHUNK_ROWS]
+            keep = ~(block == np.float32(fill))
+            masks.append(np.packbits(keep, axis=2))
+            counts.append(keep.sum(axis=2).ravel())
+            values.append(block[keep])
+        start = np.zeros(H * W + 1, np.int64)
+        np.cumsum(np.concatenate(counts), out=start[1:])
+        return cls((H, W, K), float(fill), np.concatenate(masks), start,
+                   np.concatenate(values).astype(np.float32, copy=False))
+
+    @property
+    def nbytes(self) -> int:
+        return self.mask.nbytes + self.start.nbytes + self.values.nbytes
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Rows ``[a, b)`` as a dense ``(b - a, W, K)`` float32 array."""
+        H, W, K = self.shape
+        a, b = max(a, 0), min(b, H)
+        out = np.full((b - a, W, K), np.float32(self.fill), np.float32)
+        keep = np.unpackbits(self.mask[a:b], axis=2, count=K).view(bool)
+        out[keep] = self.values[self.start[a * W]:self.start[b * W]]
+        return out
+
+    def take(self, index: np.ndarray) -> np.ndarray:
+        """``(H, W)`` float32: each pixel's entry at its ``index`` ``(H, W)`` in ``-K..K-1``
+        (negative from the end), as ``np.take_along_axis(dense, index[..., None], 2)[..., 0]``."""
+        H, W, K = self.shape
+        index = np.asarray(index)
+        if index.shape != (H, W) or (index.size and (index.min() < -K or index.max() >= K)):
+            raise ValueError(f"index must be ({H}, {W}) in {-K}..{K - 1}")
+        index = np.where(index < 0, index + K, index)
+        out = np.full((H, W), np.float32(self.fill), np.float32)
+        if self.values.size == 0:
+            return out
+        for y in range(0, H, CHUNK_ROWS):
+            keep = np.unpackbits(self.mask[y:y + CHUNK_ROWS], axis=2, count=K).view(bool)
+            k = index[y:y + CHUNK_ROWS, :, None].astype(np.int64)
+            before = np.cumsum(keep, axis=2, dtype=np.int32)  # entries up to and including k
+            rank = np.take_along_axis(before, k, 2)[..., 0].astype(np.int64) - 1
+            kept = np.take_along_axis(keep, k, 2)[..., 0]
+            first = self.start[y * W:(y + keep.shape[0]) * W].reshape(keep.shape[:2])
+            out[y:y + CHUNK_ROWS] = np.where(kept, self.values[np.where(kept, first + rank, 0)], np.float32(self.fill))
+        return out
