@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from recon.progress import ProgressCallback, report
@@ -43,24 +44,50 @@ def parabolic_refine(volume: np.ndarray, candidates: np.ndarray) -> tuple[np.nda
     """Sub-pixel minimum of a cost volume ``(D, H, W)`` by a parabola through the best and its neighbours.
 
     Returns ``(disparity, cost)`` ``(H, W)`` float32. At the ends of the range (and with fewer than three
-    candidates) the integer minimum is kept.
+    candidates) the integer minimum is kept. The readable twin of the sweep in :func:`estimate_baseline`,
+    which keeps only the best candidate and its two neighbours instead of the volume.
     """
     best = np.argmin(volume, axis=0)
     rows, cols = np.indices(best.shape)
+    inner = np.clip(best, 1, len(candidates) - 2) if len(candidates) >= 3 else best
+    return parabola_vertex(best, volume[inner - 1, rows, cols], volume[best, rows, cols],
+                           volume[inner + 1 if len(candidates) >= 3 else inner, rows, cols], candidates)
+
+
+def parabola_vertex(best: np.ndarray, c_minus: np.ndarray, c_zero: np.ndarray, c_plus: np.ndarray,
+                    candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(disparity, cost)`` ``(H, W)`` float32 from the index of each pixel's least cost ``best``
+    ``(H, W)`` int, that cost ``c_zero`` and its neighbours' ``c_minus``, ``c_plus`` (float32; read
+    only where ``0 < best < D - 1``): the vertex of the parabola through the three, within half a
+    step of the best candidate; at the ends of the range the best candidate itself."""
     if len(candidates) < 3:  # no neighbours on both sides: the best candidate as it is
-        return candidates[best].astype(np.float32), volume[best, rows, cols].astype(np.float32)
-    inner = np.clip(best, 1, len(candidates) - 2)
-    c_minus = volume[inner - 1, rows, cols]
-    c_zero = volume[inner, rows, cols]
-    c_plus = volume[inner + 1, rows, cols]
+        return candidates[best].astype(np.float32), c_zero.astype(np.float32)
     curvature = c_minus - 2 * c_zero + c_plus
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         delta = np.where(curvature > 0, 0.5 * (c_minus - c_plus) / curvature, 0.0)
     delta = np.clip(delta, -0.5, 0.5)
     delta[(best == 0) | (best == len(candidates) - 1)] = 0.0
-    step = candidates[1] - candidates[0] if len(candidates) > 1 else 0.0
+    step = candidates[1] - candidates[0]
     disparity = candidates[best] + delta * step
-    return disparity.astype(np.float32), volume[best, rows, cols].astype(np.float32)
+    return disparity.astype(np.float32), c_zero.astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _keep_least(cost, previous, index, best, best_index, c_minus, c_plus):
+    # One candidate of the sweep: the pixels whose least cost so far is the previous candidate get
+    # this cost as its right neighbour; a strictly lower cost (or the first NaN, as np.argmin) takes
+    # the place, with the previous candidate's cost as its left neighbour.
+    H, W = cost.shape
+    for y in numba.prange(H):
+        for x in range(W):
+            c = cost[y, x]
+            b = best[y, x]
+            if best_index[y, x] == index - 1:
+                c_plus[y, x] = c
+            if index == 0 or c < b or (c != c and b == b):
+                best[y, x] = c
+                best_index[y, x] = index
+                c_minus[y, x] = previous[y, x]
 
 
 def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple[float, float] | None = None,
@@ -108,12 +135,21 @@ def estimate_baseline(
     check_options(window=window, step=step, disparity_range=disparity_range)
     disparity_range = disparity_range or lf.disparity_range or DEFAULT_DISPARITY_RANGE
     candidates = disparity_candidates(disparity_range, step)
-    gray = lf.gray()
+    gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
     offsets = view_offsets(lf.grid_shape)
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
-    volume = np.empty((len(candidates),) + lf.image_shape, dtype=np.float32)
+    # One plane sweep: each candidate's window cost is compared with the least so far; the volume
+    # of every candidate's cost is never held (what parabolic_refine would read of it is kept).
+    shape = lf.image_shape
+    best = np.empty(shape, np.float32)
+    best_index = np.zeros(shape, np.int64)
+    c_minus = np.zeros(shape, np.float32)
+    c_plus = np.zeros(shape, np.float32)
+    previous = np.zeros(shape, np.float32)
     for i, d in enumerate(candidates):
-        volume[i] = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
+        cost = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
+        _keep_least(cost, previous, i, best, best_index, c_minus, c_plus)
+        previous = cost
         report(progress, (i + 1) / len(candidates), "disparity candidates")
-    disparity, cost = parabolic_refine(volume, candidates)
+    disparity, cost = parabola_vertex(best_index, c_minus, best, c_plus, candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)
