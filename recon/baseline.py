@@ -1,7 +1,7 @@
 """The baseline estimator: a fixed square window, SAD over all views, parabolic sub-pixel refinement.
 
 It is the yardstick the matching-entropy method must beat, so it is an honest one: every view
-takes part, the disparity search is dense, and the cost volume is built by a compiled kernel.
+takes part, the disparity search is dense, and the plane sweep runs in a compiled kernel.
 """
 
 from __future__ import annotations
@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from recon.progress import ProgressCallback, report
-from recon.costvolume import box_mean, pixel_cost, view_offsets
+from recon.costvolume import sweep_least_cost, view_offsets
 from recon.lf.lightfield import LightField
+
+#: Candidates per call of the sweep kernel (progress is reported after each call).
+SWEEP_CHUNK = 8
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)
@@ -72,24 +74,6 @@ def parabola_vertex(best: np.ndarray, c_minus: np.ndarray, c_zero: np.ndarray, c
     return disparity.astype(np.float32), c_zero.astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True)
-def _keep_least(cost, previous, index, best, best_index, c_minus, c_plus):
-    # One candidate of the sweep: the pixels whose least cost so far is the previous candidate get
-    # this cost as its right neighbour; a strictly lower cost (or the first NaN, as np.argmin) takes
-    # the place, with the previous candidate's cost as its left neighbour.
-    H, W = cost.shape
-    for y in numba.prange(H):
-        for x in range(W):
-            c = cost[y, x]
-            b = best[y, x]
-            if best_index[y, x] == index - 1:
-                c_plus[y, x] = c
-            if index == 0 or c < b or (c != c and b == b):
-                best[y, x] = c
-                best_index[y, x] = index
-                c_minus[y, x] = previous[y, x]
-
-
 def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple[float, float] | None = None,
                   **unknown: object) -> None:
     """Raise ``ValueError`` naming an option value :func:`estimate_baseline` cannot use."""
@@ -126,7 +110,7 @@ def estimate_baseline(
     disparity_range
         ``(min, max)`` to search; defaults to ``lf.disparity_range``, else :data:`DEFAULT_DISPARITY_RANGE`.
     progress
-        ``progress(fraction, message)`` after each candidate (:mod:`recon.progress`).
+        ``progress(fraction, message)`` after every :data:`SWEEP_CHUNK` candidates (:mod:`recon.progress`).
 
     Returns
     -------
@@ -138,18 +122,15 @@ def estimate_baseline(
     gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
     offsets = view_offsets(lf.grid_shape)
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
-    # One plane sweep: each candidate's window cost is compared with the least so far; the volume
-    # of every candidate's cost is never held (what parabolic_refine would read of it is kept).
-    shape = lf.image_shape
-    best = np.empty(shape, np.float32)
-    best_index = np.zeros(shape, np.int64)
-    c_minus = np.zeros(shape, np.float32)
-    c_plus = np.zeros(shape, np.float32)
-    previous = np.zeros(shape, np.float32)
-    for i, d in enumerate(candidates):
-        cost = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
-        _keep_least(cost, previous, i, best, best_index, c_minus, c_plus)
-        previous = cost
-        report(progress, (i + 1) / len(candidates), "disparity candidates")
-    disparity, cost = parabola_vertex(best_index, c_minus, best, c_plus, candidates)
+    # One plane sweep (recon.costvolume.sweep_least_cost): each candidate's window cost is compared
+    # with the least so far; the volume of every candidate's cost is never held (what
+    # parabolic_refine would read of it is kept). In chunks, for the progress.
+    state = None
+    for first in range(0, len(candidates), SWEEP_CHUNK):
+        chunk = candidates[first:first + SWEEP_CHUNK]
+        state = sweep_least_cost(gray, chunk, offsets=offsets, indices=indices, window=window, state=state,
+                                 first=first)
+        report(progress, (first + len(chunk)) / len(candidates), "disparity candidates")
+    best_index, best = state["best_index"], state["best"]
+    disparity, cost = parabola_vertex(best_index, state["c_minus"], best, state["c_plus"], candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)

@@ -71,6 +71,27 @@ def test_sweep_gives_what_the_cost_volume_gives():
     np.testing.assert_array_equal(result.cost, cost)
 
 
+@pytest.mark.parametrize("bands", [1, 3, 7])
+def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
+    from recon.costvolume import box_mean, sweep_least_cost
+
+    gray = np.random.default_rng(5).random((5, 5, 23, 19)).astype(np.float32)
+    offsets = view_offsets((5, 5))
+    indices = (offsets + 2).astype(np.int64)
+    candidates = np.linspace(-1.3, 1.1, 9)
+    volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 5) for d in candidates])
+    state = sweep_least_cost(gray, candidates[:4], offsets=offsets, indices=indices, window=5, bands=bands)
+    state = sweep_least_cost(gray, candidates[4:], offsets=offsets, indices=indices, window=5, bands=bands,
+                             state=state, first=4)
+    best = np.argmin(volume, axis=0)
+    rows, cols = np.indices(best.shape)
+    np.testing.assert_array_equal(state["best_index"], best)
+    np.testing.assert_array_equal(state["best"], volume[best, rows, cols])
+    inner = (best > 0) & (best < len(candidates) - 1)
+    np.testing.assert_array_equal(state["c_minus"][inner], volume[best - 1, rows, cols][inner])
+    np.testing.assert_array_equal(state["c_plus"][inner], volume[np.minimum(best + 1, 8), rows, cols][inner])
+
+
 def test_baseline_recovers_a_fronto_parallel_plane_to_sub_pixel_accuracy():
     lf, truth = render([Layer(noise_texture((48, 48), seed=5), 0.43)], grid=(9, 9))
     result = estimate_baseline(lf, window=7, step=0.05, disparity_range=(-1.0, 1.0))
