@@ -1,7 +1,7 @@
 """The baseline estimator: a fixed square window, SAD over all views, parabolic sub-pixel refinement.
 
 It is the yardstick the matching-entropy method must beat, so it is an honest one: every view
-takes part, the disparity search is dense, and the cost volume is built by a compiled kernel.
+takes part, the disparity search is dense, and the plane sweep runs in a compiled kernel.
 """
 
 from __future__ import annotations
@@ -12,8 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon.progress import ProgressCallback, report
-from recon.costvolume import box_mean, pixel_cost, view_offsets
+from recon.costvolume import sweep_least_cost, view_offsets
 from recon.lf.lightfield import LightField
+
+#: Candidates per call of the sweep kernel (progress is reported after each call).
+SWEEP_CHUNK = 8
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)
@@ -43,24 +46,32 @@ def parabolic_refine(volume: np.ndarray, candidates: np.ndarray) -> tuple[np.nda
     """Sub-pixel minimum of a cost volume ``(D, H, W)`` by a parabola through the best and its neighbours.
 
     Returns ``(disparity, cost)`` ``(H, W)`` float32. At the ends of the range (and with fewer than three
-    candidates) the integer minimum is kept.
+    candidates) the integer minimum is kept. The readable twin of the sweep in :func:`estimate_baseline`,
+    which keeps only the best candidate and its two neighbours instead of the volume.
     """
     best = np.argmin(volume, axis=0)
     rows, cols = np.indices(best.shape)
+    inner = np.clip(best, 1, len(candidates) - 2) if len(candidates) >= 3 else best
+    return parabola_vertex(best, volume[inner - 1, rows, cols], volume[best, rows, cols],
+                           volume[inner + 1 if len(candidates) >= 3 else inner, rows, cols], candidates)
+
+
+def parabola_vertex(best: np.ndarray, c_minus: np.ndarray, c_zero: np.ndarray, c_plus: np.ndarray,
+                    candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(disparity, cost)`` ``(H, W)`` float32 from the index of each pixel's least cost ``best``
+    ``(H, W)`` int, that cost ``c_zero`` and its neighbours' ``c_minus``, ``c_plus`` (float32; read
+    only where ``0 < best < D - 1``): the vertex of the parabola through the three, within half a
+    step of the best candidate; at the ends of the range the best candidate itself."""
     if len(candidates) < 3:  # no neighbours on both sides: the best candidate as it is
-        return candidates[best].astype(np.float32), volume[best, rows, cols].astype(np.float32)
-    inner = np.clip(best, 1, len(candidates) - 2)
-    c_minus = volume[inner - 1, rows, cols]
-    c_zero = volume[inner, rows, cols]
-    c_plus = volume[inner + 1, rows, cols]
+        return candidates[best].astype(np.float32), c_zero.astype(np.float32)
     curvature = c_minus - 2 * c_zero + c_plus
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         delta = np.where(curvature > 0, 0.5 * (c_minus - c_plus) / curvature, 0.0)
     delta = np.clip(delta, -0.5, 0.5)
     delta[(best == 0) | (best == len(candidates) - 1)] = 0.0
-    step = candidates[1] - candidates[0] if len(candidates) > 1 else 0.0
+    step = candidates[1] - candidates[0]
     disparity = candidates[best] + delta * step
-    return disparity.astype(np.float32), volume[best, rows, cols].astype(np.float32)
+    return disparity.astype(np.float32), c_zero.astype(np.float32)
 
 
 def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple[float, float] | None = None,
@@ -99,7 +110,7 @@ def estimate_baseline(
     disparity_range
         ``(min, max)`` to search; defaults to ``lf.disparity_range``, else :data:`DEFAULT_DISPARITY_RANGE`.
     progress
-        ``progress(fraction, message)`` after each candidate (:mod:`recon.progress`).
+        ``progress(fraction, message)`` after every :data:`SWEEP_CHUNK` candidates (:mod:`recon.progress`).
 
     Returns
     -------
@@ -108,12 +119,18 @@ def estimate_baseline(
     check_options(window=window, step=step, disparity_range=disparity_range)
     disparity_range = disparity_range or lf.disparity_range or DEFAULT_DISPARITY_RANGE
     candidates = disparity_candidates(disparity_range, step)
-    gray = lf.gray()
+    gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
     offsets = view_offsets(lf.grid_shape)
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
-    volume = np.empty((len(candidates),) + lf.image_shape, dtype=np.float32)
-    for i, d in enumerate(candidates):
-        volume[i] = box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), window)
-        report(progress, (i + 1) / len(candidates), "disparity candidates")
-    disparity, cost = parabolic_refine(volume, candidates)
+    # One plane sweep (recon.costvolume.sweep_least_cost): each candidate's window cost is compared
+    # with the least so far; the volume of every candidate's cost is never held (what
+    # parabolic_refine would read of it is kept). In chunks, for the progress.
+    state = None
+    for first in range(0, len(candidates), SWEEP_CHUNK):
+        chunk = candidates[first:first + SWEEP_CHUNK]
+        state = sweep_least_cost(gray, chunk, offsets=offsets, indices=indices, window=window, state=state,
+                                 first=first)
+        report(progress, (first + len(chunk)) / len(candidates), "disparity candidates")
+    best_index, best = state["best_index"], state["best"]
+    disparity, cost = parabola_vertex(best_index, state["c_minus"], best, state["c_plus"], candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)

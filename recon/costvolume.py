@@ -76,44 +76,89 @@ def pixel_cost_reference(
 # Only the fast-math flags that cannot change a finite result (no NaN/inf, sign of zero): with
 # reassociation or FMA contraction, a freshly compiled kernel and its cached twin in another process
 # rounded differently, and a batch worker disagreed with `lfrig reconstruct` in the last bits.
-@numba.njit(parallel=True, fastmath={"nnan", "ninf", "nsz"}, cache=True)
-def _pixel_cost_kernel(gray, disparity, offsets, indices, out):
-    n_views = offsets.shape[0]
-    h, w = gray.shape[2], gray.shape[3]
-    centre = gray[gray.shape[0] // 2, gray.shape[1] // 2]
-    inv = np.float32(1.0 / n_views)
-    for y in numba.prange(h):
-        acc = np.zeros(w, dtype=np.float32)
-        for k in range(n_views):
-            view = gray[indices[k, 0], indices[k, 1]]
-            sy = y - offsets[k, 0] * disparity
-            sy = min(max(sy, 0.0), h - 1.0)
-            y0 = min(int(np.floor(sy)), h - 2) if h > 1 else 0
-            fy = np.float32(sy - y0)
-            y1 = min(y0 + 1, h - 1)
-            shift_x = -offsets[k, 1] * disparity
-            for x in range(w):
-                sx = min(max(x + shift_x, 0.0), w - 1.0)
-                x0 = min(int(np.floor(sx)), w - 2) if w > 1 else 0
-                fx = np.float32(sx - x0)
-                x1 = min(x0 + 1, w - 1)
-                top = view[y0, x0] + (view[y0, x1] - view[y0, x0]) * fx
-                bottom = view[y1, x0] + (view[y1, x1] - view[y1, x0]) * fx
-                acc[x] += abs(centre[y, x] - (top + (bottom - top) * fy))
-        for x in range(w):
+FAST = {"nnan", "ninf", "nsz"}
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def _cost_row(gray, vu, vv, oy, fy, ox, fx, y, acc, rv):
+    # The summed absolute differences of the centre view's row y into acc (float32, W). Bilinear
+    # sampling is separable: each view's two source rows are blended into one row (one fraction fy
+    # for the whole row), then that row is sampled along x with one fraction fx for the whole row,
+    # since the shift is the same for every pixel. The integer parts oy, ox and the fractions depend
+    # only on the shift, not on where the image starts. The middle run indexes slices from 0 so that
+    # numba vectorises it (float32, 8 SIMD lanes). rv: a float32 row to work in.
+    H, W = gray.shape[2], gray.shape[3]
+    c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
+    one = np.float32(1.0)
+    acc[:] = 0.0
+    for k in range(vu.shape[0]):
+        img = gray[vu[k], vv[k]]
+        y0 = y + oy[k]
+        if y0 < 0:  # above the image: its first row (edges replicated)
+            row = img[0]
+        elif y0 >= H - 1:  # below: its last row
+            row = img[H - 1]
+        elif fy[k] == 0.0:  # on a row: 1 * a + 0 * b is a
+            row = img[y0]
+        else:
+            a = img[y0]
+            b = img[y0 + 1]
+            f = fy[k]
+            g = one - f
+            for x in range(W):
+                rv[x] = g * a[x] + f * b[x]
+            row = rv
+        o = ox[k]
+        f = fx[k]
+        g = one - f
+        lo = min(max(-o, 0), W)
+        hi = min(max(W - 1 - o, lo), W)
+        for x in range(lo):
+            acc[x] += abs(c_row[x] - row[0])
+        n = hi - lo
+        if n > 0:
+            r0 = row[lo + o:hi + o]
+            r1 = row[lo + o + 1:hi + o + 1]
+            c = c_row[lo:hi]
+            s = acc[lo:hi]
+            for i in range(n):
+                s[i] += abs(c[i] - (g * r0[i] + f * r1[i]))
+        for x in range(hi, W):
+            acc[x] += abs(c_row[x] - row[W - 1])
+
+
+@numba.njit(parallel=True, fastmath=FAST, cache=True)
+def _pixel_cost_kernel(gray, vu, vv, oy, fy, ox, fx, out):
+    W = gray.shape[3]
+    inv = np.float32(1.0 / vu.shape[0])
+    for y in numba.prange(gray.shape[2]):
+        acc = np.empty(W, dtype=np.float32)
+        rv = np.empty(W, dtype=np.float32)
+        _cost_row(gray, vu, vv, oy, fy, ox, fx, y, acc, rv)
+        for x in range(W):
             out[y, x] = acc[x] * inv
 
 
+def _split_shift(shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # A shift in pixels as its integer part (floor) and its fraction in [0, 1), float32.
+    whole = np.floor(shift)
+    return whole.astype(np.int64), (shift - whole).astype(np.float32)
+
+
 def pixel_cost(gray: np.ndarray, disparity: float, *, offsets: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """Fast twin of :func:`pixel_cost_reference` (same arguments, same result to float32 rounding)."""
+    """Fast twin of :func:`pixel_cost_reference` (same arguments, same result to float32 rounding).
+
+    Each view's sampling offset ``-(u - u0) d``, ``-(v - v0) d`` is split once into its integer part
+    and fraction, so a pixel's cost does not depend on where the image starts: a tile with a wide
+    enough halo gives the whole image's values.
+    """
+    offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
+    indices = np.ascontiguousarray(indices, dtype=np.int64).reshape(-1, 2)
+    oy, fy = _split_shift(-offsets[:, 0] * float(disparity))
+    ox, fx = _split_shift(-offsets[:, 1] * float(disparity))
     out = np.empty(gray.shape[2:], dtype=np.float32)
-    _pixel_cost_kernel(
-        np.ascontiguousarray(gray, dtype=np.float32),
-        float(disparity),
-        np.ascontiguousarray(offsets, dtype=np.float64),
-        np.ascontiguousarray(indices, dtype=np.int64),
-        out,
-    )
+    _pixel_cost_kernel(np.ascontiguousarray(gray, dtype=np.float32), indices[:, 0].copy(), indices[:, 1].copy(),
+                       oy, fy, ox, fx, out)
     return out
 
 
@@ -137,24 +182,93 @@ def _reflect(i, n):
     return i
 
 
+@numba.njit(cache=True)
+def _row_sums(src, r, acc):
+    # acc[x] = sum of src[reflect(x + k)] for k = -r..r, added in that order from 0.0 (float64); the
+    # loops are swapped (window offset outer, pixels inner) so that the pixels away from the left
+    # and right borders, where the mirror is the identity, are whole vectorised rows.
+    w = src.shape[0]
+    acc[:] = 0.0
+    for k in range(-r, r + 1):
+        lo = min(max(-k, 0), w)  # x + k inside the row for lo <= x < hi
+        hi = max(min(w - k, w), lo)
+        for x in range(lo):
+            acc[x] += src[_reflect(x + k, w)]
+        a = acc[lo:hi]
+        b = src[lo + k:hi + k]
+        for i in range(hi - lo):
+            a[i] += b[i]
+        for x in range(hi, w):
+            acc[x] += src[_reflect(x + k, w)]
+
+
+@numba.njit(cache=True)
+def _column_sums(rows, y, r, h, first, col):
+    # col[x] = sum of rows[reflect(y + k, h) - first, x] for k = -r..r, in that order from 0.0.
+    col[:] = 0.0
+    for k in range(-r, r + 1):
+        src = rows[_reflect(y + k, h) - first]
+        for x in range(col.shape[0]):
+            col[x] += src[x]
+
+
 @numba.njit(parallel=True, cache=True)
 def _box_mean_kernel(image, window, out):
     h, w = image.shape
     r = window // 2
     rows = np.empty((h, w), dtype=np.float64)
     for y in numba.prange(h):
-        for x in range(w):
-            acc = 0.0
-            for k in range(-r, r + 1):
-                acc += image[y, _reflect(x + k, w)]
-            rows[y, x] = acc
+        _row_sums(image[y], r, rows[y])
     scale = 1.0 / (window * window)
     for y in numba.prange(h):
+        col = np.empty(w, dtype=np.float64)
+        _column_sums(rows, y, r, h, 0, col)
+        dst = out[y]
         for x in range(w):
-            acc = 0.0
-            for k in range(-r, r + 1):
-                acc += rows[_reflect(y + k, h), x]
-            out[y, x] = acc * scale
+            dst[x] = col[x] * scale
+
+
+@numba.njit(parallel=True, fastmath=FAST, cache=True)
+def _sweep_kernel(gray, vu, vv, oy, fy, ox, fx, first, window, edges, previous, best, best_index,
+                  c_minus, c_plus):
+    # Candidates first .. first + D - 1 of the plane sweep (oy, fy, ox, fx: (D, N), one row per
+    # candidate) in bands of rows (edges), one per thread, with no barrier between candidates: a
+    # band computes the pixel costs of its rows and of the window's radius around them (the same
+    # values pixel_cost gives), their box mean (box_mean's sums, in its order) and keeps, per
+    # pixel, the least mean, its index and its neighbours' means, as np.argmin over the volume
+    # would (the first least, or the first NaN). previous: the last candidate's means.
+    H, W = gray.shape[2], gray.shape[3]
+    r = window // 2
+    inv = np.float32(1.0 / vu.shape[0])
+    scale = 1.0 / (window * window)
+    for b in numba.prange(edges.shape[0] - 1):
+        lo, hi = edges[b], edges[b + 1]
+        a = max(lo - r, 0)
+        z = min(hi + r, H)
+        cost = np.empty(W, np.float32)
+        rows = np.empty((z - a, W), np.float64)
+        acc = np.empty(W, np.float32)
+        rv = np.empty(W, np.float32)
+        col = np.empty(W, np.float64)
+        for j in range(oy.shape[0]):
+            index = first + j
+            for y in range(a, z):
+                _cost_row(gray, vu, vv, oy[j], fy[j], ox[j], fx[j], y, acc, rv)
+                for x in range(W):
+                    cost[x] = acc[x] * inv
+                _row_sums(cost, r, rows[y - a])
+            for y in range(lo, hi):
+                _column_sums(rows, y, r, H, a, col)
+                for x in range(W):
+                    c = np.float32(col[x] * scale)
+                    if best_index[y, x] == index - 1:
+                        c_plus[y, x] = c
+                    m = best[y, x]
+                    if index == 0 or c < m or (c != c and m == m):
+                        best[y, x] = c
+                        best_index[y, x] = index
+                        c_minus[y, x] = previous[y, x]
+                    previous[y, x] = c
 
 
 def box_mean(image: np.ndarray, window: int) -> np.ndarray:
@@ -171,3 +285,44 @@ def box_mean(image: np.ndarray, window: int) -> np.ndarray:
     out = np.empty(image.shape, dtype=np.float32)
     _box_mean_kernel(np.ascontiguousarray(image, dtype=np.float32), int(window), out)
     return out
+
+
+def shift_parts(offsets: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(oy, fy, ox, fx)``, each ``(D, N)``: the integer parts (int64) and fractions (float32) of
+    the shifts ``-(u - u0) d``, ``-(v - v0) d`` at which the ``N`` views of ``offsets`` are sampled
+    for each of the ``D`` candidate disparities ``d``."""
+    offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
+    d = np.asarray(candidates, dtype=np.float64).reshape(-1, 1)
+    oy, fy = _split_shift(-offsets[:, 0] * d)
+    ox, fx = _split_shift(-offsets[:, 1] * d)
+    return oy, fy, ox, fx
+
+
+def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.ndarray, indices: np.ndarray,
+                     window: int, state: dict[str, np.ndarray] | None = None, first: int = 0,
+                     bands: int | None = None) -> dict[str, np.ndarray]:
+    """The plane sweep over ``candidates`` (the ones numbered ``first ..`` of a longer sweep when
+    ``state`` holds the earlier ones' result): per pixel of the centre view, the least
+    ``box_mean(pixel_cost(gray, d, ...), window)`` over ``d`` and its two neighbours' means.
+
+    Returns (and updates) ``state``: ``best`` ``(H, W)`` float32 least mean, ``best_index`` int64
+    its candidate's number (the first least, as ``np.argmin``), ``c_minus``, ``c_plus`` float32 the
+    means at the candidates before and after it (where they exist), ``previous`` the last
+    candidate's means. The same numbers as those functions give, bit for bit, without holding a
+    cost volume; rows are dealt to the threads in bands, so no thread waits for another between
+    candidates (``bands``: how many; default one per numba thread; the result is the same).
+    """
+    H, W = gray.shape[2:]
+    if window < 1 or window % 2 == 0 or window // 2 >= min(H, W):
+        raise ValueError(f"window must be odd, >= 1 and smaller than the {W}x{H} image; got {window}")
+    if state is None:
+        state = {"best": np.empty((H, W), np.float32), "best_index": np.full((H, W), -2, np.int64),
+                 "c_minus": np.zeros((H, W), np.float32), "c_plus": np.zeros((H, W), np.float32),
+                 "previous": np.zeros((H, W), np.float32)}
+    indices = np.ascontiguousarray(indices, dtype=np.int64).reshape(-1, 2)
+    bands = max(1, min(numba.get_num_threads() if bands is None else int(bands), H))
+    edges = np.linspace(0, H, bands + 1).astype(np.int64)
+    _sweep_kernel(np.ascontiguousarray(gray, dtype=np.float32), indices[:, 0].copy(), indices[:, 1].copy(),
+                  *shift_parts(offsets, candidates), int(first), int(window), edges, state["previous"],
+                  state["best"], state["best_index"], state["c_minus"], state["c_plus"])
+    return state

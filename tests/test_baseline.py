@@ -51,6 +51,47 @@ def test_parabolic_refinement_finds_the_vertex():
     np.testing.assert_allclose(disparity, true, atol=1e-5)
 
 
+def test_sweep_gives_what_the_cost_volume_gives():
+    # The sweep keeps only each pixel's least cost and its neighbours; the readable twin holds every
+    # candidate's cost and refines with parabolic_refine. Ties (a constant patch), range ends and
+    # sub-pixel vertices all occur on this scene; the maps agree bit for bit.
+    from recon.costvolume import box_mean
+
+    lf, _ = occluding_square_scene(40, back=-0.5, front=1.0)
+    lf.views[..., :6, :6] = 0.5
+    candidates = disparity_candidates((-0.6, 1.2), 0.1)
+    result = estimate_baseline(lf, window=5, step=0.1, disparity_range=(-0.6, 1.2))
+    gray = lf.gray()
+    offsets = view_offsets(lf.grid_shape)
+    indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
+    volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 5) for d in candidates])
+    disparity, cost = parabolic_refine(volume, candidates)
+    assert len(np.unique(np.argmin(volume, axis=0))) > 3
+    np.testing.assert_array_equal(result.disparity, disparity)
+    np.testing.assert_array_equal(result.cost, cost)
+
+
+@pytest.mark.parametrize("bands", [1, 3, 7])
+def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
+    from recon.costvolume import box_mean, sweep_least_cost
+
+    gray = np.random.default_rng(5).random((5, 5, 23, 19)).astype(np.float32)
+    offsets = view_offsets((5, 5))
+    indices = (offsets + 2).astype(np.int64)
+    candidates = np.linspace(-1.3, 1.1, 9)
+    volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 5) for d in candidates])
+    state = sweep_least_cost(gray, candidates[:4], offsets=offsets, indices=indices, window=5, bands=bands)
+    state = sweep_least_cost(gray, candidates[4:], offsets=offsets, indices=indices, window=5, bands=bands,
+                             state=state, first=4)
+    best = np.argmin(volume, axis=0)
+    rows, cols = np.indices(best.shape)
+    np.testing.assert_array_equal(state["best_index"], best)
+    np.testing.assert_array_equal(state["best"], volume[best, rows, cols])
+    inner = (best > 0) & (best < len(candidates) - 1)
+    np.testing.assert_array_equal(state["c_minus"][inner], volume[best - 1, rows, cols][inner])
+    np.testing.assert_array_equal(state["c_plus"][inner], volume[np.minimum(best + 1, 8), rows, cols][inner])
+
+
 def test_baseline_recovers_a_fronto_parallel_plane_to_sub_pixel_accuracy():
     lf, truth = render([Layer(noise_texture((48, 48), seed=5), 0.43)], grid=(9, 9))
     result = estimate_baseline(lf, window=7, step=0.05, disparity_range=(-1.0, 1.0))

@@ -189,46 +189,86 @@ def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float
 
 
 @numba.njit(cache=True)
-def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px):
+def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
     # The iterations of tv_refine_reference, the same float64 operations in the same order (so the
     # same values), two sweeps per iteration: dual ascent and projection, then the primal step with
-    # the divergence. Needs H, W >= 2. One thread: 600 parallel regions with a barrier each ran
-    # 10x slower on the shared machine whenever the other core was busy (3 s instead of 0.3 s).
-    H, W = f.shape
+    # the divergence. Needs H, W >= 2. The arrays hold the rows top .. top + n - 1 of an image of H
+    # rows; a row whose neighbour lies outside them (not outside the image) gets a wrong value, and
+    # after k iterations so do the k rows nearest each such side (_tv_blocks keeps them out).
+    n, W = f.shape
     tau = 1.0 / np.sqrt(8.0)
     sigma = tau
     for _ in range(iterations):
-        for y in range(H):
+        for i in range(n):
+            y = top + i
             for x in range(W):
-                gy = bar[y + 1, x] - bar[y, x] if y < H - 1 else 0.0
-                gx = bar[y, x + 1] - bar[y, x] if x < W - 1 else 0.0
-                qy = py[y, x] + sigma * gy
-                qx = px[y, x] + sigma * gx
+                gy = bar[i + 1, x] - bar[i, x] if y < H - 1 and i < n - 1 else 0.0
+                gx = bar[i, x + 1] - bar[i, x] if x < W - 1 else 0.0
+                qy = py[i, x] + sigma * gy
+                qx = px[i, x] + sigma * gx
                 norm = max(1.0, np.sqrt(qy ** 2 + qx ** 2) / gamma)
-                py[y, x] = qy / norm
-                px[y, x] = qx / norm
-        for y in range(H):
+                py[i, x] = qy / norm
+                px[i, x] = qx / norm
+        for i in range(n):
+            y = top + i
             for x in range(W):
-                if y == 0:
-                    dy = py[0, x]
+                if y == 0 or i == 0:
+                    dy = py[i, x]
                 elif y < H - 1:
-                    dy = py[y, x] - py[y - 1, x]
+                    dy = py[i, x] - py[i - 1, x]
                 else:
-                    dy = -py[H - 2, x]
+                    dy = -py[i - 1, x]
                 if x == 0:
-                    dx = px[y, 0]
+                    dx = px[i, 0]
                 elif x < W - 1:
-                    dx = px[y, x] - px[y, x - 1]
+                    dx = px[i, x] - px[i, x - 1]
                 else:
-                    dx = -px[y, W - 2]
-                if mask[y, x]:
-                    v = mu[y, x] + tau * (dy + dx)
-                    w = 2 * tau * weight[y, x]
-                    new = (v + w * f[y, x]) / (1 + w)
+                    dx = -px[i, W - 2]
+                if mask[i, x]:
+                    v = mu[i, x] + tau * (dy + dx)
+                    w = 2 * tau * weight[i, x]
+                    new = (v + w * f[i, x]) / (1 + w)
                 else:
-                    new = f[y, x]
-                bar[y, x] = 2 * new - mu[y, x]
-                mu[y, x] = new
+                    new = f[i, x]
+                bar[i, x] = 2 * new - mu[i, x]
+                mu[i, x] = new
+
+
+@numba.njit(cache=True, parallel=True)
+def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, halo):
+    # The image in n_blocks bands of rows, one per thread, each iterated on a private copy of its
+    # band and `halo` rows around it for up to `halo` iterations at a time (the wrong rows at a
+    # copy's cut edges advance one row per iteration, so they never reach the band), then the bands
+    # written into the next arrays. The values are those of one thread over the whole image; one
+    # barrier per `halo` iterations instead of two per iteration.
+    H, W = f.shape
+    edges = np.linspace(0, H, n_blocks + 1).astype(np.int64)
+    state = (mu, bar, py, px)
+    nxt = (np.empty_like(mu), np.empty_like(bar), np.empty_like(py), np.empty_like(px))
+    done = 0
+    while done < iterations:
+        k = min(halo, iterations - done)
+        for b in numba.prange(n_blocks):
+            lo, hi = edges[b], edges[b + 1]
+            a = max(lo - halo, 0)
+            z = min(hi + halo, H)
+            m = state[0][a:z].copy()
+            r = state[1][a:z].copy()
+            qy = state[2][a:z].copy()
+            qx = state[3][a:z].copy()
+            _tv_kernel(f[a:z], mask[a:z], weight[a:z], gamma, k, m, r, qy, qx, a, H)
+            nxt[0][lo:hi] = m[lo - a:hi - a]
+            nxt[1][lo:hi] = r[lo - a:hi - a]
+            nxt[2][lo:hi] = qy[lo - a:hi - a]
+            nxt[3][lo:hi] = qx[lo - a:hi - a]
+        state, nxt = nxt, state
+        done += k
+    return state[0]
+
+
+#: Iterations of the TV refinement between two exchanges of the threads' bands (and the rows each
+#: band's copy reaches beyond it): 300 iterations are 19 parallel regions.
+TV_HALO_ROWS = 16
 
 
 def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
@@ -250,8 +290,15 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     bar = mu.copy()
     py = np.zeros_like(f)
     px = np.zeros_like(f)
-    _tv_kernel(f, np.ascontiguousarray(mask), weight, float(gamma), int(iterations), mu, bar, py, px)
-    return mu.astype(np.float32)
+    mask = np.ascontiguousarray(mask)
+    weight = np.ascontiguousarray(weight, dtype=np.float64)
+    H = f.shape[0]
+    n_blocks = min(numba.get_num_threads(), H // (4 * TV_HALO_ROWS))
+    if n_blocks < 2:
+        _tv_kernel(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H)
+        return mu.astype(np.float32)
+    return _tv_blocks(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, n_blocks,
+                      TV_HALO_ROWS).astype(np.float32)
 
 
 def _box_sums(table: np.ndarray, ya, yb, xa, xb) -> np.ndarray:
