@@ -14,8 +14,9 @@ Neither resets when the port opens (a real Arduino does: ``fakegrbl://`` models 
 Three faults of the world between them, on both: ``power_cycle(boot_s=...)`` restarts the controller
 like a board whose bootloader runs first (bytes sent meanwhile are lost, the welcome line comes after
 ``boot_s``), ``garble_reports = N`` corrupts the next N status reports on their way to lfrig, and
-``take_oks = N`` takes the next N ``ok`` replies away, as another reader of the port would (the
-firmware's output then passes through a relay thread: ``make(relay=True)``).
+``take_oks = N`` (or ``take_lines``, by prefix) takes the next N ``ok`` replies away, as another
+reader of the port would (the firmware's output then passes through a relay thread:
+``make(relay=True)``).
 
 The test process keeps the slave side open (in raw mode) for the controller's whole life, so the
 controller never sees a hang-up between two lfrig runs; pyserial flushes what arrived meanwhile when

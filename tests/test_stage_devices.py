@@ -743,7 +743,7 @@ while True:
 """
 
 
-def test_a_capture_with_another_reader_on_the_port_names_it(make_device, tmp_path, capsys):
+def test_a_capture_with_another_reader_on_the_port_names_it(make_device, tmp_path, capsys, monkeypatch):
     """#21.7 with a real second reader: a program that opened the port before lfrig (so the exclusive
     mode cannot keep it out) takes whatever replies it reads first: the capture stops, naming it."""
     device = make_device()
@@ -754,6 +754,7 @@ def test_a_capture_with_another_reader_on_the_port_names_it(make_device, tmp_pat
             assert time.monotonic() < deadline, port_holders(device.path)
             time.sleep(0.02)
         name = dict(port_holders(device.path))[reader.pid]
+        short_waits(monkeypatch)
         assert main(capture_args(tmp_path / "cap", device, rows=3, cols=3)) == 2
         err = capsys.readouterr().err
         assert f"process {reader.pid} ({name})" in err, err
