@@ -228,7 +228,7 @@ def _box_mean_kernel(image, window, out):
             dst[x] = col[x] * scale
 
 
-@numba.njit(parallel=True, fastmath=FAST, cache=True)
+@numba.njit(parallel=True, cache=True)  # no fast math here: the NaN test must stay
 def _sweep_kernel(gray, vu, vv, oy, fy, ox, fx, first, window, edges, previous, best, best_index,
                   c_minus, c_plus):
     # Candidates first .. first + D - 1 of the plane sweep (oy, fy, ox, fx: (D, N), one row per

@@ -92,6 +92,21 @@ def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
     np.testing.assert_array_equal(state["c_plus"][inner], volume[np.minimum(best + 1, 8), rows, cols][inner])
 
 
+def test_sweep_takes_the_first_nan_as_argmin_does():
+    from recon.costvolume import box_mean, sweep_least_cost
+
+    gray = np.random.default_rng(6).random((3, 3, 12, 14)).astype(np.float32)
+    gray[0, 0, 5:8, 6:9] = np.nan  # a corner view's hole: NaN costs at some candidates only
+    offsets = view_offsets((3, 3))
+    indices = (offsets + 1).astype(np.int64)
+    candidates = np.linspace(-1.0, 1.0, 7)
+    volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 3) for d in candidates])
+    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2)
+    first_nan = np.isnan(volume).any(axis=0) & ~np.isnan(volume[0])
+    assert first_nan.any()
+    np.testing.assert_array_equal(state["best_index"], np.argmin(volume, axis=0))
+
+
 def test_baseline_recovers_a_fronto_parallel_plane_to_sub_pixel_accuracy():
     lf, truth = render([Layer(noise_texture((48, 48), seed=5), 0.43)], grid=(9, 9))
     result = estimate_baseline(lf, window=7, step=0.05, disparity_range=(-1.0, 1.0))
