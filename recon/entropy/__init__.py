@@ -21,10 +21,10 @@ the command line can build its flags from the options without compiling or loadi
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from recon.entropy.options import DEFAULTS, EntropyOptions, make_options
+from recon.lazy import lazy_names
 
 if TYPE_CHECKING:
     from recon.entropy.estimate import EntropyResult, estimate_disparity
@@ -33,15 +33,6 @@ if TYPE_CHECKING:
 __all__ = ["DEFAULTS", "EntropyOptions", "EntropyResult", "estimate_disparity", "make_options",
            "write_outputs"]
 
-#: name -> the module that defines it, loaded on first use (:func:`__getattr__`).
-_LAZY = {"EntropyResult": "recon.entropy.estimate", "estimate_disparity": "recon.entropy.estimate",
-         "write_outputs": "recon.entropy.outputs"}
-
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, {"EntropyResult": "recon.entropy.estimate",
+                                    "estimate_disparity": "recon.entropy.estimate",
+                                    "write_outputs": "recon.entropy.outputs"})

@@ -16,8 +16,9 @@ that needs only :mod:`recon.lf.params`' bounds to build its flags does not pay f
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from recon.lazy import lazy_names
 
 if TYPE_CHECKING:
     from recon.lf.benchmark import read_ground_truth
@@ -27,15 +28,5 @@ if TYPE_CHECKING:
 
 __all__ = ["LightField", "read_ground_truth", "read_lightfield", "write_lightfield"]
 
-#: name -> the module that defines it, loaded on first use (:func:`__getattr__`).
-_LAZY = {"LightField": "recon.lf.lightfield", "read_ground_truth": "recon.lf.benchmark",
-         "read_lightfield": "recon.lf.io", "write_lightfield": "recon.lf.capture"}
-
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, {"LightField": "recon.lf.lightfield", "read_ground_truth": "recon.lf.benchmark",
+                                    "read_lightfield": "recon.lf.io", "write_lightfield": "recon.lf.capture"})
