@@ -7,7 +7,6 @@ the handlers so that ``lfrig --help`` stays fast. :func:`register` adds the subc
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
