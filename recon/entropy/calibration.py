@@ -18,7 +18,7 @@ A logistic model over a few per-pixel features (:data:`FEATURES`) of the estimat
 - the **distance to the nearest disparity jump** (a step over ``JUMP_PX`` between 4-neighbours;
   pixels, capped at ``JUMP_REACH_PX``, log): most wrong pixels sit at outlines;
 - the **spread** of the final map in the 5x5 box (standard deviation, log) and the chosen window's
-  **matching entropy** (Eq. 6, the texture the match had).
+  **matching entropy** (the ``E`` of Eq. 6: the texture the match had).
 
 ``p = 1 / (1 + exp(-(b + sum_i c_i f_i)))``; ``p = 0`` where the disparity is not finite, lies
 outside the searched range or sits on its first or last candidate. The coefficients
