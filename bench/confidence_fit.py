@@ -3,7 +3,7 @@
     .venv/bin/python bench/confidence_fit.py data OUT_DIR [--data ../shared/data] [--suite dots ...]
         [--suite-size 192] [--seed 0] [--scenes NAME ...]
     .venv/bin/python bench/confidence_fit.py fit OUT_DIR [--write recon/entropy/confidence_fit.py]
-        [--per-scene 20000] [--ridge 1e-3]
+        [--per-scene 20000] [--ridge 1e-3] [--wrong-weight 1]
 
 ``data`` runs the estimator (defaults) on every scene under ``--data`` with a ground truth
 (``gt_disp_lowres.pfm``) and on the rendered suite (``recon.entropy.scenes``), and writes per scene
@@ -14,6 +14,9 @@ number of pixels per scene (each scene counts alike: a 512x512 scene is not 7 ti
 one), prints each scene's expected calibration error (10 equal bins), BadPix of the pixels at
 confidence >= 0.5 against the scene's, and the share of its right pixels kept, in-sample and with
 that scene left out of the fit, and with ``--write`` stores the coefficients (a Python constant).
+``--wrong-weight W`` counts each wrong pixel W times in the fit: the probability leans low (less
+than the share right where right and wrong mix), so the export's cut at 0.5 trades right pixels
+for fewer wrong ones, at some cost in calibration (the printed ECE).
 """
 
 from __future__ import annotations
@@ -71,21 +74,23 @@ def _load(folder: Path) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def fit_logistic(X: np.ndarray, y: np.ndarray, *, ridge: float, iterations: int = 50) -> tuple[float, np.ndarray]:
+def fit_logistic(X: np.ndarray, y: np.ndarray, *, ridge: float, wrong_weight: float = 1.0,
+                 iterations: int = 50) -> tuple[float, np.ndarray]:
     """Logistic regression by iteratively reweighted least squares with an L2 penalty ``ridge``
-    (per sample) on the standardised coefficients; returns ``(bias, coefficients)`` in the
-    features' own units."""
+    (per unit of sample weight) on the standardised coefficients, each sample with ``y == 0``
+    weighted ``wrong_weight``; returns ``(bias, coefficients)`` in the features' own units."""
     mean = X.mean(axis=0)
     scale = X.std(axis=0)
     scale[scale == 0] = 1.0
     Z = np.hstack([np.ones((len(X), 1)), (X - mean) / scale])
     beta = np.zeros(Z.shape[1])
-    penalty = ridge * len(X) * np.eye(Z.shape[1])
+    weight = np.where(y > 0.5, 1.0, float(wrong_weight))
+    penalty = ridge * weight.sum() * np.eye(Z.shape[1])
     penalty[0, 0] = 0.0
     for _ in range(iterations):
         p = 1.0 / (1.0 + np.exp(-np.clip(Z @ beta, -40, 40)))
-        w = np.maximum(p * (1 - p), 1e-9)
-        grad = Z.T @ (y - p) - penalty @ beta
+        w = np.maximum(p * (1 - p), 1e-9) * weight
+        grad = Z.T @ (weight * (y - p)) - penalty @ beta
         hess = (Z * w[:, None]).T @ Z + penalty
         delta = np.linalg.solve(hess, grad)
         beta += delta
@@ -113,36 +118,36 @@ def scene_scores(s: dict, bias: float, coef) -> dict[str, float]:
     return calibration_scores(p, s["right"])
 
 
-def fit(folder: Path, *, write: Path | None, per_scene: int, ridge: float) -> None:
+def fit(folder: Path, *, write: Path | None, per_scene: int, ridge: float, wrong_weight: float) -> None:
     from recon.entropy.calibration import FEATURES
 
     scenes = _load(folder)
     names = list(scenes)
     rng = np.random.default_rng(0)
     X, y = _sample(scenes, names, per_scene, rng)
-    bias, coef = fit_logistic(X, y, ridge=ridge)
+    bias, coef = fit_logistic(X, y, ridge=ridge, wrong_weight=wrong_weight)
     print(f"{len(names)} scenes, {len(y)} pixels; bias {bias:+.4f}")
     for n, c in zip(FEATURES, coef):
         print(f"  {n:<14} {c:+.4f}")
+    if write is not None:
+        fit_record = {
+            "features": list(FEATURES), "bias": bias, "coefficients": [float(c) for c in coef],
+            "target": "P(|d - truth| <= 0.07 px/view)", "scenes": names, "pixels_per_scene": per_scene,
+            "ridge": ridge, "wrong_weight": wrong_weight}
+        write.write_text('"""The calibrated confidence\'s logistic model (recon/entropy/calibration.py), written by\n'
+                         '``bench/confidence_fit.py fit DATA --write recon/entropy/confidence_fit.py``."""\n\n'
+                         f"FIT = {json.dumps(fit_record, indent=4)}\n")
+        print(f"wrote {write}", flush=True)
     head = f"{'scene':<28} {'BadPix':>7} | {'ECE':>5} {'bad>=.5':>7} {'right kept':>10} | held out: {'ECE':>5} {'bad>=.5':>7} {'right kept':>10}"
     print(head)
     print("-" * len(head))
     for n in names:
         s_in = scene_scores(scenes[n], bias, coef)
         Xo, yo = _sample(scenes, [m for m in names if m != n], per_scene, np.random.default_rng(0))
-        bo, co = fit_logistic(Xo, yo, ridge=ridge)
+        bo, co = fit_logistic(Xo, yo, ridge=ridge, wrong_weight=wrong_weight)
         s_out = scene_scores(scenes[n], bo, co)
         print(f"{n:<28} {s_in['bad_all']:7.2f} | {s_in['ece']:5.3f} {s_in['bad_kept']:7.2f} {s_in['right_kept']:10.3f}"
               f" | {'':>9} {s_out['ece']:5.3f} {s_out['bad_kept']:7.2f} {s_out['right_kept']:10.3f}", flush=True)
-    if write is not None:
-        fit_record = {
-            "features": list(FEATURES), "bias": bias, "coefficients": [float(c) for c in coef],
-            "target": "P(|d - truth| <= 0.07 px/view)", "scenes": names, "pixels_per_scene": per_scene,
-            "ridge": ridge}
-        write.write_text('"""The calibrated confidence\'s logistic model (recon/entropy/calibration.py), written by\n'
-                         '``bench/confidence_fit.py fit DATA --write recon/entropy/confidence_fit.py``."""\n\n'
-                         f"FIT = {json.dumps(fit_record, indent=4)}\n")
-        print(f"wrote {write}")
 
 
 def main() -> None:
@@ -162,12 +167,14 @@ def main() -> None:
     f.add_argument("--write", type=Path)
     f.add_argument("--per-scene", type=int, default=20000)
     f.add_argument("--ridge", type=float, default=1e-3)
+    f.add_argument("--wrong-weight", type=float, default=1.0)
     args = parser.parse_args()
     if args.command == "data":
         make_data(args.out, data=args.data, suite=args.suite, size=args.suite_size, seed=args.seed,
                   only=args.scenes)
     else:
-        fit(args.folder, write=args.write, per_scene=args.per_scene, ridge=args.ridge)
+        fit(args.folder, write=args.write, per_scene=args.per_scene, ridge=args.ridge,
+            wrong_weight=args.wrong_weight)
 
 
 if __name__ == "__main__":

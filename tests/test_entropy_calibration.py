@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from recon.entropy import estimate_disparity
-from recon.entropy.calibration import (FEATURES, TOLERANCE_PX, calibration_scores, load_coefficients,
-                                       logistic, reliability, result_features, sparsification)
+from recon.entropy.calibration import (FEATURES, JUMP_REACH_PX, TOLERANCE_PX, calibration_scores, jump_distance,
+                                       load_coefficients, logistic, matching_cost, neighbour_agreement,
+                                       probability_right, reliability, result_features, sparsification)
 from recon.entropy.confidence_fit import FIT
 from recon.entropy.scenes import make_scene
 
@@ -37,8 +38,11 @@ def test_the_fit_matches_the_features_of_the_code():
     assert "suite-slants-s0-192" in FIT["scenes"]  # the suite at seed 0, 192 px: the tests use seed 3
 
 
-@pytest.mark.parametrize("name", ["slants", "cotton", "noisy"])
-def test_confidence_is_calibrated_on_scenes_the_fit_did_not_use(name):
+@pytest.mark.parametrize(("name", "halves"), [("slants", True), ("cotton", False), ("noisy", True)])
+def test_confidence_is_calibrated_on_scenes_the_fit_did_not_use(name, halves):
+    """Issue 20's targets where they hold: ECE <= 0.10, >= 80 % of the right pixels kept at 0.5, and
+    there BadPix at most half the scene's (slants 0.15 of 0.45 %, noisy 4.5 of 18.8 %; not on
+    cotton: 3.97 of 5.90 %, its sub-0.2 px errors on a faint sphere look matched)."""
     scene = make_scene(name, size=112, seed=3)
     result = estimate_disparity(scene.lf)
     inner = (slice(15, -15), slice(15, -15))
@@ -46,7 +50,7 @@ def test_confidence_is_calibrated_on_scenes_the_fit_did_not_use(name):
     s = calibration_scores(result.confidence[inner], right)
     assert s["ece"] <= 0.10
     assert s["right_kept"] >= 0.8
-    assert s["bad_kept"] <= s["bad_all"]
+    assert s["bad_kept"] <= (s["bad_all"] / 2 if halves else s["bad_all"])
     # The product heuristic it replaced (recon/entropy/confidence.py) is no probability.
     features, valid = result_features(result)
     heuristic = np.where(valid, features[..., FEATURES.index("heuristic")], 0.0)[inner]
@@ -54,3 +58,48 @@ def test_confidence_is_calibrated_on_scenes_the_fit_did_not_use(name):
     # result_features are what the estimator's confidence is made from.
     np.testing.assert_allclose(np.where(valid, logistic(features, *load_coefficients()), 0.0),
                                result.confidence, atol=1e-6)
+
+
+def test_neighbour_features_see_a_spike_and_an_outline():
+    ramp = np.tile(np.arange(40) * 0.03, (40, 1))  # a slanted plane: 0.03 px/view per pixel
+    d = ramp.copy()
+    d[5, 5] += 0.3  # a lone spike
+    d[:, 15:] += 1.0  # a step: an outline between columns 14 and 15
+    nearest, agreeing = neighbour_agreement(d)
+    assert agreeing[5, 5] == 0 and nearest[5, 5] == pytest.approx(0.27)
+    assert agreeing[10, 8] == 8 and nearest[10, 8] == pytest.approx(0.0)
+    assert agreeing[4, 5] == 7  # next to the spike: 7 of its 8 neighbours agree
+    assert agreeing[10, 14] == 5  # on the outline: the 3 across it do not
+    distance = jump_distance(d)
+    assert distance[10, 14] == distance[10, 15] == 0 and distance[10, 11] == 3
+    assert distance[30, 1] == 10 == JUMP_REACH_PX  # capped
+    assert distance[5, 5] == 0  # the spike is a jump to its 4-neighbours too
+    assert np.all(jump_distance(ramp) == JUMP_REACH_PX)  # no jump at all
+
+
+def test_a_lone_spike_loses_its_confidence():
+    """Issue 23: a matched pixel 0.2-0.45 px/view off all its 8 neighbours (the demo's stray points)
+    falls below the export's cut at 0.5, where its neighbours stay above it."""
+    scene = make_scene("slants", size=112, seed=3)
+    result = estimate_disparity(scene.lf)
+    o = result.options
+    maps = dict(initial=result.initial_disparity,
+                ambiguity=result.info["ambiguity"], labels=result.labels, holes=result.info["holes"],
+                noise_limited=result.info["noise_limited"], window_size=result.window_size,
+                cost=matching_cost(result.cost, result.entropy, lambda_entropy=o.lambda_entropy,
+                                   intensity_scale=o.intensity_scale),
+                entropy=result.entropy, noise_sigma=result.info["noise_sigma"], step=o.step,
+                disparity_range=result.disparity_range, valley_px=o.hole_width,
+                hole_support=o.hole_support, hole_ramp=o.hole_ramp)
+    np.testing.assert_allclose(probability_right(refined=result.disparity, matched=result.matched_disparity, **maps),
+                               result.confidence, atol=1e-6)
+    sure = np.argwhere(result.confidence[20:-20, 20:-20] >= 0.9)[::97] + 20
+    assert len(sure) >= 10
+    for y, x in sure:
+        for jump in (0.2, -0.3, 0.45):
+            d, matched = result.disparity.copy(), result.matched_disparity.copy()
+            d[y, x] += jump  # matched there: the refinement left it as it was
+            matched[y, x] = d[y, x]
+            p = probability_right(refined=d, matched=matched, **maps)
+            assert p[y, x] < 0.5, (y, x, jump, p[y, x])
+            assert p[y, x + 3] >= 0.5 or result.confidence[y, x + 3] < 0.5

@@ -12,7 +12,13 @@ A logistic model over a few per-pixel features (:data:`FEATURES`) of the estimat
   data term) and the **noise-limited** pixels (:func:`recon.entropy.steps.noise_limited_pixels`);
 - the **matching cost** at the chosen disparity against the noise sigma (log), the **window size**,
   the **slope** of the final map (log), and the heuristic product of
-  :func:`recon.entropy.confidence.confidence_map`.
+  :func:`recon.entropy.confidence.confidence_map`;
+- the **nearest of the 8 neighbours** ``min |d - d_n|`` (log) and the **share of the 8 neighbours
+  within 0.07 px/view**: a pixel unlike every neighbour is a spike;
+- the **distance to the nearest disparity jump** (a step over ``JUMP_PX`` between 4-neighbours;
+  pixels, capped at ``JUMP_REACH_PX``, log): most wrong pixels sit at outlines;
+- the **spread** of the final map in the 5x5 box (standard deviation, log) and the chosen window's
+  **matching entropy** (the ``E`` of Eq. 6: the texture the match had).
 
 ``p = 1 / (1 + exp(-(b + sum_i c_i f_i)))``; ``p = 0`` where the disparity is not finite, lies
 outside the searched range or sits on its first or last candidate. The coefficients
@@ -24,6 +30,7 @@ outside the searched range or sits on its first or last candidate. The coefficie
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from recon.entropy.confidence import confidence_map
 from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
@@ -31,19 +38,64 @@ from recon.entropy.median import median_filter_nearest
 
 #: The model's inputs, in the order of the coefficients.
 FEATURES = ("log_width", "log_change", "log_neighbour", "log_initial", "occluding", "occluded",
-            "texture", "hole", "noise_limited", "log_cost", "window_size", "log_slope", "heuristic")
+            "texture", "hole", "noise_limited", "log_cost", "window_size", "log_slope", "heuristic",
+            "log_nearest_neighbour", "neighbours_agreeing", "log_jump_distance", "log_spread", "entropy")
 
 #: The disparity tolerance the probability is about (px/view): BadPix 0.07's.
 TOLERANCE_PX = 0.07
 
 _EPS = 0.01  # px/view (or noise sigmas) added before the logs: a floor below any difference that matters
 
+#: A step between 4-neighbours over this (px/view) is a disparity jump (an outline).
+JUMP_PX = 0.25
+#: The distance to the nearest jump is capped here (pixels): farther is "far".
+JUMP_REACH_PX = 10
+
+
+def neighbour_agreement(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(nearest, agreeing)`` of an ``(H, W)`` float64 map: ``min |d - d_n|`` over the 8 neighbours
+    (px/view) and how many of them lie within :data:`TOLERANCE_PX` (0..8); the border continued
+    by the nearest pixel."""
+    H, W = d.shape
+    pad = np.pad(d, 1, mode="edge")
+    nearest = np.full(d.shape, np.inf)
+    agreeing = np.zeros(d.shape, np.int64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                diff = np.abs(d - pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W])
+                np.minimum(nearest, diff, out=nearest)
+                agreeing += diff <= TOLERANCE_PX
+    return nearest, agreeing
+
+
+def jump_distance(d: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float64 distance (pixels, Euclidean, at most :data:`JUMP_REACH_PX`) to the nearest
+    pixel on either side of a step over :data:`JUMP_PX` between 4-neighbours of ``d``."""
+    jump = np.zeros(d.shape, bool)
+    for axis in (0, 1):
+        step = np.abs(np.diff(d, axis=axis)) > JUMP_PX
+        lead = [slice(None)] * 2
+        lead[axis] = slice(None, -1)
+        jump[tuple(lead)] |= step
+        lead[axis] = slice(1, None)
+        jump[tuple(lead)] |= step
+    if not jump.any():
+        return np.full(d.shape, float(JUMP_REACH_PX))
+    return np.minimum(ndimage.distance_transform_edt(~jump), JUMP_REACH_PX)
+
+
+def local_spread(d: np.ndarray, size: int = 5) -> np.ndarray:
+    """``(H, W)`` standard deviation of ``d`` in each ``size`` box (px/view; borders reflected)."""
+    mean = ndimage.uniform_filter(d, size)
+    return np.sqrt(np.maximum(ndimage.uniform_filter(d * d, size) - mean * mean, 0.0))
+
 
 def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np.ndarray,
                         ambiguity: np.ndarray, labels: np.ndarray, holes: np.ndarray | None,
                         noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
                         noise_sigma: float, step: float, disparity_range: tuple[float, float],
-                        heuristic: np.ndarray) -> np.ndarray:
+                        heuristic: np.ndarray, entropy: np.ndarray) -> np.ndarray:
     """``(H, W, len(FEATURES))`` float32 features of every pixel (module docstring).
 
     ``refined``, ``matched``, ``initial``: ``(H, W)`` final, matched and initial disparity (px/view);
@@ -51,7 +103,8 @@ def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np
     types; ``holes``, ``noise_limited``: ``(H, W)`` bool or ``None``; ``window_size``: pixels;
     ``cost``: matching cost (mean absolute difference, without the entropy term) at the chosen
     disparity, ``[0, 1]`` grey units like ``noise_sigma`` (:func:`matching_cost`);
-    ``step``: candidate spacing; ``heuristic``: :func:`recon.entropy.confidence.confidence_map`.
+    ``step``: candidate spacing; ``heuristic``: :func:`recon.entropy.confidence.confidence_map`;
+    ``entropy``: ``(H, W)`` matching entropy of the chosen window.
     """
     refined = np.asarray(refined, np.float64)
     finite = np.isfinite(refined)
@@ -62,6 +115,7 @@ def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np
     zeros = np.zeros(d.shape, bool)
     labels = np.asarray(labels)
     noise = max(float(noise_sigma), 0.5 / 255)
+    nearest, agreeing = neighbour_agreement(d)
     columns = [
         np.log(width + step),
         np.log(np.abs(d - np.nan_to_num(np.asarray(matched, np.float64))) + _EPS),
@@ -74,6 +128,11 @@ def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np
         np.asarray(window_size, np.float64) / 15.0,
         np.log(np.hypot(gy, gx) + _EPS),
         np.asarray(heuristic, np.float64),
+        np.log(nearest + _EPS),
+        agreeing / 8.0,
+        np.log(jump_distance(d) + 1.0),
+        np.log(local_spread(d) + _EPS),
+        np.nan_to_num(np.asarray(entropy, np.float64)),
     ]
     return np.stack([np.asarray(c, np.float32) for c in columns], axis=-1)
 
@@ -111,8 +170,8 @@ def valid_pixels(refined: np.ndarray, matched: np.ndarray, *, step: float,
 def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.ndarray,
                       ambiguity: np.ndarray, labels: np.ndarray, holes: np.ndarray | None,
                       noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
-                      noise_sigma: float, step: float, disparity_range: tuple[float, float],
-                      hole_support: float = 0.25, hole_ramp: float = 0.1,
+                      entropy: np.ndarray, noise_sigma: float, step: float,
+                      disparity_range: tuple[float, float], hole_support: float = 0.25, hole_ramp: float = 0.1,
                       valley_px: float = 0.3, coefficients: tuple[float, tuple[float, ...]] | None = None
                       ) -> np.ndarray:
     """``(H, W)`` float32: the probability that ``|refined - truth| <= 0.07`` px/view per pixel.
@@ -127,7 +186,7 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
                                    ambiguity=ambiguity, labels=labels, holes=holes,
                                    noise_limited=noise_limited, window_size=window_size, cost=cost,
                                    noise_sigma=noise_sigma, step=step, disparity_range=disparity_range,
-                                   heuristic=heuristic)
+                                   heuristic=heuristic, entropy=entropy)
     bias, coef = coefficients if coefficients is not None else load_coefficients()
     p = logistic(features, bias, coef)
     ok = valid_pixels(refined, matched, step=step, disparity_range=disparity_range)
@@ -212,7 +271,7 @@ def result_features(result) -> tuple[np.ndarray, np.ndarray]:
                                    noise_limited=info.get("noise_limited"), window_size=result.window_size,
                                    cost=matching_cost(result.cost, result.entropy, lambda_entropy=opts.lambda_entropy,
                                                       intensity_scale=opts.intensity_scale),
-                                   noise_sigma=info["noise_sigma"], heuristic=heuristic)
+                                   noise_sigma=info["noise_sigma"], heuristic=heuristic, entropy=result.entropy)
     valid = valid_pixels(result.disparity, result.matched_disparity, step=opts.step,
                          disparity_range=result.disparity_range)
     return features, valid

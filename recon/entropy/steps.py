@@ -369,7 +369,7 @@ def confidence_step(s: State) -> None:
             refined=s.refined, matched=s.matched, initial=s.d0, ambiguity=s.ambiguity, labels=s.labels,
             holes=s.holes, noise_limited=s.noise_limited, window_size=s.windows["size"],
             cost=matching_cost(s.cost, s.windows["entropy"], lambda_entropy=o.lambda_entropy,
-                               intensity_scale=o.intensity_scale),
+                               intensity_scale=o.intensity_scale), entropy=s.windows["entropy"],
             noise_sigma=s.noise_sigma, step=o.step, disparity_range=s.disparity_range, valley_px=o.hole_width,
             hole_support=o.hole_support, hole_ramp=o.hole_ramp)
     s.lap("refine")
