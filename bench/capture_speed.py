@@ -15,9 +15,9 @@ other users put on the machine inflates less than wall time), the peak RSS of th
 15-px border).
 
 ``--sizes WxH ...`` measures view sets of other sizes the same way: a synthetic 9x9 capture of that
-size (:func:`make_synthetic`: textured planes and boxes over about the demo's disparity range, a
-plain wall under sensor noise, rendered by :func:`recon.synthetic.render` and written as 8-bit RGB
-views like a rectified capture), made once into ``--work``'s ``synthetic-WxH`` and scored against
+size (:func:`make_synthetic`: textured planes and boxes over -1.6..1.8 px/view, a faint wall,
+sensor noise, rendered by :func:`recon.synthetic.render` and written as 8-bit RGB views like a
+rectified capture), made once into ``WORK-synthetic-WxH`` beside ``--work`` and scored against
 its rendered truth. ``--tile SIZE`` runs every estimate tiled (:mod:`recon.scale.tiles`, one
 process, tiles one after another).
 """
@@ -164,7 +164,7 @@ def main() -> None:
             make_capture(work)
         folders.append(work)
     for width, height in args.sizes:
-        folder = work / f"synthetic-{width}x{height}"
+        folder = work.parent / f"{work.name}-synthetic-{width}x{height}"
         if args.remake or not (folder / "truth_disparity.pfm").is_file():
             if folder.exists():
                 shutil.rmtree(folder)

@@ -254,8 +254,8 @@ def line_search_step(s: State) -> None:
 #: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
 #: on the rows within the halo), so that the search's memory grows with the image, not with the
 #: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
-#: one band; 1198x906 with 126 candidates (+-2.5 px/view): 1.5 MB a row, five bands of 197 rows,
-#: each with halos of 19.
+#: one band; the 1198x906 demo capture (25 candidates over 3.35..4.29 px/view): 1.1 MB a row,
+#: four bands of 258 rows with halos of 27.
 JOINT_BAND_MIB = 256
 
 
