@@ -64,7 +64,6 @@ from recon.lf.importer import capture_order
 from rig.main import main
 from tests.conftest import SHARED, require_hci_scene
 from tests.test_rig_aravis import require_aravis
-from tests.test_stage_devices import firmware_exe  # noqa: F401 (the fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "fixtures" / "tiny_capture"
