@@ -10,8 +10,10 @@ How each line runs:
 - ``./run``, ``./test``, ``./setup.sh``: the CI runs them itself; here each script must exist, be
   executable, parse (``bash -n``) and run what the page says it runs, and ``./run``'s job,
   ``lfrig demo``, runs at a smaller size (the demo fixture below).
-- A block after a ``<!-- docs-run: skip (reason) -->`` line is not run (a lab's own cluster, a
-  synopsis); the reason is shown as the skip's. Nothing else is left out: a shell line of any other
+- ``dask scheduler`` and ``dask worker`` (``scale-out.md``): in a shell, kept running for the page's
+  later lines (the scheduler without its dashboard, whose port may be taken), ended with the module.
+- A block after a ``<!-- docs-run: skip (reason) -->`` line is not run (a synopsis); the reason is
+  shown as the skip's. Nothing else is left out: a shell line of any other
   kind fails the test.
 
 Substitutions, each keeping the command's meaning (``SUBSTITUTIONS``, ``HARDWARE``):
@@ -25,7 +27,9 @@ Substitutions, each keeping the command's meaning (``SUBSTITUTIONS``, ``HARDWARE
   firmware (``../shared/grbl-sim``) on a pty, ``aravis:Basler-12345678`` Aravis's simulated GenICam
   camera ``aravis:Fake_1`` (with ``Mono16`` for a ``Mono12`` it lacks), ``opencv:0`` and
   ``opencv:/dev/video0`` a video file read by OpenCV; the grid centre ``X Y Z`` is a position in the
-  simulated stage's travel, and a live view's ``--port`` a free one;
+  simulated stage's travel, a live view's ``--port`` a free one, the lab's scheduler machine
+  (``192.168.10.5:8786``) 127.0.0.1 and a free port, and ``/lab/captures/*`` / ``/lab/results`` the
+  tiny capture in ``captures/`` and ``results``;
 - the demo session's files (``runs/demo/...``, ``boards/``, ``cam.cameramodel``, ``stage.json``,
   ``BOARD_CAPTURE``, ``SCENE_CAPTURE``, ``scene``, ``scene_rect``) come from one ``lfrig demo`` run at
   binning 4 with 6 boards and the baseline method;
@@ -46,6 +50,7 @@ import select
 import shlex
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -87,12 +92,16 @@ SUBSTITUTIONS = [
     (r"aravis:Basler-12345678", "aravis:Fake_1"),
     (r"(aravis:Fake_1 .*)--pixel-format Mono12", r"\1--pixel-format Mono16"),  # Fake_1's deeper format
     (r"(reconstruct \S*backgammon -o \S+)$", r"\1 --method baseline"),
+    (r"/lab/captures/\*", "captures/*"),
+    (r"/lab/results\b", "results"),
 ]
 #: The lab's devices, replaced by ``hardware`` (a :class:`Hardware`).
 HARDWARE = [
     (r"grbl:///dev/ttyUSB0", lambda hw: hw.stage_url()),
     (r"opencv:(0|/dev/video0)\b", lambda hw: f"opencv:{hw.clip}"),
 ]
+#: The lab's scheduler machine (``scale-out.md``): its address becomes 127.0.0.1 and a free port.
+LAB_SCHEDULER = re.compile(r"192\.168\.10\.5(?::|\s+--port\s+)8786")
 #: Flags whose value a command writes.
 OUTPUT_FLAGS = ("-o", "--output", "--ply", "--depth", "--report", "--poses")
 #: Names an earlier command of the same page writes and a later one reads.
@@ -299,6 +308,61 @@ def hardware(request, tmp_path_factory):
     made.close()
 
 
+class Cluster:
+    """The lab's Dask scheduler and worker of ``scale-out.md``, started as the page says on 127.0.0.1 and
+    a free port (each in its own process group, ended with the module)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.processes: list[subprocess.Popen] = []
+
+    def address(self, command: str) -> str:
+        """``command`` with the lab's scheduler address replaced by this one's."""
+        return LAB_SCHEDULER.sub(lambda m: f"127.0.0.1{':' if ':' in m.group(0) else ' --port '}{self.port}",
+                                 command)
+
+    def start(self, command: str) -> None:
+        """Run a ``dask scheduler`` or ``dask worker`` line in a shell (``$(nproc)`` and all), with the
+        environment's ``dask`` first on PATH; wait until the scheduler takes connections."""
+        name = "scheduler" if " scheduler " in f" {command} " else "worker"
+        if name == "scheduler":
+            command += " --no-dashboard"  # the page's dashboard port may be taken on a shared machine
+        elif not self.processes:
+            pytest.skip("the worker joins the scheduler an earlier line starts: run the whole page")
+        env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "PYTHONPATH": str(ROOT)}
+        with open(self.folder / f"{name}.log", "wb") as log:
+            self.processes.append(subprocess.Popen(["bash", "-c", command], cwd=self.folder, env=env, stdout=log,
+                                                   stderr=subprocess.STDOUT, start_new_session=True))
+        deadline = time.monotonic() + 60
+        while name == "scheduler":
+            assert self.processes[-1].poll() is None, (self.folder / "scheduler.log").read_text()
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", self.port), timeout=1):
+                break
+            assert time.monotonic() < deadline, "the scheduler took no connection within 60 s"
+            time.sleep(0.2)
+        assert self.processes[-1].poll() is None, (self.folder / f"{name}.log").read_text()
+
+    def close(self) -> None:
+        for process in reversed(self.processes):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGTERM)
+                try:
+                    process.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(process.pid, signal.SIGKILL)
+                    process.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    made = Cluster(tmp_path_factory.mktemp("cluster"))
+    yield made
+    made.close()
+
+
 def substitute(command: str, hardware: Hardware) -> str:
     for pattern, replacement in SUBSTITUTIONS:
         command = re.sub(pattern, replacement, command)
@@ -385,10 +449,18 @@ def test_documented_line_runs(line, tmp_path, tmp_path_factory, hardware, reques
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 0 and done.stdout.strip(), done.stderr[-2000:]
         return
+    dask = re.match(r"(?:\S+=\S+\s+)*dask (scheduler|worker)\b", line.text)
+    if dask:
+        request.getfixturevalue("cluster").start(request.getfixturevalue("cluster").address(line.text))
+        return
     lfrig = re.match(r"(?:\.venv/bin/)?lfrig(?:\s+(.*))?$", line.text)
     assert lfrig, f"{line.id}: no way to run {line.text!r}: make it an lfrig command or mark its block " \
                   "<!-- docs-run: skip (reason) -->"
     command = substitute(lfrig.group(1) or "", hardware)
+    if LAB_SCHEDULER.search(command):
+        if not request.getfixturevalue("cluster").processes:
+            pytest.skip("the scheduler is started by an earlier line of the page: run the whole page")
+        command = request.getfixturevalue("cluster").address(command)
     words = shlex.split(command)
     prepare(line, command, words, cwd=cwd, request=request)
     words = expand(words, cwd=cwd)
@@ -402,8 +474,11 @@ def test_documented_line_runs(line, tmp_path, tmp_path_factory, hardware, reques
         status = main(words)
     except SystemExit as stop:  # --help
         status = stop.code
-    err = capsys.readouterr().err
+    shown = capsys.readouterr()
+    err = shown.err
     assert status == 0, f"lfrig {command}: exit {status}\n{err}"
+    if "--scheduler" in words:  # the work went to the page's worker through its scheduler
+        assert re.search(r"scheduler tcp://127\.0\.0\.1:\d+: 1 worker\(s\)", shown.out + err), shown.out + err
     outputs = written(words)
     assert all((cwd / p).exists() for p in outputs), f"lfrig {command}: missing one of {outputs}"
     if "--dry-run" in words:
