@@ -267,6 +267,8 @@ def _stage(args: argparse.Namespace) -> int:
     try:
         try:
             if args.action == "home":
+                print("lfrig: homing: each axis runs to its switch and pulls off (Ctrl-C stops it)", file=sys.stderr,
+                      flush=True)
                 stage.home()
             elif args.action == "unlock":
                 stage.unlock()
@@ -283,6 +285,8 @@ def _stage(args: argparse.Namespace) -> int:
                 _home_or_prepare(stage, home=args.home, frame="X Y Z are taken in GRBL's present frame, which need "
                                                               "not be the machine frame of earlier sessions")
                 stage.check_step_grid([(args.x, args.y, args.z)])
+                print(f"lfrig: moving to X={args.x:.3f}, Y={args.y:.3f}, Z={args.z:.3f} mm (Ctrl-C stops it)",
+                      file=sys.stderr, flush=True)
                 stage.move_to((args.x, args.y, args.z), feed_mm_min=args.feed_mm_min)
                 stage.wait_until_idle()
         except KeyboardInterrupt:
