@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import errno
 import json
+import logging
+import sys
 import threading
 import time
 from dataclasses import asdict
@@ -37,6 +39,8 @@ import numpy as np
 
 from rig.errors import RigError
 from rig.snap import focus_measure, frame_stats, full_scale
+
+log = logging.getLogger(__name__)
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 PAGE = Path(__file__).with_name("preview.html")
@@ -168,8 +172,11 @@ class Preview:
         class Handler(_Handler):
             owner = preview
 
+        class Server(_Server):
+            owner = preview
+
         try:
-            server = ThreadingHTTPServer((host, port), Handler)
+            server = Server((host, port), Handler)
         except OSError as error:
             if error.errno == errno.EADDRINUSE:
                 raise RigError(f"--port {port}: already in use on {host}; choose another port "
@@ -205,6 +212,19 @@ class Preview:
             self._cond.wait_for(lambda: self.error is not None or self.stop_event.is_set())
         if self.error is not None:
             server.shutdown()
+
+
+class _Server(ThreadingHTTPServer):
+    """The preview's HTTP server: a request that fails because its viewer went away, or while the
+    preview stops, is not an error worth a traceback on the terminal (socketserver prints one)."""
+
+    owner: Preview
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        error = sys.exc_info()[1]
+        if self.owner.stop_event.is_set() or isinstance(error, (ConnectionError, TimeoutError)):
+            return
+        log.warning("preview: a request from %s failed: %s", client_address[0], error)
 
 
 class _Handler(BaseHTTPRequestHandler):

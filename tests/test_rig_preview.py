@@ -242,3 +242,33 @@ def test_a_camera_that_stops_ends_the_preview_with_one_error_and_frees_the_port(
     assert preview.frame_number == 3
     with pytest.raises(ConnectionRefusedError):
         socket.create_connection(("127.0.0.1", port), timeout=2).close()
+
+
+def test_a_request_failing_as_the_viewer_leaves_or_the_preview_stops_prints_no_traceback(capsys, caplog):
+    """socketserver prints a traceback for any failed request; a viewer that goes away, or a request
+    cut short by Ctrl-C, is no error (the Ctrl-C test met one as a stray traceback on stderr)."""
+    import threading
+    from types import SimpleNamespace
+
+    from rig.preview import _Server
+
+    class Server(_Server):
+        owner = SimpleNamespace(stop_event=threading.Event())
+
+    server = Server.__new__(Server)  # handle_error needs no socket
+    for error, stopping in ((ConnectionResetError(104, "reset by peer"), False), (ValueError("I/O on closed file"), True)):
+        Server.owner.stop_event.clear()
+        if stopping:
+            Server.owner.stop_event.set()
+        try:
+            raise error
+        except Exception:
+            server.handle_error(None, ("127.0.0.1", 5000))
+    assert capsys.readouterr().err == "" and caplog.records == []
+    Server.owner.stop_event.clear()
+    try:
+        raise ValueError("a real fault")
+    except ValueError:
+        server.handle_error(None, ("127.0.0.1", 5000))
+    assert "Traceback" not in capsys.readouterr().err
+    assert [r.getMessage() for r in caplog.records] == ["preview: a request from 127.0.0.1 failed: a real fault"]
