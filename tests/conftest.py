@@ -8,6 +8,7 @@ variable ``CI`` is set), so a CI run can never pass by silently skipping them.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -62,3 +63,14 @@ def firmware_eeprom(firmware_exe, tmp_path_factory) -> Path:
     from grbl_devices import fast_eeprom
 
     return fast_eeprom(firmware_exe, tmp_path_factory.mktemp("grbl-eeprom"))
+
+
+def stop_process_group(process: subprocess.Popen) -> None:
+    """End a process we started and everything it started (its own session), by its id."""
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait(timeout=10)

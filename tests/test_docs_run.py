@@ -67,7 +67,7 @@ from grbl_devices import FAST, Firmware
 from recon.lf import read_lightfield
 from recon.lf.importer import capture_order
 from rig.main import main
-from tests.conftest import SHARED, require_hci_scene
+from tests.conftest import SHARED, require_hci_scene, stop_process_group
 from tests.test_rig_aravis import require_aravis
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -347,13 +347,7 @@ class Cluster:
 
     def close(self) -> None:
         for process in reversed(self.processes):
-            if process.poll() is None:
-                os.killpg(process.pid, signal.SIGTERM)
-                try:
-                    process.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    os.killpg(process.pid, signal.SIGKILL)
-                    process.wait(timeout=10)
+            stop_process_group(process)
 
 
 @pytest.fixture(scope="module")

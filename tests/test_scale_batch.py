@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -34,6 +33,7 @@ from recon.scale.batch import (
 )
 from recon.scale.cluster import plan_local
 from recon.synthetic import occluding_square_scene
+from tests.conftest import stop_process_group
 from recon.lf.capture import parameters_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -259,17 +259,6 @@ def test_cli_on_its_own_local_cluster(tmp_path, captures, one_by_one, capsys):
 # --------------------------------------------------------------------------------------------------
 
 
-def _stop(process: subprocess.Popen) -> None:
-    """End a process we started and everything it started (its own session), by its id."""
-    if process.poll() is None:
-        os.killpg(process.pid, signal.SIGTERM)
-        try:
-            process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait(timeout=10)
-
-
 def _start(args: list[str], log: Path, cwd: Path) -> subprocess.Popen:
     env = dict(os.environ, NUMBA_NUM_THREADS="1", PYTHONPATH=str(ROOT))
     with open(log, "wb") as f:
@@ -302,7 +291,7 @@ def test_batch_through_a_dask_scheduler_and_worker_started_by_hand(tmp_path, cap
         printed = capsys.readouterr().out
     finally:
         for process in reversed(processes):
-            _stop(process)
+            stop_process_group(process)
     assert status == 1, printed  # one capture failed ...
     assert f"scheduler {address}: 1 worker(s)" in printed and "data: ship" in printed
     assert "2 done, 0 already complete, 1 failed" in printed and "FAILED broken" in printed
