@@ -3,7 +3,7 @@ and `dask worker` processes on 127.0.0.1: a worker killed while it holds a captu
 views die with it) reruns that capture elsewhere; with no worker left the batch says so and stops
 after --worker-timeout-s; a killed scheduler is one line and exit 2, no distributed traceback.
 
-Every process is started in its own session and ended by its id (``_stop``); every wait is bounded.
+Every process is started in its own session and ended by its id (``tests.conftest.stop_process_group``); every wait is bounded.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from pathlib import Path
 import distributed
 import pytest
 
-from test_scale_batch import _start, _stop, write_benchmark_scene
+from test_scale_batch import _start, write_benchmark_scene
+from tests.conftest import stop_process_group
 
 FLAGS = ["--method", "baseline", "--window", "5", "--step", "0.005", "--export", "none"]
 
@@ -82,8 +83,8 @@ class Cluster:
 
     def stop(self) -> None:
         for process in reversed(self.workers):
-            _stop(process)
-        _stop(self.scheduler)
+            stop_process_group(process)
+        stop_process_group(self.scheduler)
 
 
 def _batch(scenes: list[Path], out: Path, address: str, *extra: str) -> list[str]:
