@@ -11,7 +11,7 @@ import pytest
 
 from recon.lf import read_lightfield
 from recon.lf.importer import ViewImportError, capture_order, import_views, natural_key, parse_pattern
-from recon.lf.pfm import read_pfm
+from recon.lf.pfm import read_pfm, write_pfm
 from rig.main import main
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -284,6 +284,25 @@ def test_index_base_and_mode_mistakes(plain, tmp_path, capsys):
     # a position pattern with an order
     assert run_import(plain, tmp_path / "cap", "--order", "raster") == 2
     assert "places each view by its row and column; --order is for files in capture order" in one_error_line(capsys)
+    assert nothing_written(tmp_path, tmp_path / "cap")
+
+
+@pytest.mark.parametrize("linked", ["gt_disp_lowres.pfm", "input_Cam004.png"])
+def test_benchmark_layout_refuses_a_file_linked_from_outside(tmp_path, capsys, linked):
+    original = read_lightfield(TINY)
+    bench = tmp_path / "bench"
+    export_plain(original, bench, lambda u, v: f"input_Cam{u * 3 + v:03d}.png")
+    (bench / "parameters.cfg").write_text((TINY / "parameters.cfg").read_text())
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    if linked.endswith(".pfm"):
+        write_pfm(outside / linked, np.zeros(original.views.shape[2:4], np.float32))
+    else:
+        (bench / linked).rename(outside / linked)
+    (bench / linked).symlink_to(outside / linked)
+    assert main(["import", str(bench), "-o", str(tmp_path / "cap"), "--quiet"]) == 2
+    line = one_error_line(capsys)
+    assert linked in line and "outside" in line
     assert nothing_written(tmp_path, tmp_path / "cap")
 
 

@@ -621,6 +621,7 @@ def import_views(
     elif benchmark:
         from recon.lf.benchmark import read_benchmark
 
+        _source_files(src)  # a view, truth or parameters file linked from outside SRC is refused, as in the other layouts
         lf = read_benchmark(src)
         if rows is not None or cols is not None:
             if (rows, cols) != lf.grid_shape:
