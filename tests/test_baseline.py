@@ -71,7 +71,7 @@ def test_sweep_gives_what_the_cost_volume_gives():
     np.testing.assert_array_equal(result.cost, cost)
 
 
-@pytest.mark.parametrize("bands", [1, 3, 7])
+@pytest.mark.parametrize("bands", [1, 3, 7, 23])  # 23: one row each, fewer than the window's radius
 def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
     from recon.costvolume import box_mean, sweep_least_cost
 
