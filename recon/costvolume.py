@@ -179,6 +179,12 @@ def pixel_cost(gray: np.ndarray, disparity: float, *, offsets: np.ndarray, indic
     return out
 
 
+def start_numba() -> None:
+    """numba's start-up in this process (its typing and target registries, which the first cached
+    kernel of a process loads, whichever it is: ~0.3-0.5 s), done by loading the smallest one."""
+    _reflect(0, 1)
+
+
 def box_mean_reference(image: np.ndarray, window: int) -> np.ndarray:
     """Mean over a ``window x window`` square around each pixel, borders mirrored (``fedcba|abcdef``,
     OpenCV's ``BORDER_REFLECT``). ``(H, W)`` float32; plain numpy."""
