@@ -56,7 +56,8 @@ def _warm_baseline() -> None:
 
 
 def _warm_entropy() -> None:
-    import recon.entropy  # noqa: F401  numba and the estimator's modules
+    import recon.entropy.estimate  # noqa: F401  numba, scipy and the estimator's modules
+    import recon.entropy.outputs  # noqa: F401
     from recon.costvolume import start_numba
 
     start_numba()
