@@ -89,6 +89,15 @@ def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple
             raise ValueError(f"disparity_range must be finite (min, max) with min < max; got {tuple(disparity_range)}")
 
 
+def load_kernels() -> None:
+    """Load the sweep's compiled kernel (numba's cache) by running it on a tiny light field, so that
+    a caller can do numba's start-up (its imports and its first cache load) while it reads the
+    views (:func:`recon.methods.warm_in_background`); :func:`estimate_baseline` does not need it."""
+    offsets = view_offsets((3, 3))
+    sweep_least_cost(np.zeros((3, 3, 4, 4), np.float32), np.zeros(1), offsets=offsets,
+                     indices=(offsets + 1).astype(np.int64), window=1)
+
+
 def estimate_baseline(
     lf: LightField,
     *,

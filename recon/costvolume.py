@@ -80,51 +80,68 @@ FAST = {"nnan", "ninf", "nsz"}
 
 
 @numba.njit(fastmath=FAST, cache=True)
-def _cost_row(gray, vu, vv, oy, fy, ox, fx, y, acc, rv):
-    # The summed absolute differences of the centre view's row y into acc (float32, W). Bilinear
-    # sampling is separable: each view's two source rows are blended into one row (one fraction fy
-    # for the whole row), then that row is sampled along x with one fraction fx for the whole row,
-    # since the shift is the same for every pixel. The integer parts oy, ox and the fractions depend
-    # only on the shift, not on where the image starts. The middle run indexes slices from 0 so that
-    # numba vectorises it (float32, 8 SIMD lanes). rv: a float32 row to work in.
-    H, W = gray.shape[2], gray.shape[3]
-    c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
+def _add_view_row(img, c_row, y, oy, fy, ox, fx, acc, rv):
+    # Adds to acc (float32, W) the absolute differences between the centre view's row y (c_row)
+    # and one view (img, (H, W)) sampled at (y + oy + fy, x + ox + fx). Bilinear sampling is
+    # separable: the view's two source rows are blended into one row (one fraction fy for the
+    # whole row), then that row is sampled along x with one fraction fx for the whole row, since
+    # the shift is the same for every pixel. The integer parts oy, ox and the fractions depend
+    # only on the shift, not on where the image starts. The middle run indexes slices from 0 so
+    # that numba vectorises it (float32, 8 SIMD lanes). rv: a float32 row to work in.
+    H, W = img.shape
     one = np.float32(1.0)
+    y0 = y + oy
+    if y0 < 0:  # above the image: its first row (edges replicated)
+        row = img[0]
+    elif y0 >= H - 1:  # below: its last row
+        row = img[H - 1]
+    elif fy == 0.0:  # on a row: 1 * a + 0 * b is a
+        row = img[y0]
+    else:
+        a = img[y0]
+        b = img[y0 + 1]
+        g = one - fy
+        for x in range(W):
+            rv[x] = g * a[x] + fy * b[x]
+        row = rv
+    g = one - fx
+    lo = min(max(-ox, 0), W)
+    hi = min(max(W - 1 - ox, lo), W)
+    for x in range(lo):
+        acc[x] += abs(c_row[x] - row[0])
+    n = hi - lo
+    if n > 0:
+        r0 = row[lo + ox:hi + ox]
+        r1 = row[lo + ox + 1:hi + ox + 1]
+        c = c_row[lo:hi]
+        s = acc[lo:hi]
+        for i in range(n):
+            s[i] += abs(c[i] - (g * r0[i] + fx * r1[i]))
+    for x in range(hi, W):
+        acc[x] += abs(c_row[x] - row[W - 1])
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def _cost_row(gray, vu, vv, oy, fy, ox, fx, y, acc, rv):
+    # The summed absolute differences of the centre view's row y into acc (float32, W): the
+    # views k = 0, 1, ... added in that order (_add_view_row).
+    c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
     acc[:] = 0.0
     for k in range(vu.shape[0]):
+        _add_view_row(gray[vu[k], vv[k]], c_row, y, oy[k], fy[k], ox[k], fx[k], acc, rv)
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv):
+    # _cost_row for D candidates at once (oy, fy, ox, fx: (D, N); accs: (D, W) float32): each
+    # candidate's sum adds the views in the same order, but a view is taken for every candidate
+    # before the next view, so its few source rows are read from memory once, not D times.
+    c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
+    accs[:] = 0.0
+    for k in range(vu.shape[0]):
         img = gray[vu[k], vv[k]]
-        y0 = y + oy[k]
-        if y0 < 0:  # above the image: its first row (edges replicated)
-            row = img[0]
-        elif y0 >= H - 1:  # below: its last row
-            row = img[H - 1]
-        elif fy[k] == 0.0:  # on a row: 1 * a + 0 * b is a
-            row = img[y0]
-        else:
-            a = img[y0]
-            b = img[y0 + 1]
-            f = fy[k]
-            g = one - f
-            for x in range(W):
-                rv[x] = g * a[x] + f * b[x]
-            row = rv
-        o = ox[k]
-        f = fx[k]
-        g = one - f
-        lo = min(max(-o, 0), W)
-        hi = min(max(W - 1 - o, lo), W)
-        for x in range(lo):
-            acc[x] += abs(c_row[x] - row[0])
-        n = hi - lo
-        if n > 0:
-            r0 = row[lo + o:hi + o]
-            r1 = row[lo + o + 1:hi + o + 1]
-            c = c_row[lo:hi]
-            s = acc[lo:hi]
-            for i in range(n):
-                s[i] += abs(c[i] - (g * r0[i] + f * r1[i]))
-        for x in range(hi, W):
-            acc[x] += abs(c_row[x] - row[W - 1])
+        for j in range(oy.shape[0]):
+            _add_view_row(img, c_row, y, oy[j, k], fy[j, k], ox[j, k], fx[j, k], accs[j], rv)
 
 
 @numba.njit(parallel=True, fastmath=FAST, cache=True)
@@ -160,6 +177,12 @@ def pixel_cost(gray: np.ndarray, disparity: float, *, offsets: np.ndarray, indic
     _pixel_cost_kernel(np.ascontiguousarray(gray, dtype=np.float32), indices[:, 0].copy(), indices[:, 1].copy(),
                        oy, fy, ox, fx, out)
     return out
+
+
+def start_numba() -> None:
+    """numba's start-up in this process (its typing and target registries, which the first cached
+    kernel of a process loads, whichever it is: ~0.3-0.5 s), done by loading the smallest one."""
+    _reflect(0, 1)
 
 
 def box_mean_reference(image: np.ndarray, window: int) -> np.ndarray:
@@ -237,8 +260,14 @@ def _sweep_kernel(gray, vu, vv, oy, fy, ox, fx, first, window, edges, previous, 
     # values pixel_cost gives), their box mean (box_mean's sums, in its order) and keeps, per
     # pixel, the least mean, its index and its neighbours' means, as np.argmin over the volume
     # would (the first least, or the first NaN). previous: the last candidate's means.
+    # Row by row, all D candidates of a row before the next row: the views' rows that a row's
+    # candidates sample are nearly the same ones, so they are read from memory once per call
+    # rather than once per candidate. Each candidate keeps the row sums of the window's last
+    # 2r + 1 rows in a ring; an output row is summed as soon as its window's last row is in.
     H, W = gray.shape[2], gray.shape[3]
+    D = oy.shape[0]
     r = window // 2
+    n = 2 * r + 1
     inv = np.float32(1.0 / vu.shape[0])
     scale = 1.0 / (window * window)
     for b in numba.prange(edges.shape[0] - 1):
@@ -246,29 +275,38 @@ def _sweep_kernel(gray, vu, vv, oy, fy, ox, fx, first, window, edges, previous, 
         a = max(lo - r, 0)
         z = min(hi + r, H)
         cost = np.empty(W, np.float32)
-        rows = np.empty((z - a, W), np.float64)
-        acc = np.empty(W, np.float32)
+        ring = np.empty((D, n, W), np.float64)
+        accs = np.empty((D, W), np.float32)
         rv = np.empty(W, np.float32)
         col = np.empty(W, np.float64)
-        for j in range(oy.shape[0]):
-            index = first + j
-            for y in range(a, z):
-                _cost_row(gray, vu, vv, oy[j], fy[j], ox[j], fx[j], y, acc, rv)
+        for y in range(a, z):
+            _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv)
+            for j in range(D):
+                acc = accs[j]
                 for x in range(W):
                     cost[x] = acc[x] * inv
-                _row_sums(cost, r, rows[y - a])
-            for y in range(lo, hi):
-                _column_sums(rows, y, r, H, a, col)
-                for x in range(W):
-                    c = np.float32(col[x] * scale)
-                    if best_index[y, x] == index - 1:
-                        c_plus[y, x] = c
-                    m = best[y, x]
-                    if index == 0 or c < m or (c != c and m == m):
-                        best[y, x] = c
-                        best_index[y, x] = index
-                        c_minus[y, x] = previous[y, x]
-                    previous[y, x] = c
+                _row_sums(cost, r, ring[j, y % n])
+            # the output rows whose window ends at row y (at the last row, the last r + 1 rows)
+            out_lo = max(y - r, lo)
+            out_hi = min(y + 1 if y == H - 1 else y - r + 1, hi)
+            for yo in range(out_lo, out_hi):
+                for j in range(D):
+                    index = first + j
+                    col[:] = 0.0
+                    for k in range(-r, r + 1):
+                        src = ring[j, _reflect(yo + k, H) % n]
+                        for x in range(W):
+                            col[x] += src[x]
+                    for x in range(W):
+                        c = np.float32(col[x] * scale)
+                        if best_index[yo, x] == index - 1:
+                            c_plus[yo, x] = c
+                        m = best[yo, x]
+                        if index == 0 or c < m or (c != c and m == m):
+                            best[yo, x] = c
+                            best_index[yo, x] = index
+                            c_minus[yo, x] = previous[yo, x]
+                        previous[yo, x] = c
 
 
 def box_mean(image: np.ndarray, window: int) -> np.ndarray:

@@ -9,6 +9,7 @@ that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +49,20 @@ def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
                         write_extras=lambda folder: write_outputs(result, folder))
 
 
+def _warm_baseline() -> None:
+    from recon.baseline import load_kernels
+
+    load_kernels()
+
+
+def _warm_entropy() -> None:
+    import recon.entropy.estimate  # noqa: F401  numba, scipy and the estimator's modules
+    import recon.entropy.outputs  # noqa: F401
+    from recon.costvolume import start_numba
+
+    start_numba()
+
+
 def _check_baseline(options: dict[str, Any]) -> None:
     from recon.baseline import check_options
 
@@ -63,19 +78,24 @@ def _check_entropy(options: dict[str, Any]) -> None:
 @dataclass(frozen=True)
 class Method:
     """A reconstruction method: ``run(lf, progress, **options)``, ``check(options)`` (raises
-    ``ValueError`` for an option value it cannot use, before any work) and a one-line description."""
+    ``ValueError`` for an option value it cannot use, before any work), a one-line description and
+    ``warm()``, which loads what the method's first call would load (imports, compiled kernels) and
+    changes no result (:func:`warm_in_background`)."""
 
     run: Callable[..., MethodResult]
     check: Callable[[dict[str, Any]], None]
     description: str
+    warm: Callable[[], None] | None = None
 
 
 #: name -> :class:`Method`. The first is the default.
 METHODS: dict[str, Method] = {
     "entropy": Method(_entropy, _check_entropy,
-                      "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions"),
+                      "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions",
+                      _warm_entropy),
     "baseline": Method(_baseline, _check_baseline,
-                       "fixed square window, SAD over all views, parabolic sub-pixel refinement"),
+                       "fixed square window, SAD over all views, parabolic sub-pixel refinement",
+                       _warm_baseline),
 }
 DEFAULT_METHOD = next(iter(METHODS))
 
@@ -90,6 +110,31 @@ def _method(name: str) -> Method:
 def check_method_options(name: str, options: dict[str, Any]) -> None:
     """Raise ``ValueError`` naming the method or option value that cannot be used."""
     _method(name).check(dict(options))
+
+
+def warm_in_background(name: str) -> threading.Thread | None:
+    """Start method ``name``'s ``warm()`` in a daemon thread and return it (``None`` for an unknown
+    name or a method without one).
+
+    numba's start-up (importing it, its first load of a cached kernel: ~0.5 s of Python that holds
+    the interpreter lock) then overlaps work that releases the lock, such as decoding the views.
+    The method's own first call waits for it where it must (the import lock, numba's compiler
+    lock); join the thread before the work to keep the two apart. A failure here is dropped: the
+    method's own call meets the same problem and reports it.
+    """
+    method = METHODS.get(name)
+    if method is None or method.warm is None:
+        return None
+
+    def warm() -> None:
+        try:
+            method.warm()
+        except Exception:  # noqa: BLE001  reported by the method's own call (see above)
+            pass
+
+    thread = threading.Thread(target=warm, name=f"lfrig-warm-{name}", daemon=True)
+    thread.start()
+    return thread
 
 
 def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from recon.errors import ReconError
 from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
 from recon.lf.params import disparity_range_problem
-from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method
+from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method, warm_in_background
 from recon.progress import ProgressCallback
 from recon.lf.lock import FolderLock
 from recon.result import (CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_JSON, ResultRecord, clear_result,
@@ -194,6 +195,8 @@ def reconstruct_to_folder(
 
     started_utc, started = utc_now(), time.perf_counter()
     command = current_command() if command is None else [str(part) for part in command]
+    # numba's start-up runs beside the decoding of the views (which leaves the interpreter free).
+    warming = warm_in_background(method) if estimate is None and not isinstance(lf_dir, LightField) else None
     lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
     if lf.source is not None:
         check_output_outside(lf.source, out_dir)
@@ -217,11 +220,13 @@ def reconstruct_to_folder(
     with FolderLock(out, what="reconstruction"):
         return _reconstruct_locked(lf, out, method=method, opts=opts, ply=ply, ply_kind=ply_kind,
                                    progress=progress, estimate=estimate, source=source, extra=extra,
-                                   made={"command": command, "started_utc": started_utc, "read": read_s})
+                                   made={"command": command, "started_utc": started_utc, "read": read_s},
+                                   warming=warming)
 
 
 def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[str, Any], ply, ply_kind,
-                        progress, estimate, source, extra, made: dict[str, Any]) -> FolderResult:
+                        progress, estimate, source, extra, made: dict[str, Any],
+                        warming: threading.Thread | None = None) -> FolderResult:
     from recon.colour import colourise
     from recon.evaluate import score
     from recon.lf.imageio import write_png
@@ -243,6 +248,8 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     # beside new ones. The new result.json is renamed in last.
     clear_result(out)
     started = time.perf_counter()
+    if warming is not None:
+        warming.join()
     method_result = (estimate or run_in_process)(lf, method, opts, progress)
     disparity = method_result.disparity
     seconds = time.perf_counter() - started

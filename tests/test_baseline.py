@@ -71,7 +71,7 @@ def test_sweep_gives_what_the_cost_volume_gives():
     np.testing.assert_array_equal(result.cost, cost)
 
 
-@pytest.mark.parametrize("bands", [1, 3, 7])
+@pytest.mark.parametrize("bands", [1, 3, 7, 23])  # 23: one row each, fewer than the window's radius
 def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
     from recon.costvolume import box_mean, sweep_least_cost
 
@@ -139,3 +139,18 @@ def test_box_mean_agrees_with_reference_and_does_not_depend_on_the_crop(window):
     # Away from the crop's own border (within r of it the mirror differs), bit for bit the same.
     np.testing.assert_array_equal(crop[r:crop.shape[0] - r, r:crop.shape[1] - r],
                                   full[4 + r:20 - r, 5 + r:27 - r])
+
+
+def test_the_warm_up_loads_the_kernel_the_estimate_calls():
+    # recon.methods.warm_in_background("baseline") (run while the views are read) loads the sweep's
+    # kernel with the argument types the estimate passes: the estimate adds no second signature,
+    # which would mean a compilation at run time.
+    from recon.costvolume import _sweep_kernel
+    from recon.methods import warm_in_background
+
+    warm_in_background("baseline").join()
+    loaded = list(_sweep_kernel.signatures)
+    assert len(loaded) == 1
+    lf, _ = occluding_square_scene(24, back=-0.5, front=1.0)
+    estimate_baseline(lf, window=5, step=0.1, disparity_range=(-0.6, 1.2))
+    assert list(_sweep_kernel.signatures) == loaded

@@ -290,6 +290,21 @@ def test_swapped_views_are_found_unless_the_user_opts_out(capture, capsys):
     np.testing.assert_array_equal(lf.views[0, 0], image(5))
 
 
+def test_verifying_reads_each_view_once(capture, monkeypatch):
+    # The checksums are taken from the bytes read for decoding, not from a second read of the files.
+    opened = []
+    real_open = os.open
+
+    def counting_open(path, *args, **kwargs):
+        opened.append(Path(path).name)
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", counting_open)
+    read_capture(capture)
+    assert sorted(name for name in opened if name.endswith(".png")) == sorted(
+        p.name for p in (capture / "views").iterdir())
+
+
 @pytest.mark.parametrize("file", ["../other/x.png", "/dev/zero", "views/u00_v01.png", "views/../views/u00_v00.png"])
 def test_a_view_file_must_be_its_own_name_inside_the_folder(capture, file):
     outside = capture.parent / "other"

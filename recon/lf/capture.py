@@ -19,10 +19,9 @@ import errno
 import json
 import os
 import re
-from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -452,9 +451,10 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
 
     Every view must be journalled as ``views/uUU_vVV.png`` of its own grid position, a regular file
     inside the folder (not a symlink out of it). With ``verify`` (the default), each file's SHA-256
-    is checked against the journal, so a swapped, edited or damaged view is an error rather than
-    silently used; ``verify=False`` (``--no-verify``) skips that check (it costs about 0.15 s for 81
-    views of 640x490, 76 MB of PNG: ``bench/verify_capture.py``), never the path checks.
+    is checked against the journal (from the bytes read for decoding, before they are decoded), so
+    a swapped, edited or damaged view is an error rather than silently used; ``verify=False``
+    (``--no-verify``) skips that check (the hashing: ``bench/verify_capture.py``), never the path
+    checks.
 
     Raises
     ------
@@ -510,9 +510,9 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
             raise CaptureLayoutError(f"{p}: a view must be a file inside {path}, not a link elsewhere; replace it with the view itself")
         if not p.is_file():
             raise CaptureLayoutError(f"{p}: journalled view is missing on disk; resume the capture to take it again")
-    if verify:
-        _verify_views(path, paths, [entries[(u, v)].get("sha256") for u in range(rows) for v in range(cols)])
-    images = read_images(paths)
+    journalled = {path / entries[(u, v)]["file"]: entries[(u, v)].get("sha256")
+                  for u in range(rows) for v in range(cols)}
+    images = read_images(paths, check=_checksum_check(journalled) if verify else None)
     views = images.reshape((rows, cols) + images.shape[1:])
     camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
     metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
@@ -533,20 +533,19 @@ def _ends_complete(records: list[dict[str, Any]]) -> bool:
     return bool(records) and records[-1].get("kind") == "complete"
 
 
-def _verify_views(path: Path, paths: list[Path], digests: list[Any]) -> None:
-    """Check each file's SHA-256 against the journal (hashing runs in threads: hashlib drops the GIL)."""
+def _checksum_check(journalled: dict[Path, Any]) -> Callable[[Path, str], None]:
+    """``check(file, sha256_hex)`` for :func:`recon.lf.imageio.read_images`: the bytes read for a view
+    must have the SHA-256 its journal records (``journalled[file]``), checked before they are
+    decoded, in the one pass that reads them."""
 
-    def digest(file: Path) -> str:
-        return sha256_file(file, error=CaptureLayoutError)
-
-    with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
-        found = list(pool.map(digest, paths))
-    for file, want, got in zip(paths, digests, found):
-        if want != got:
+    def check(file: Path, got: str) -> None:
+        if journalled[file] != got:
             raise CaptureLayoutError(
                 f"{file}: content does not match the checksum in {MANIFEST} (the file was replaced, edited or "
                 f"damaged); resume the capture to take it again, or pass --no-verify to use it anyway"
             )
+
+    return check
 
 
 def write_lightfield(path: str | os.PathLike, lf: LightField, *, header_extra: dict[str, Any] | None = None) -> None:

@@ -16,7 +16,7 @@ import zlib
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -204,12 +204,19 @@ def read_image(path: Path) -> np.ndarray:
     return _to_rgb(_decode(path))
 
 
-def _decode(path: Path, digests: dict[Path, str] | None = None) -> np.ndarray:
+def _decode(path: Path, digests: dict[Path, str] | None = None,
+            check: Callable[[Path, str], None] | None = None) -> np.ndarray:
     """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s
-    checks; with ``digests``, the SHA-256 of the file's bytes as read goes into ``digests[path]``."""
+    checks; with ``digests``, the SHA-256 of the file's bytes as read goes into ``digests[path]``;
+    with ``check``, ``check(path, sha256_hex)`` is called before decoding (it raises for a file that
+    must not be used)."""
     raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
-    if digests is not None:
-        digests[path] = hashlib.sha256(raw).hexdigest()
+    if digests is not None or check is not None:
+        digest = hashlib.sha256(raw).hexdigest()
+        if digests is not None:
+            digests[path] = digest
+        if check is not None:
+            check(path, digest)
     data = np.frombuffer(raw, dtype=np.uint8)
     if raw.startswith(PNG_SIGNATURE):
         problem = png_problem(raw)
@@ -244,11 +251,14 @@ def _to_rgb(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None) -> np.ndarray:
+def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None,
+                check: Callable[[Path, str], None] | None = None) -> np.ndarray:
     """Read equally sized images into one ``(N, H, W[, 3])`` array; PNG decoding runs in threads.
 
     ``digests``: a dict that receives ``path -> SHA-256`` (hex) of each file's bytes as they were
-    read, so that a record of the input needs no second pass over the files.
+    read, so that a record of the input needs no second pass over the files. ``check``: called as
+    ``check(path, sha256_hex)`` for each file's bytes as read, before they are decoded (a journal's
+    checksums are verified this way, in the same pass); what it raises ends the reading.
 
     Raises
     ------
@@ -258,14 +268,14 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
     """
     if not paths:
         raise ValueError("read_images needs at least one path")
-    decoded = _decode(paths[0], digests)
+    decoded = _decode(paths[0], digests, check)
     shape = _rgb_shape(decoded)
     check_total_size(paths[0].parent, len(paths) * math.prod(shape) * decoded.dtype.itemsize)
     out = np.empty((len(paths),) + shape, dtype=decoded.dtype)
     first = _to_rgb(decoded, out[0])
 
     def load(i: int) -> None:
-        image = _decode(paths[i], digests)  # decoded straight into its place in ``out``, colours swapped on the way
+        image = _decode(paths[i], digests, check)  # decoded straight into its place in ``out``, colours swapped on the way
         if _rgb_shape(image) != first.shape or image.dtype != first.dtype:
             raise LightFieldFormatError(
                 f"{paths[i]}: image is {_describe(_to_rgb(image))} but {paths[0].name} is {_describe(first)}; "

@@ -13,6 +13,8 @@ so that ``d > 0`` for points in front of the plane of zero disparity (the benchm
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -119,9 +121,18 @@ def to_gray(images: np.ndarray) -> np.ndarray:
 
     flat = images.reshape((-1,) + images.shape[-3:])
     out = np.empty(flat.shape[:3], dtype=np.float32)
-    for i, image in enumerate(flat):  # per image keeps the float32 temporary small
-        out[i] = cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2GRAY)
-    out *= np.float32(scale)
+
+    def convert(i: int) -> None:  # per image keeps the float32 temporary small
+        np.multiply(cv2.cvtColor(flat[i].astype(np.float32), cv2.COLOR_RGB2GRAY), np.float32(scale), out=out[i])
+
+    workers = min(len(flat), os.cpu_count() or 1)
+    if workers > 1:  # numpy's cast and OpenCV release the interpreter lock: one image per thread
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for _ in pool.map(convert, range(len(flat))):
+                pass
+    else:
+        for i in range(len(flat)):
+            convert(i)
     return out.reshape(images.shape[:-1])
 
 
