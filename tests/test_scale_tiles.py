@@ -174,6 +174,44 @@ def test_tiled_entropy_equals_untiled(boxes):
     assert corner[1] < boxes.image_shape[0] and corner[3] < boxes.image_shape[1]  # a real crop
     np.testing.assert_allclose(result.disparity, whole.disparity, rtol=0, atol=ENTROPY_ROUNDING)
     assert len(seen) == 18 and seen[-1] == 1.0  # two rounds of tiles
+    assert_same_maps(result.extras, whole)
+
+
+#: The maps of an :class:`recon.entropy.EntropyResult` a tiled run must reproduce.
+ENTROPY_MAPS = ("disparity", "initial_disparity", "matched_disparity", "labels", "window_size", "window_shape",
+                "view_set", "entropy", "cost", "confidence")
+
+
+def assert_same_maps(tiled, whole):
+    """Every map of ``tiled`` (the tiled run's result) equals ``whole``'s bit for bit, dtype included:
+    the confidence and the maps it is computed from, and the arrays and numbers of ``info``."""
+    assert tiled is not None and tiled.confidence is not None
+    for name in ENTROPY_MAPS:
+        a, b = getattr(tiled, name), getattr(whole, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    assert tiled.info.keys() == whole.info.keys()
+    for name, value in whole.info.items():
+        if isinstance(value, np.ndarray):
+            assert tiled.info[name].dtype == value.dtype, name
+            np.testing.assert_array_equal(tiled.info[name], value, err_msg=name)
+        else:
+            assert tiled.info[name] == value, name
+
+
+@pytest.mark.parametrize("name, preset", [("thin", None), ("slants", "paper")])
+def test_tiled_entropy_confidence_equals_untiled_on_suite_scenes(name, preset):
+    """The tiled run hands back the confidence of an untiled run, bit for bit, with the maps it is
+    made from (cost, chosen window, entropy, ...): tiles of 40 px on a 96-px suite scene."""
+    from recon.entropy import estimate_disparity
+    from recon.entropy.scenes import make_scene
+
+    lf = make_scene(name, size=96).lf
+    whole = estimate_disparity(lf, preset=preset)
+    result = tiled_disparity(lf, method="entropy", options={"preset": preset}, tile=40)
+    assert len(result.tiles) == 9
+    assert_same_maps(result.extras, whole)
+    assert 0 < float(np.mean(whole.confidence >= 0.5)) < 1  # a map with both kinds of pixel
 
 
 def test_entropy_tiles_need_the_whole_image_steps(boxes):
