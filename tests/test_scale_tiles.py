@@ -3,6 +3,8 @@ equals the untiled one (in this process and on a local Dask cluster)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -200,18 +202,28 @@ def assert_same_maps(tiled, whole):
 
 
 @pytest.mark.parametrize("name, preset", [("thin", None), ("slants", "paper")])
-def test_tiled_entropy_confidence_equals_untiled_on_suite_scenes(name, preset):
+def test_tiled_entropy_confidence_equals_untiled_on_suite_scenes(name, preset, tmp_path):
     """The tiled run hands back the confidence of an untiled run, bit for bit, with the maps it is
-    made from (cost, chosen window, entropy, ...): tiles of 40 px on a 96-px suite scene."""
-    from recon.entropy import estimate_disparity
+    made from (cost, chosen window, entropy, ...): tiles of 40 px on a 96-px suite scene, through
+    the estimator the batch plugs into the pipeline, which writes the same files."""
+    from recon.entropy import estimate_disparity, write_outputs
     from recon.entropy.scenes import make_scene
+    from recon.lf.pfm import read_pfm
+    from recon.scale.tiles import tiled_estimator
 
     lf = make_scene(name, size=96).lf
     whole = estimate_disparity(lf, preset=preset)
-    result = tiled_disparity(lf, method="entropy", options={"preset": preset}, tile=40)
-    assert len(result.tiles) == 9
+    record = {}
+    result = tiled_estimator(tile=40, record=record)(lf, "entropy", {"preset": preset}, None)
+    assert record["tiles"] == 9
     assert_same_maps(result.extras, whole)
     assert 0 < float(np.mean(whole.confidence >= 0.5)) < 1  # a map with both kinds of pixel
+    tiled_files = [p.relative_to(tmp_path / "tiled") for p in result.write_extras(tmp_path / "tiled")]
+    whole_files = [p.relative_to(tmp_path / "whole") for p in write_outputs(whole, tmp_path / "whole")]
+    assert tiled_files == whole_files and Path("confidence.pfm") in tiled_files
+    for name in tiled_files:
+        assert (tmp_path / "tiled" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    np.testing.assert_array_equal(read_pfm(tmp_path / "tiled" / "confidence.pfm"), whole.confidence)
 
 
 def test_entropy_tiles_need_the_whole_image_steps(boxes):
