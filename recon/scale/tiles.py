@@ -128,7 +128,8 @@ class TileRule:
     exact: bool
     note: str = ""
     #: ``run(lf, options, map_tiles) -> MethodResult`` for a method with whole-image steps between
-    #: tile-local ones (its disparity and its own maps, as an untiled run makes them); ``map_tiles(task, maps=()) -> (..., H, W)`` runs
+    #: tile-local ones (its disparity and its own maps, as an untiled run makes them);
+    #: ``map_tiles(task, maps=()) -> (..., H, W)`` runs
     #: ``task(crop, map_crops, options, threads) -> (..., crop H, crop W)`` on every tile (each of
     #: ``maps``, ``(H, W)`` arrays, cut to the tile's crop) and stitches. ``None``: one
     #: :func:`run_tile` per tile.
