@@ -10,8 +10,10 @@ a tiled run (:func:`recon.scale.tiles.tiled_disparity`, ``--tile`` core pixels) 
 by ``--tiled``. For each run it records the SHA-256 of every array of the result (``disparity``,
 ``initial_disparity``, ``matched_disparity``, ``labels``, window maps, ``entropy``, ``cost``,
 ``confidence``) and of every array in its ``info``, and the disparity range searched; a tiled run
-records its stitched disparity. ``--compare`` prints each digest that differs and exits 1 if any
-does. Digests are of the bytes: dtype, shape and every bit count.
+records the same of its stitched result (the confidence among them) and prints the maps in which
+it differs from the untiled run with the defaults. ``--compare`` prints each digest that differs
+and exits 1 if any does (a digest the other file does not have is listed as new, not as a
+difference). Digests are of the bytes: dtype, shape and every bit count.
 """
 
 from __future__ import annotations
@@ -104,10 +106,17 @@ def main() -> int:
         if name in args.tiled:
             t = time.perf_counter()
             tiled = tiled_disparity(lf, method="entropy", tile=args.tile)
-            record[f"{name} tiled"] = {"disparity": _digest(tiled.disparity), "halo_px": repr(tiled.halo),
-                                       "disparity_range": repr(tiled.options["disparity_range"])}
+            digests = result_digest(tiled.extras)
+            digests.update({"disparity": _digest(tiled.disparity), "halo_px": repr(tiled.halo),
+                            "disparity_range": repr(tiled.options["disparity_range"])})
+            record[f"{name} tiled"] = digests
+            untiled = record.get(f"{name} default", {})
+            unlike = sorted(k for k in untiled if k in digests and digests[k] != untiled[k])
             print(f"{name} tiled ({len(tiled.tiles)} tiles, halo {tiled.halo}): "
-                  f"{time.perf_counter() - t:.1f} s", flush=True)
+                  f"{time.perf_counter() - t:.1f} s; "
+                  + (f"differs from untiled in {', '.join(unlike)}" if unlike else
+                     f"{len(untiled)} digests equal to untiled's" if untiled else "no untiled run to compare"),
+                  flush=True)
     args.output.write_text(json.dumps(record, indent=1, sort_keys=True))
     if args.compare is None:
         return 0
@@ -117,8 +126,11 @@ def main() -> int:
         if run not in reference:
             print(f"{run}: not in {args.compare}")
             continue
+        new = [key for key in digests if key not in reference[run]]
+        if new:
+            print(f"new in {run}: {', '.join(new)}")
         for key, value in digests.items():
-            if reference[run].get(key) != value:
+            if key in reference[run] and reference[run][key] != value:
                 differ += 1
                 print(f"DIFFERS {run}: {key}")
     print(f"{differ} digest(s) differ over {len(record)} run(s)" if differ else

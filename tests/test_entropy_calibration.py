@@ -103,3 +103,57 @@ def test_a_lone_spike_loses_its_confidence():
             p = probability_right(refined=d, matched=matched, **maps)
             assert p[y, x] < 0.5, (y, x, jump, p[y, x])
             assert p[y, x + 3] >= 0.5 or result.confidence[y, x + 3] < 0.5
+
+
+def test_box_spread_in_bands_is_the_whole_images():
+    """The box spread carried from band to band (scipy's running column sums) gives
+    :func:`local_spread`'s values bit for bit, on tiny images too and with non-finite values."""
+    from recon.entropy.calibration import _BoxSpread, local_spread
+
+    rng = np.random.default_rng(5)
+    for shape in [(1, 7), (2, 5), (3, 9), (97, 131)]:
+        d = rng.normal(size=shape).astype(np.float32).astype(np.float64) * 2
+        d[rng.random(shape) < 0.2] = np.nan
+        clean = np.where(np.isfinite(d), d, 0.0)
+        for rows in (1, 3, 64):
+            spread = _BoxSpread(lambda a, b: clean[a:b], shape)
+            banded = np.concatenate([spread.rows(y, min(y + rows, shape[0])) for y in range(0, shape[0], rows)])
+            np.testing.assert_array_equal(banded, local_spread(clean), err_msg=f"{shape}, bands of {rows}")
+    with pytest.raises(ValueError, match="top to bottom"):
+        _BoxSpread(lambda a, b: clean[a:b], clean.shape).rows(3, 6)
+
+
+def test_confidence_in_bands_is_the_whole_images(monkeypatch):
+    """Features, heuristic and probability made in bands of 5 rows (halos of 11 rows: the jump
+    distance's reach) equal those made in one band of the whole image, bit for bit, with holes,
+    labels and non-finite pixels (the estimator's maps of the thin scene, some made NaN)."""
+    from recon.entropy import calibration, confidence
+
+    result = estimate_disparity(make_scene("thin", size=96, seed=3).lf)
+    o = result.options
+    d = result.disparity.copy()
+    d[np.random.default_rng(1).random(d.shape) < 0.01] = np.nan
+    maps = dict(refined=d, matched=result.matched_disparity, initial=result.initial_disparity,
+                ambiguity=result.info["ambiguity"], labels=result.labels, holes=result.info["holes"],
+                noise_limited=result.info["noise_limited"], window_size=result.window_size,
+                cost=matching_cost(result.cost, result.entropy, lambda_entropy=o.lambda_entropy,
+                                   intensity_scale=o.intensity_scale),
+                entropy=result.entropy, noise_sigma=result.info["noise_sigma"], step=o.step,
+                disparity_range=result.disparity_range)
+    assert result.info["holes"].any()
+    heuristic = confidence.confidence_map(refined=d, matched=maps["matched"], ambiguity=maps["ambiguity"],
+                                          step=o.step, disparity_range=result.disparity_range, holes=maps["holes"])
+    whole = {}
+    for rows in (d.shape[0], 5):
+        monkeypatch.setattr(calibration, "BAND_ROWS", rows)
+        monkeypatch.setattr(confidence, "BAND_ROWS", rows)
+        got = (calibration.confidence_features(**maps, heuristic=heuristic),
+               confidence.confidence_map(refined=d, matched=maps["matched"], ambiguity=maps["ambiguity"],
+                                         step=o.step, disparity_range=result.disparity_range, holes=maps["holes"]),
+               calibration.probability_right(**maps))
+        if not whole:
+            whole = dict(zip(("features", "heuristic", "probability"), got))
+            continue
+        for (name, expected), value in zip(whole.items(), got):
+            np.testing.assert_array_equal(value, expected, err_msg=name)
+    assert 0 < np.mean(whole["probability"] >= 0.5) < 1

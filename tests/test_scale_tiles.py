@@ -3,6 +3,8 @@ equals the untiled one (in this process and on a local Dask cluster)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -174,6 +176,54 @@ def test_tiled_entropy_equals_untiled(boxes):
     assert corner[1] < boxes.image_shape[0] and corner[3] < boxes.image_shape[1]  # a real crop
     np.testing.assert_allclose(result.disparity, whole.disparity, rtol=0, atol=ENTROPY_ROUNDING)
     assert len(seen) == 18 and seen[-1] == 1.0  # two rounds of tiles
+    assert_same_maps(result.extras, whole)
+
+
+#: The maps of an :class:`recon.entropy.EntropyResult` a tiled run must reproduce.
+ENTROPY_MAPS = ("disparity", "initial_disparity", "matched_disparity", "labels", "window_size", "window_shape",
+                "view_set", "entropy", "cost", "confidence")
+
+
+def assert_same_maps(tiled, whole):
+    """Every map of ``tiled`` (the tiled run's result) equals ``whole``'s bit for bit, dtype included:
+    the confidence and the maps it is computed from, and the arrays and numbers of ``info``."""
+    assert tiled is not None and tiled.confidence is not None
+    for name in ENTROPY_MAPS:
+        a, b = getattr(tiled, name), getattr(whole, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    assert tiled.info.keys() == whole.info.keys()
+    for name, value in whole.info.items():
+        if isinstance(value, np.ndarray):
+            assert tiled.info[name].dtype == value.dtype, name
+            np.testing.assert_array_equal(tiled.info[name], value, err_msg=name)
+        else:
+            assert tiled.info[name] == value, name
+
+
+@pytest.mark.parametrize("name, preset", [("thin", None), ("slants", "paper")])
+def test_tiled_entropy_confidence_equals_untiled_on_suite_scenes(name, preset, tmp_path):
+    """The tiled run hands back the confidence of an untiled run, bit for bit, with the maps it is
+    made from (cost, chosen window, entropy, ...): tiles of 40 px on a 96-px suite scene, through
+    the estimator the batch plugs into the pipeline, which writes the same files."""
+    from recon.entropy import estimate_disparity, write_outputs
+    from recon.entropy.scenes import make_scene
+    from recon.lf.pfm import read_pfm
+    from recon.scale.tiles import tiled_estimator
+
+    lf = make_scene(name, size=96).lf
+    whole = estimate_disparity(lf, preset=preset)
+    record = {}
+    result = tiled_estimator(tile=40, record=record)(lf, "entropy", {"preset": preset}, None)
+    assert record["tiles"] == 9
+    assert_same_maps(result.extras, whole)
+    assert 0 < float(np.mean(whole.confidence >= 0.5)) < 1  # a map with both kinds of pixel
+    tiled_files = [p.relative_to(tmp_path / "tiled") for p in result.write_extras(tmp_path / "tiled")]
+    whole_files = [p.relative_to(tmp_path / "whole") for p in write_outputs(whole, tmp_path / "whole")]
+    assert tiled_files == whole_files and Path("confidence.pfm") in tiled_files
+    for name in tiled_files:
+        assert (tmp_path / "tiled" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    np.testing.assert_array_equal(read_pfm(tmp_path / "tiled" / "confidence.pfm"), whole.confidence)
 
 
 def test_entropy_tiles_need_the_whole_image_steps(boxes):

@@ -91,6 +91,173 @@ def local_spread(d: np.ndarray, size: int = 5) -> np.ndarray:
     return np.sqrt(np.maximum(ndimage.uniform_filter(d * d, size) - mean * mean, 0.0))
 
 
+#: Rows of the image whose features are computed at once (each band with :data:`HALO_ROWS` more
+#: above and below): the step holds a band's ``(rows, W, F)`` features, not the image's.
+BAND_ROWS = 64
+#: Rows around a band that its features read: the jump distance's reach (a jump is a step between
+#: 4-neighbours, so one row more); the 5x5 median, the box spread and the slope read less.
+HALO_ROWS = JUMP_REACH_PX + 1
+#: Pixels whose model sum (``f . c``) is taken in one call: a multiple of 4 and too few for BLAS to
+#: split between threads, so every pixel's sum is taken by the same kernel in the same order
+#: whatever the band, the image size or the number of threads.
+LOGISTIC_CHUNK = 256
+
+
+class FeatureInputs:
+    """The ``(H, W)`` maps the features are computed from (the whole image's, as given: no copies)
+    and the numbers they share; arguments as :func:`confidence_features`. :meth:`band` gives the
+    features of a band of rows."""
+
+    def __init__(self, *, refined, matched, initial, ambiguity, labels, holes, noise_limited, window_size,
+                 cost, noise_sigma, step, heuristic, entropy) -> None:
+        self.refined = np.asarray(refined)
+        self.shape = self.refined.shape
+        self.matched, self.initial, self.ambiguity = np.asarray(matched), np.asarray(initial), np.asarray(ambiguity)
+        self.labels, self.window_size, self.cost = np.asarray(labels), np.asarray(window_size), np.asarray(cost)
+        self.holes = None if holes is None else np.asarray(holes)
+        self.noise_limited = None if noise_limited is None else np.asarray(noise_limited)
+        self.heuristic, self.entropy = np.asarray(heuristic), np.asarray(entropy)
+        self.step = float(step)
+        self.noise = max(float(noise_sigma), 0.5 / 255)
+        self.spread = _BoxSpread(self.d_rows, self.shape)
+
+    def d_rows(self, a: int, b: int) -> np.ndarray:
+        """``d``: the final disparity of rows ``[a, b)``, float64, 0 where not finite."""
+        refined = np.asarray(self.refined[a:b], np.float64)
+        return np.where(np.isfinite(refined), refined, 0.0)
+
+    def band(self, y0: int, y1: int) -> np.ndarray:
+        """``(y1 - y0, W, len(FEATURES))`` float32 features of rows ``[y0, y1)``, the same values
+        as of the whole image (bands taken top to bottom: the box spread carries its running sums)."""
+        band = Band(self, y0, y1)
+        out = np.empty((y1 - y0, self.shape[1], len(FEATURES)), np.float32)
+        for i, name in enumerate(FEATURES):
+            out[..., i] = FEATURE_FUNCTIONS[name](band)
+        return out
+
+
+class Band:
+    """Rows ``[y0, y1)`` of :class:`FeatureInputs` with :data:`HALO_ROWS` around them (clipped to
+    the image): ``d`` over the halo'd rows, ``core`` its rows ``[y0, y1)``, the maps the
+    features share computed once."""
+
+    def __init__(self, inputs: FeatureInputs, y0: int, y1: int) -> None:
+        H = inputs.shape[0]
+        self.inputs, self.y0, self.y1 = inputs, y0, y1
+        self.a, self.b = max(y0 - HALO_ROWS, 0), min(y1 + HALO_ROWS, H)
+        self.core = slice(y0 - self.a, y1 - self.a)
+        self.d_halo = inputs.d_rows(self.a, self.b)
+        self.d = self.d_halo[self.core]
+        self._cache: dict[str, object] = {}
+
+    def rows(self, name: str, dtype=np.float64) -> np.ndarray:
+        """The input map ``name`` over the band's rows as ``dtype``."""
+        return np.asarray(getattr(self.inputs, name)[self.y0:self.y1], dtype)
+
+    def shared(self, name: str, make) -> object:
+        if name not in self._cache:
+            self._cache[name] = make()
+        return self._cache[name]
+
+    def median(self) -> np.ndarray:
+        return self.shared("median", lambda: median_filter_nearest(
+            self.d_halo.astype(np.float32), size=5).astype(np.float64)[self.core])
+
+    def slope(self) -> np.ndarray:
+        def make():
+            d = self.d_halo
+            gy, gx = (np.gradient(d, axis=a) if d.shape[a] > 1 else np.zeros_like(d) for a in (0, 1))
+            return np.hypot(gy, gx)[self.core]
+        return self.shared("slope", make)
+
+    def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.shared("neighbours", lambda: tuple(m[self.core] for m in neighbour_agreement(self.d_halo)))
+
+
+def _flag(name: str):
+    def feature(b: Band) -> np.ndarray:
+        value = getattr(b.inputs, name)
+        return np.zeros(b.d.shape, bool) if value is None else np.asarray(value[b.y0:b.y1], bool)
+    return feature
+
+
+#: One function per feature: ``f(band) -> (rows, W)`` values of the band's rows (any dtype; stored
+#: as float32). A new feature is one more entry here and its name in :data:`FEATURES`.
+FEATURE_FUNCTIONS = {
+    "log_width": lambda b: np.log(np.maximum(b.rows("ambiguity") - 1, 0) * b.inputs.step + b.inputs.step),
+    "log_change": lambda b: np.log(np.abs(b.d - np.nan_to_num(b.rows("matched"))) + _EPS),
+    "log_neighbour": lambda b: np.log(np.abs(b.d - b.median()) + _EPS),
+    "log_initial": lambda b: np.log(np.abs(b.d - np.nan_to_num(b.rows("initial"))) + _EPS),
+    "occluding": lambda b: b.rows("labels", None) == OCCLUDING,
+    "occluded": lambda b: b.rows("labels", None) == OCCLUDED,
+    "texture": lambda b: b.rows("labels", None) == TEXTURE,
+    "hole": _flag("holes"),
+    "noise_limited": _flag("noise_limited"),
+    "log_cost": lambda b: np.log(np.maximum(np.nan_to_num(b.rows("cost")), 0.0) / b.inputs.noise + _EPS),
+    "window_size": lambda b: b.rows("window_size") / 15.0,
+    "log_slope": lambda b: np.log(b.slope() + _EPS),
+    "heuristic": lambda b: b.rows("heuristic"),
+    "log_nearest_neighbour": lambda b: np.log(b.neighbours()[0] + _EPS),
+    "neighbours_agreeing": lambda b: b.neighbours()[1] / 8.0,
+    "log_jump_distance": lambda b: np.log(jump_distance(b.d_halo)[b.core] + 1.0),
+    "log_spread": lambda b: np.log(b.inputs.spread.rows(b.y0, b.y1) + _EPS),
+    "entropy": lambda b: np.nan_to_num(b.rows("entropy")),
+}
+
+
+class _BoxSpread:
+    """:func:`local_spread` (``size`` 5, borders reflected) of the rows of ``d_rows(a, b)`` band by
+    band, top to bottom, with the very values of the whole image's. ``scipy.ndimage.uniform_filter``
+    filters down the columns first with a running sum (the first ``size`` samples summed in order,
+    then ``+= (entering - leaving)``, each output the sum over ``size``), then along the rows; the
+    running sums down the columns are carried from band to band, the rows are whole."""
+
+    def __init__(self, d_rows, shape: tuple[int, int], size: int = 5) -> None:
+        self.d_rows, self.shape, self.size = d_rows, shape, size
+        H = shape[0]
+        half = size // 2
+        # the row each extended row (``half`` reflected rows above and ``size - half - 1`` below) reads
+        self.source = np.pad(np.arange(H), (half, size - half - 1), mode="symmetric")
+        self.next_row = 0
+        self.sums: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _extended(self, e0: int, e1: int) -> tuple[np.ndarray, np.ndarray]:
+        """``d`` and ``d * d`` of the extended rows ``[e0, e1)``."""
+        rows = self.source[e0:e1]
+        lo = int(rows.min())
+        d = self.d_rows(lo, int(rows.max()) + 1)[rows - lo]
+        return d, d * d
+
+    def rows(self, y0: int, y1: int) -> np.ndarray:
+        """``(y1 - y0, W)`` float64 spread of rows ``[y0, y1)``, the rows after the last ones asked."""
+        if y0 != self.next_row:
+            raise ValueError(f"the box spread goes top to bottom: rows from {self.next_row} next, not {y0}")
+        size, carried = self.size, self.sums is not None
+        # extended row y + k is the k-th sample of row y; a carried sum first drops row y0 - 1's
+        e0 = y0 - 1 if carried else y0
+        off = y0 - e0
+        columns, sums = [], []
+        for q, values in enumerate(self._extended(e0, y1 + size - 1)):
+            column = np.empty((y1 - y0, self.shape[1]))
+            if carried:
+                tmp, first = self.sums[q], 0
+            else:
+                tmp = values[0].copy()
+                for k in range(1, size):
+                    tmp += values[k]
+                column[0] = tmp / size
+                first = 1
+            for y in range(first, y1 - y0):
+                tmp = tmp + (values[off + y + size - 1] - values[off + y - 1])
+                column[y] = tmp / size
+            columns.append(column)
+            sums.append(tmp)
+        self.sums = (sums[0], sums[1])
+        self.next_row = y1
+        mean, mean2 = (ndimage.uniform_filter1d(c, size, axis=1) for c in columns)
+        return np.sqrt(np.maximum(mean2 - mean * mean, 0.0))
+
+
 def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np.ndarray,
                         ambiguity: np.ndarray, labels: np.ndarray, holes: np.ndarray | None,
                         noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
@@ -104,37 +271,17 @@ def confidence_features(*, refined: np.ndarray, matched: np.ndarray, initial: np
     ``cost``: matching cost (mean absolute difference, without the entropy term) at the chosen
     disparity, ``[0, 1]`` grey units like ``noise_sigma`` (:func:`matching_cost`);
     ``step``: candidate spacing; ``heuristic``: :func:`recon.entropy.confidence.confidence_map`;
-    ``entropy``: ``(H, W)`` matching entropy of the chosen window.
+    ``entropy``: ``(H, W)`` matching entropy of the chosen window. Computed in bands of
+    :data:`BAND_ROWS` rows (:class:`FeatureInputs`); :func:`probability_right` keeps one band's.
     """
-    refined = np.asarray(refined, np.float64)
-    finite = np.isfinite(refined)
-    d = np.where(finite, refined, 0.0)
-    width = np.maximum(np.asarray(ambiguity, np.float64) - 1, 0) * step
-    median = median_filter_nearest(d.astype(np.float32), size=5).astype(np.float64)
-    gy, gx = (np.gradient(d, axis=a) if d.shape[a] > 1 else np.zeros_like(d) for a in (0, 1))
-    zeros = np.zeros(d.shape, bool)
-    labels = np.asarray(labels)
-    noise = max(float(noise_sigma), 0.5 / 255)
-    nearest, agreeing = neighbour_agreement(d)
-    columns = [
-        np.log(width + step),
-        np.log(np.abs(d - np.nan_to_num(np.asarray(matched, np.float64))) + _EPS),
-        np.log(np.abs(d - median) + _EPS),
-        np.log(np.abs(d - np.nan_to_num(np.asarray(initial, np.float64))) + _EPS),
-        labels == OCCLUDING, labels == OCCLUDED, labels == TEXTURE,
-        zeros if holes is None else np.asarray(holes, bool),
-        zeros if noise_limited is None else np.asarray(noise_limited, bool),
-        np.log(np.maximum(np.nan_to_num(np.asarray(cost, np.float64)), 0.0) / noise + _EPS),
-        np.asarray(window_size, np.float64) / 15.0,
-        np.log(np.hypot(gy, gx) + _EPS),
-        np.asarray(heuristic, np.float64),
-        np.log(nearest + _EPS),
-        agreeing / 8.0,
-        np.log(jump_distance(d) + 1.0),
-        np.log(local_spread(d) + _EPS),
-        np.nan_to_num(np.asarray(entropy, np.float64)),
-    ]
-    return np.stack([np.asarray(c, np.float32) for c in columns], axis=-1)
+    inputs = FeatureInputs(refined=refined, matched=matched, initial=initial, ambiguity=ambiguity, labels=labels,
+                           holes=holes, noise_limited=noise_limited, window_size=window_size, cost=cost,
+                           noise_sigma=noise_sigma, step=step, heuristic=heuristic, entropy=entropy)
+    H, W = inputs.shape
+    out = np.empty((H, W, len(FEATURES)), np.float32)
+    for y0 in range(0, H, BAND_ROWS):
+        out[y0:y0 + BAND_ROWS] = inputs.band(y0, min(y0 + BAND_ROWS, H))
+    return out
 
 
 def load_coefficients() -> tuple[float, tuple[float, ...]]:
@@ -178,19 +325,34 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
 
     Inputs as :func:`confidence_features`; ``hole_support``, ``hole_ramp``, ``valley_px`` are the
     heuristic's (:func:`recon.entropy.confidence.confidence_map`); ``coefficients`` ``(bias,
-    coefficients)``, default the fitted ones (:func:`load_coefficients`)."""
+    coefficients)``, default the fitted ones (:func:`load_coefficients`). The features are made and
+    used a band of :data:`BAND_ROWS` rows at a time: the step's memory is the heuristic's, the
+    output and one band's features, not ``(H, W, F)``."""
     heuristic = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=step,
                                disparity_range=disparity_range, holes=holes, valley_px=valley_px,
                                hole_support=hole_support, hole_ramp=hole_ramp)
-    features = confidence_features(refined=refined, matched=matched, initial=initial,
-                                   ambiguity=ambiguity, labels=labels, holes=holes,
-                                   noise_limited=noise_limited, window_size=window_size, cost=cost,
-                                   noise_sigma=noise_sigma, step=step, disparity_range=disparity_range,
-                                   heuristic=heuristic, entropy=entropy)
+    inputs = FeatureInputs(refined=refined, matched=matched, initial=initial, ambiguity=ambiguity, labels=labels,
+                           holes=holes, noise_limited=noise_limited, window_size=window_size, cost=cost,
+                           noise_sigma=noise_sigma, step=step, heuristic=heuristic, entropy=entropy)
     bias, coef = coefficients if coefficients is not None else load_coefficients()
-    p = logistic(features, bias, coef)
-    ok = valid_pixels(refined, matched, step=step, disparity_range=disparity_range)
-    return np.where(ok, p, 0.0).astype(np.float32)
+    H, W = inputs.shape
+    out = np.empty((H, W), np.float32)
+    for y0 in range(0, H, BAND_ROWS):
+        y1 = min(y0 + BAND_ROWS, H)
+        p = logistic_in_chunks(inputs.band(y0, y1), bias, coef)
+        ok = valid_pixels(refined[y0:y1], matched[y0:y1], step=step, disparity_range=disparity_range)
+        out[y0:y1] = np.where(ok, p, 0.0)
+    return out
+
+
+def logistic_in_chunks(features: np.ndarray, bias: float, coefficients) -> np.ndarray:
+    """:func:`logistic` of ``(..., F)`` features, :data:`LOGISTIC_CHUNK` pixels at a time (float64
+    copies of a chunk only; each pixel's sum taken by the same BLAS kernel whatever the band)."""
+    flat = features.reshape(-1, features.shape[-1])
+    out = np.empty(flat.shape[0])
+    for i in range(0, flat.shape[0], LOGISTIC_CHUNK):
+        out[i:i + LOGISTIC_CHUNK] = logistic(flat[i:i + LOGISTIC_CHUNK], bias, coefficients)
+    return out.reshape(features.shape[:-1])
 
 
 def calibration_scores(confidence: np.ndarray, right: np.ndarray, *, bins: int = 10,

@@ -62,6 +62,9 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     valley_px, change_px, hole_confidence, hole_support, hole_ramp
         See the module docstring; ``hole_support`` 0 and ``hole_ramp`` 0 give every hole
         ``hole_confidence`` times the neighbour factor, whatever its rim and slope.
+
+    Computed in bands of :data:`BAND_ROWS` rows (float64 temporaries of a band, not of the map);
+    the holes' support is filled over the whole map.
     """
     if valley_px <= 0 or change_px <= 0 or step <= 0:
         raise ValueError(f"valley_px, change_px and step must be > 0, got {valley_px}, {change_px}, {step}")
@@ -69,30 +72,62 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
         raise ValueError(f"hole_ramp must be a finite slope >= 0 (0: off), got {hole_ramp}")
     if not 0 <= hole_support <= 1 or not 0 <= hole_confidence <= 1:
         raise ValueError(f"hole_confidence and hole_support must be in [0, 1], got {hole_confidence}, {hole_support}")
-    refined = np.asarray(refined, np.float64)
-    matched = np.asarray(matched, np.float64)
-    finite = np.isfinite(refined)
-    width = np.maximum(np.asarray(ambiguity, np.float64) - 1, 0) * step
-    valley = np.exp(-width / valley_px)
-    agree = np.exp(-np.abs(refined - matched) / change_px)
-    median = median_filter_nearest(np.where(finite, refined, np.nanmedian(refined) if finite.any() else 0.0),
-                                   size=5)
-    neighbours = np.exp(-np.abs(refined - median) / change_px)
+    refined, matched = np.asarray(refined), np.asarray(matched)
+    fill = np.nanmedian(np.asarray(refined, np.float64)) if np.isfinite(refined).any() else 0.0
+    H = refined.shape[0]
+    bands = [(y0, min(y0 + BAND_ROWS, H)) for y0 in range(0, H, BAND_ROWS)]
+    parts = dict(refined=refined, matched=matched, ambiguity=ambiguity, step=step, disparity_range=disparity_range,
+                 fill=fill, valley_px=valley_px, change_px=change_px)
+    out = np.empty(refined.shape, np.float32)
+    holes = None if holes is None or not np.any(holes) else np.asarray(holes, bool)
+    support = None
+    if holes is not None and hole_support > 0:
+        measured = np.empty(refined.shape, np.float32)
+        for y0, y1 in bands:
+            conf, _, finite = _band_factors(y0, y1, **parts)
+            measured[y0:y1] = np.where(holes[y0:y1] | ~finite, 0.0, np.nan_to_num(conf))
+        support = harmonic_fill(measured, holes)
+        del measured
     lo, hi = disparity_range
-    on_end = (np.abs(matched - lo) < 0.5 * step) | (np.abs(matched - hi) < 0.5 * step)
-    conf = valley * agree * neighbours * ~on_end
-    if holes is not None and np.any(holes):
-        holes = np.asarray(holes, bool)
-        factor = hole_confidence * neighbours
-        if hole_support > 0:
-            measured = np.where(holes | ~finite, 0.0, np.nan_to_num(conf)).astype(np.float32)
-            support = harmonic_fill(measured, holes).astype(np.float64)
-            factor = factor * np.clip(support / hole_support, 0.0, 1.0)
-        if hole_ramp > 0:
-            filled = np.where(finite, refined, 0.0)
-            gy, gx = (np.gradient(filled, axis=a) if filled.shape[a] > 1 else np.zeros_like(filled)
-                      for a in (0, 1))
-            factor = factor * np.exp(-np.hypot(gy, gx) / hole_ramp)
-        conf = np.where(holes, factor, conf)
-    inside = finite & (refined >= lo - 1e-6) & (refined <= hi + 1e-6)
-    return np.where(inside, np.nan_to_num(conf), 0.0).astype(np.float32)
+    for y0, y1 in bands:
+        conf, neighbours, finite = _band_factors(y0, y1, **parts)
+        r = np.asarray(refined[y0:y1], np.float64)
+        if holes is not None:
+            factor = hole_confidence * neighbours
+            if support is not None:
+                factor = factor * np.clip(support[y0:y1].astype(np.float64) / hole_support, 0.0, 1.0)
+            if hole_ramp > 0:
+                a, b = max(y0 - 1, 0), min(y1 + 1, H)
+                halo = np.asarray(refined[a:b], np.float64)
+                filled = np.where(np.isfinite(halo), halo, 0.0)
+                gy, gx = (np.gradient(filled, axis=k) if filled.shape[k] > 1 else np.zeros_like(filled)
+                          for k in (0, 1))
+                factor = factor * np.exp(-np.hypot(gy, gx)[y0 - a:y1 - a] / hole_ramp)
+            conf = np.where(holes[y0:y1], factor, conf)
+        inside = finite & (r >= lo - 1e-6) & (r <= hi + 1e-6)
+        out[y0:y1] = np.where(inside, np.nan_to_num(conf), 0.0)
+    return out
+
+
+#: Rows of the map computed at once (each with the rows the 5x5 median and the slope read around it).
+BAND_ROWS = 64
+
+
+def _band_factors(y0: int, y1: int, *, refined, matched, ambiguity, step, disparity_range, fill, valley_px,
+                  change_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``[y0, y1)`` of ``(valley * agree * neighbours * ~on_end, neighbours, finite)`` (float64,
+    float64, bool), the 5x5 median over the band with 2 rows around it (non-finite values replaced
+    by ``fill``, the finite values' median), the same values as over the whole map."""
+    H = refined.shape[0]
+    a, b = max(y0 - 2, 0), min(y1 + 2, H)
+    halo = np.asarray(refined[a:b], np.float64)
+    median = median_filter_nearest(np.where(np.isfinite(halo), halo, fill), size=5)[y0 - a:y1 - a]
+    r = halo[y0 - a:y1 - a]
+    m = np.asarray(matched[y0:y1], np.float64)
+    width = np.maximum(np.asarray(ambiguity[y0:y1], np.float64) - 1, 0) * step
+    valley = np.exp(-width / valley_px)
+    agree = np.exp(-np.abs(r - m) / change_px)
+    neighbours = np.exp(-np.abs(r - median) / change_px)
+    lo, hi = disparity_range
+    on_end = (np.abs(m - lo) < 0.5 * step) | (np.abs(m - hi) < 0.5 * step)
+    return valley * agree * neighbours * ~on_end, neighbours, np.isfinite(r)

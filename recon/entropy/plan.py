@@ -35,7 +35,8 @@ from recon.progress import ProgressCallback
 class Phase:
     """Steps run together: tile-local ones (``reads``: the whole-image maps they take from earlier
     phases, cut to the tile; ``writes``: the maps they give back, with their dtypes) or
-    whole-image ones (``tile_local=False``)."""
+    whole-image ones (``tile_local=False``). A name ``windows.KEY`` is the entry ``KEY`` of
+    :attr:`State.windows`."""
 
     name: str
     steps: tuple[Step, ...]
@@ -53,7 +54,9 @@ PLAN: tuple[Phase, ...] = (
     Phase("matching", (steps.REGIONS, steps.WINDOWS, steps.VIEW_FILTERS, steps.LINE_SEARCH,
                        steps.RESTORE_VIEWS, steps.CENTROID, steps.BOUNDARY), tile_local=True,
           reads=("d0", "ambiguity0", "flat", "noise_limited"),
-          writes={"matched": np.float32, "labels": np.uint8, "ambiguity": np.int32}),
+          writes={"matched": np.float32, "labels": np.uint8, "ambiguity": np.int32, "cost": np.float32,
+                  "windows.size": np.int64, "windows.shape": np.int64, "windows.set": np.int64,
+                  "windows.entropy": np.float32}),
     Phase("refine", (steps.REFINE, steps.CONFIDENCE), tile_local=False),
 )
 
@@ -127,14 +130,29 @@ def run_phase_on_tile(crop: LightField, phase: Phase, maps: list[np.ndarray], *,
     for name, value in zip(phase.reads, maps):
         setattr(state, name, value)
     run_phase(state, phase)
-    return np.stack([getattr(state, name) for name in phase.writes]).astype(np.float32)
+    return np.stack([_get(state, name) for name in phase.writes]).astype(np.float32)
 
 
 def take_tiles(state: State, phase: Phase, stitched: np.ndarray) -> None:
     """Set ``phase.writes`` on the whole image's ``state`` from the stitched
-    ``(len(writes), H, W)`` float32 output of :func:`run_phase_on_tile`."""
+    ``(len(writes), H, W)`` float32 output of :func:`run_phase_on_tile` (exact: every map written
+    is float32 or holds integers far below 2**24)."""
     for name, dtype, values in zip(phase.writes, phase.writes.values(), stitched):
-        setattr(state, name, values > 0.5 if dtype is bool else values.astype(dtype))
+        _set(state, name, values > 0.5 if dtype is bool else values.astype(dtype))
+
+
+def _get(state: State, name: str) -> np.ndarray:
+    """The map ``name`` of :attr:`Phase.writes` on ``state``."""
+    if name.startswith("windows."):
+        return state.windows[name.removeprefix("windows.")]
+    return getattr(state, name)
+
+
+def _set(state: State, name: str, value: np.ndarray) -> None:
+    if name.startswith("windows."):
+        state.windows[name.removeprefix("windows.")] = value
+    else:
+        setattr(state, name, value)
 
 
 class Reporter:

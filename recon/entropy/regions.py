@@ -193,6 +193,12 @@ def different_neighbours(image: np.ndarray, *, size: int, tolerance: float) -> n
     return psi
 
 
+def smooth_tolerance_abs(tolerance: float, sigma: float) -> float:
+    """Eq. 12's grey-level tolerance (``[0, 1]`` grey units): ``tolerance`` noise sigmas, at least
+    half an 8-bit grey level."""
+    return max(tolerance * sigma, 0.5 / 255)
+
+
 def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float,
                 sigma: float | None = None) -> tuple[np.ndarray, dict]:
     """Eq. 12's test alone: ``psi < N / 2`` on the ``(H, W)`` centre view, whatever the occlusion
@@ -202,7 +208,7 @@ def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float,
     ``psi``, ``noise_sigma`` and ``smooth_tolerance_abs``."""
     centre = centre.astype(np.float32)
     sigma = noise_sigma(centre) if sigma is None else float(sigma)
-    tol = max(tolerance * sigma, 0.5 / 255)
+    tol = smooth_tolerance_abs(tolerance, sigma)
     psi = different_neighbours(centre, size=size, tolerance=tol)
     n = size ** 2 - 1
     return psi < n / 2, {"psi": psi, "noise_sigma": sigma, "smooth_tolerance_abs": tol}

@@ -361,8 +361,8 @@ def refine_step(s: State) -> None:
 
 def confidence_step(s: State) -> None:
     """``s.confidence``: the probability that the final disparity is within 0.07 px/view of the truth
-    (:func:`recon.entropy.calibration.probability_right`). A tiled run, whose whole-image state has
-    no per-pixel cost or window, makes none."""
+    (:func:`recon.entropy.calibration.probability_right`); a tiled run's matching phase hands
+    back every map it reads (:data:`recon.entropy.plan.PLAN`)."""
     o = s.options
     if s.cost is not None and "size" in s.windows:
         s.confidence = probability_right(

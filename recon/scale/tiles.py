@@ -127,8 +127,9 @@ class TileRule:
     halo_px: Callable[[LightField, dict[str, Any]], int]
     exact: bool
     note: str = ""
-    #: ``run(lf, options, map_tiles) -> (H, W)`` for a method with whole-image steps between
-    #: tile-local ones; ``map_tiles(task, maps=()) -> (..., H, W)`` runs
+    #: ``run(lf, options, map_tiles) -> MethodResult`` for a method with whole-image steps between
+    #: tile-local ones (its disparity and its own maps, as an untiled run makes them);
+    #: ``map_tiles(task, maps=()) -> (..., H, W)`` runs
     #: ``task(crop, map_crops, options, threads) -> (..., crop H, crop W)`` on every tile (each of
     #: ``maps``, ``(H, W)`` arrays, cut to the tile's crop) and stitches. ``None``: one
     #: :func:`run_tile` per tile.
@@ -184,22 +185,35 @@ def _entropy_phase_task(crop: LightField, maps: list[np.ndarray], options: dict[
     return run_phase_on_tile(crop, phase, maps, options=_entropy_options(options), shared=shared)
 
 
-def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles) -> np.ndarray:
+def _entropy_run(lf: LightField, options: dict[str, Any], map_tiles):
     """The estimator's phases (``recon.entropy.plan.PLAN``) in order: tile-local ones tile by tile
     (each tile given the whole image's maps it reads and its shared numbers, its outputs stitched),
-    whole-image ones here."""
+    whole-image ones here. Returns a :class:`recon.methods.MethodResult` with the whole
+    :class:`recon.entropy.EntropyResult` (the confidence and every map of an untiled run) and its
+    files."""
+    from recon.entropy.estimate import result_of
+    from recon.entropy.outputs import write_outputs
     from recon.entropy.plan import PLAN, run_phase, shared_numbers, start, take_tiles
+    from recon.entropy.regions import smooth_tolerance_abs
+    from recon.methods import MethodResult
 
-    state = start(lf, _entropy_options(options))
+    opts = _entropy_options(options)
+    state = start(lf, opts)
     common = {k: v for k, v in options.items() if v is not None}
     for phase in PLAN:
         if phase.tile_local:
             stitched = map_tiles(_entropy_phase_task, maps=[getattr(state, name) for name in phase.reads],
                                  options={**common, "_phase": phase.name, "_shared": shared_numbers(state)})
             take_tiles(state, phase, stitched)
+            del stitched
         else:
             run_phase(state, phase)
-    return state.refined
+    # the numbers the tiles' region step reports, the same for every tile
+    state.region_info = {"noise_sigma": state.noise_sigma,
+                         "smooth_tolerance_abs": smooth_tolerance_abs(opts.smooth_tolerance, state.noise_sigma)}
+    result = result_of(state)
+    return MethodResult(disparity=result.disparity, extras=result, options=options,
+                        write_extras=lambda folder: write_outputs(result, folder))
 
 
 def _entropy_rounds() -> int:
@@ -252,13 +266,17 @@ def run_tile(crop: LightField, method: str, options: dict[str, Any], threads: in
 
 @dataclass
 class TiledResult:
-    """The stitched ``(H, W)`` disparity, the tiles, the halo and the options every tile ran with."""
+    """The stitched ``(H, W)`` disparity, the tiles, the halo and the options every tile ran with;
+    for a method whose rule has its own ``run`` (entropy) also its result object (``extras``: an
+    :class:`recon.entropy.EntropyResult` with the confidence) and the writer of its own maps."""
 
     disparity: np.ndarray
     tiles: list[Tile]
     halo: int
     options: dict[str, Any]
     exact: bool
+    extras: Any = None
+    write_extras: Callable[[Any], list[Any]] | None = None
 
     def describe(self) -> dict[str, Any]:
         """What ``result.json`` records about the tiling."""
@@ -339,11 +357,15 @@ def tiled_disparity(
         done_before[0] += len(tiles)
         return stitch(lf.image_shape, tiles, results)
 
+    extras = write_extras = None
     if rule.run is not None:
-        disparity = rule.run(lf, resolved, map_tiles).astype(np.float32)
+        made = rule.run(lf, resolved, map_tiles)
+        disparity = made.disparity.astype(np.float32)
+        extras, write_extras = made.extras, made.write_extras
     else:
         disparity = map_tiles(lambda crop, _maps, opts, th: runner(crop, method, opts, th))
-    return TiledResult(disparity=disparity, tiles=tiles, halo=halo, options=resolved, exact=rule.exact)
+    return TiledResult(disparity=disparity, tiles=tiles, halo=halo, options=resolved, exact=rule.exact,
+                       extras=extras, write_extras=write_extras)
 
 
 def tiled_estimator(*, tile: int, halo: int | None = None, client: Any = None, threads: int | None = None,
@@ -352,8 +374,9 @@ def tiled_estimator(*, tile: int, halo: int | None = None, client: Any = None, t
     task's cluster (the task steps aside while its tiles run); elsewhere, in this process.
 
     ``record``, when given, receives :meth:`TiledResult.describe` (before ``result.json`` is
-    written). The method's own intermediate maps are not stitched: a tiled result has only the
-    disparity.
+    written). A method whose rule runs its own phases (entropy) hands back its own maps too, the
+    confidence among them, and they are written as an untiled run writes them; for the others a
+    tiled result has only the disparity.
     """
     from recon.methods import MethodResult
 
@@ -363,7 +386,8 @@ def tiled_estimator(*, tile: int, halo: int | None = None, client: Any = None, t
                                      threads=threads, progress=progress)
             if record is not None:
                 record.update(result.describe())
-            return MethodResult(disparity=result.disparity, options=result.options)
+            return MethodResult(disparity=result.disparity, extras=result.extras, options=result.options,
+                                write_extras=result.write_extras)
 
         if client is not None:
             return run(client)
