@@ -434,6 +434,7 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
         sums = np.empty((S, W), np.float64)
         cols = np.empty((K, W), np.float64)
         tot = np.empty(W, np.float64)
+        pairs = np.empty(W, np.float64)
         zero = np.zeros(W, np.float64)
         best = np.empty(W, np.float64)
         nxt = max(c0 - up, 0)  # the next row to put in the ring
@@ -501,9 +502,8 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
                 # indexed from 0 and vectorise
                 lo = min(max(-ra, 0), W)
                 hi = min(max(W - 1 - rb, lo), W)
-                for x in range(W):
-                    if lo <= x < hi:
-                        continue
+                for e in range(lo + W - hi):  # the pixels whose window the left or right edge cuts
+                    x = e if e < lo else hi + e - lo
                     if per_pixel and not allowed[k, y, x]:
                         continue
                     xa = max(x + ra, 0)
@@ -515,28 +515,37 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
                     if c < best[x]:
                         best[x] = c
                 n = hi - lo
-                if n > 0:  # the window's columns but the last in `head`, the last added with the cost
-                    head = zero[:n]
-                    if rb > ra:
+                if n > 0:  # the window's columns as pairs (a, b: the last two; the rest in tot) and one (c)
+                    width = rb - ra + 1
+                    n_pairs = width // 2
+                    a = zero[:n]
+                    b = zero[:n]
+                    c1 = col[lo + rb:hi + rb] if width % 2 else zero[:n]
+                    if n_pairs > 0:
+                        for x in range(W - 1):
+                            pairs[x] = col[x] + col[x + 1]
+                        b = pairs[lo + ra + 2 * (n_pairs - 1):hi + ra + 2 * (n_pairs - 1)]
+                    if n_pairs > 1:
+                        a = pairs[lo + ra:hi + ra]
+                    if n_pairs > 2:
                         head = tot[:n]
-                        first = col[lo + ra:hi + ra]
                         for i in range(n):
-                            head[i] = first[i]
-                        for j in range(ra + 1, rb):
-                            nb = col[lo + j:hi + j]
+                            head[i] = a[i]
+                        for q in range(1, n_pairs - 1):
+                            nb = pairs[lo + ra + 2 * q:hi + ra + 2 * q]
                             for i in range(n):
                                 head[i] += nb[i]
-                    last = col[lo + rb:hi + rb]
+                        a = head
                     bs = best[lo:hi]
-                    denom = (yb - ya) * (rb - ra + 1) * ck
+                    denom = (yb - ya) * width * ck
                     if per_pixel:
                         al = allowed[k, y, lo:hi]
                         for i in range(n):  # & not and: no branch, the loop vectorises
-                            c = (head[i] + last[i]) * FIXED_INV / denom
+                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
                             bs[i] = c if al[i] & (c < bs[i]) else bs[i]
                     else:
                         for i in range(n):
-                            c = (head[i] + last[i]) * FIXED_INV / denom
+                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
                             bs[i] = c if c < bs[i] else bs[i]
             for x in range(W):
                 out[y, x] = best[x]
