@@ -375,7 +375,7 @@ class WindowCost:
 def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rects: np.ndarray,
                               counts: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     """``(H, W)`` float32: each pixel's least mean absolute difference over its allowed windows
-    (reference of :func:`min_window_cost`).
+    (the last step of :func:`min_window_costs_reference`).
 
     ``integrals`` ``(S, H + 1, W + 1)`` int64 from :func:`set_integrals`; window ``k`` is the
     rectangle ``rects[k]`` (``y0, y1, x0, x1`` offsets, clipped to the image) matched over table
@@ -412,8 +412,8 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
     # summed-area tables give, in any order, and its cost (min_window_cost_reference's float64
     # expression) the same bits. A set whose blocks begin with another set's (set_from, -1: none)
     # continues that set's float64 sum: the same additions in the same order (set_order puts that
-    # set first). Rows at a chunk's
-    # edge are made by both chunks next to it; no value depends on the chunking.
+    # set first). Rows at a chunk's edge are made by both chunks next to it; no value depends on
+    # the chunking.
     H = gray.shape[2]
     W = gray.shape[3]
     S = set_blocks.shape[0]
@@ -575,8 +575,8 @@ def min_window_costs(gray: np.ndarray, disparity: float, *, sets: np.ndarray, wi
                      view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """Compiled twin of :func:`min_window_costs_reference` (same arguments and map, bit for bit;
     ``gray`` contiguous float32, ``counts`` float64, ``allowed`` a contiguous bool array), written
-    into ``out`` when given. One pass over the rows, with none of the
-    ``(9, H, W)`` block images or ``(S, H + 1, W + 1)`` tables in memory."""
+    into ``out`` when given. One pass over the rows, with none of the ``(9, H, W)`` block images
+    or ``(S, H + 1, W + 1)`` tables in memory."""
     U, V, H, W = gray.shape
     if out is None:
         out = np.empty((H, W), np.float32)
