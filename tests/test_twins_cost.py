@@ -98,26 +98,77 @@ def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
         numba.set_num_threads(threads)
 
 
-def test_min_window_cost_is_bit_identical_to_reference():
-    from recon.entropy.cost import (block_abs_diff, min_window_cost, min_window_cost_reference, set_integrals,
-                                    set_view_counts)
-    from recon.entropy.initial import initial_view_mask
+def _min_window_inputs(windows, grid=(9, 9), view_mask=None):
+    from recon.entropy.cost import set_view_counts
     from recon.entropy.windows import window_rect
-    rng = np.random.default_rng(11)
-    gray = rng.random((9, 9, 23, 29)).astype(np.float32)
-    mask = initial_view_mask((9, 9))
-    windows = [(s, 5, s) for s in range(11)] + [(0, 3, 0), (4, 7, 0)]
     sets = np.unique([w[2] for w in windows])
     window_set = np.searchsorted(sets, [w[2] for w in windows]).astype(np.int64)
     rects = np.array([window_rect(w[0], w[1]) for w in windows], np.int64)
-    counts = set_view_counts((9, 9), mask)[[w[2] for w in windows]].astype(np.float64)
-    integrals = set_integrals(block_abs_diff(gray, 0.37, view_mask=mask), sets)
-    for allowed in (np.ones((1, 1, len(windows)), bool), rng.random((23, 29, len(windows))) < 0.3):
-        out = np.empty((23, 29), np.float32)
-        min_window_cost(integrals, window_set, rects, counts, allowed, out=out)
-        ref = min_window_cost_reference(integrals, window_set, rects, counts, allowed)
-        np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))
-    assert np.isinf(ref[~allowed.any(axis=2)]).all()  # no window allowed: 1e300, inf in float32
+    counts = set_view_counts(grid, view_mask)[[w[2] for w in windows]].astype(np.float64)
+    return dict(sets=sets, window_set=window_set, rects=rects, counts=counts)
+
+
+def test_min_window_costs_is_bit_identical_to_reference_for_any_thread_count():
+    import numba
+    from recon.entropy.cost import min_window_costs, min_window_costs_reference
+    from recon.entropy.initial import initial_view_mask
+    rng = np.random.default_rng(11)
+    mask = initial_view_mask((9, 9))
+    windows = [(s, 5, s) for s in range(11)] + [(0, 3, 0), (4, 7, 0), (9, 3, 9)]
+    shared = _min_window_inputs(windows, view_mask=mask)
+    threads = numba.get_num_threads()
+    try:
+        for H, W in ((23, 29), (1, 9), (2, 1), (5, 6)):
+            gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties between windows
+            K = len(windows)
+            for allowed in (np.ones((K, 1, 1), bool), rng.random((K, H, W)) < 0.1, np.eye(K, 1, 3, bool)[:, :, None]):
+                for d in (0.37, -2.6, 9.0):  # 9.0: the outer views clamped whole
+                    ref = min_window_costs_reference(gray, d, allowed=allowed, view_mask=mask, **shared)
+                    for n in sorted({1, threads}):
+                        numba.set_num_threads(n)
+                        fast = min_window_costs(gray, d, allowed=allowed, view_mask=mask, **shared)
+                        np.testing.assert_array_equal(fast.view(np.uint32), ref.view(np.uint32))
+                nothing = ~allowed.any(axis=0) & np.ones((H, W), bool)
+                assert np.isinf(fast[nothing]).all()  # no window allowed: 1e300, inf in float32
+    finally:
+        numba.set_num_threads(threads)
+
+
+def test_min_window_costs_on_every_view_of_another_grid():
+    from recon.entropy.cost import min_window_costs, min_window_costs_reference
+    rng = np.random.default_rng(12)
+    windows = [(s, 3, s) for s in range(11)] + [(s, 7, 0) for s in (0, 5, 10)]
+    shared = _min_window_inputs(windows, grid=(5, 7))
+    gray = rng.random((5, 7, 17, 19)).astype(np.float32)
+    allowed = rng.random((len(windows), 17, 19)) < 0.5
+    for d in (0.0, 1.3):
+        fast = min_window_costs(gray, d, allowed=allowed, **shared)
+        ref = min_window_costs_reference(gray, d, allowed=allowed, **shared)
+        np.testing.assert_array_equal(fast.view(np.uint32), ref.view(np.uint32))
+
+
+def test_min_window_line_search_keeps_the_int64_sums_where_float64_would_not_hold_them():
+    # Grey values of 2^20 (window sums of 2^20 * 9 views * 2^28 * 25 pixels, beyond 2^53, where
+    # float64 rounds integers) and NaN views (undefined as integers): the search sums the int64
+    # tables of min_window_costs_reference, as it did before the fused kernel.
+    from recon.entropy.cost import EXACT_FLOAT_SUM, min_window_costs_reference, window_sum_bound
+    from recon.entropy.initial import initial_view_mask
+    from recon.entropy.matching import min_window_line_search
+    rng = np.random.default_rng(13)
+    mask = initial_view_mask((9, 9))
+    windows = [(s, 5, s) for s in range(11)]
+    shared = _min_window_inputs(windows, view_mask=mask)
+    large = (rng.random((9, 9, 12, 14)) * 2 ** 20).astype(np.float32)
+    holed = rng.random((9, 9, 12, 14)).astype(np.float32)
+    holed[0, 4, 5, 6] = np.nan
+    candidates = np.array([-0.5, 0.0, 0.5])
+    for gray in (large, holed):
+        assert window_sum_bound(gray, rects=shared["rects"], view_mask=mask) >= EXACT_FLOAT_SUM
+        with np.errstate(invalid="ignore"):  # NaN as int64
+            _, best = min_window_line_search(gray, candidates, windows=windows, view_mask=mask)
+            ref = np.min([min_window_costs_reference(gray, d, allowed=np.ones((11, 1, 1), bool), view_mask=mask,
+                                                     **shared) for d in candidates], axis=0)
+        np.testing.assert_array_equal(best.view(np.uint32), ref.view(np.uint32))
 
 
 def test_cost_ambiguity_fast_is_identical_to_reference():

@@ -82,65 +82,70 @@ def block_abs_diff_reference(gray: np.ndarray, disparity: float, *,
     return out.astype(np.float32)
 
 
-@numba.njit(cache=True, parallel=True, fastmath={"nnan", "ninf", "nsz"})  # IEEE rounding: see recon/costvolume.py
-def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
-    # One output row at a time: every view's row is interpolated (bilinear is separable: first
-    # between the two source rows, then along x with one fraction for the whole row, since the
-    # shift is the same for every x) and its absolute difference added to a row accumulator per
-    # block, which is written once. Clamping at the image edges as in the reference. float32
-    # arithmetic throughout (8 SIMD lanes; a float64 weight made the rows float64: 29 -> 22 ms per
-    # candidate on 81 views of 512x512); the weights depend only on the shift, not on where the
-    # image starts, so a tile computes the same values.
+@numba.njit(cache=True, fastmath={"nnan", "ninf", "nsz"})  # IEEE rounding: see recon/costvolume.py
+def _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
+    # Row y of every block image, added into acc (n_blocks, W) float32 (zeroed by the caller): every
+    # view's row is interpolated (bilinear is separable: first between the two source rows, then
+    # along x with one fraction for the whole row, since the shift is the same for every x) and its
+    # absolute difference added to the row of its block. rv: (W,) float32 scratch. Clamping at the
+    # image edges as in the reference. float32 arithmetic throughout (8 SIMD lanes; a float64
+    # weight made the rows float64: 29 -> 22 ms per candidate on 81 views of 512x512); the weights
+    # depend only on the shift, not on where the image starts, so a tile computes the same values.
     H = gray.shape[2]
     W = gray.shape[3]
-    u0 = gray.shape[0] // 2
-    v0 = gray.shape[1] // 2
+    centre = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
+    for k in range(vu.shape[0]):
+        img = gray[vu[k], vv[k]]
+        sy = y - vdu[k] * disparity
+        if sy < 0.0:
+            sy = 0.0
+        elif sy > H - 1.0:
+            sy = H - 1.0
+        y0 = int(np.floor(sy))
+        if y0 > H - 2:
+            y0 = H - 2
+        if y0 < 0:
+            y0 = 0
+        fy = np.float32(sy - y0)  # exact in float64 (whatever the image origin), then rounded
+        gy = np.float32(1.0) - fy
+        y1 = min(y0 + 1, H - 1)
+        for x in range(W):
+            rv[x] = gy * img[y0, x] + fy * img[y1, x]
+        base = -vdv[k] * disparity
+        fl = np.floor(base)
+        fx = base - fl
+        gx = np.float32(1.0) - fx
+        o = int(fl)
+        row = acc[vblock[k]]
+        # x + o < 0: the first sample; x + o >= W - 1: the last; between, interpolated. The
+        # middle run indexes slices from 0 (numba's negative-index wrap of rv[x + o] made every
+        # load a gather and kept the loop scalar).
+        lo = min(max(-o, 0), W)
+        hi = min(max(W - 1 - o, lo), W)
+        for x in range(lo):
+            row[x] += abs(centre[x] - rv[0])
+        n = hi - lo
+        if n > 0:
+            r0 = rv[lo + o:hi + o]
+            r1 = rv[lo + o + 1:hi + o + 1]
+            c = centre[lo:hi]
+            a = row[lo:hi]
+            for i in range(n):
+                a[i] += abs(c[i] - (gx * r0[i] + fx * r1[i]))
+        for x in range(hi, W):
+            row[x] += abs(centre[x] - rv[W - 1])
+
+
+@numba.njit(cache=True, parallel=True)
+def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
+    # One output row at a time (_block_row), written once.
+    H = gray.shape[2]
+    W = gray.shape[3]
     n_blocks = out.shape[0]
     for y in numba.prange(H):
         acc = np.zeros((n_blocks, W), np.float32)
         rv = np.empty(W, np.float32)
-        centre = gray[u0, v0, y]
-        for k in range(vu.shape[0]):
-            img = gray[vu[k], vv[k]]
-            b = vblock[k]
-            sy = y - vdu[k] * disparity
-            if sy < 0.0:
-                sy = 0.0
-            elif sy > H - 1.0:
-                sy = H - 1.0
-            y0 = int(np.floor(sy))
-            if y0 > H - 2:
-                y0 = H - 2
-            if y0 < 0:
-                y0 = 0
-            fy = np.float32(sy - y0)  # exact in float64 (whatever the image origin), then rounded
-            gy = np.float32(1.0) - fy
-            y1 = min(y0 + 1, H - 1)
-            for x in range(W):
-                rv[x] = gy * img[y0, x] + fy * img[y1, x]
-            base = -vdv[k] * disparity
-            fl = np.floor(base)
-            fx = base - fl
-            gx = np.float32(1.0) - fx
-            o = int(fl)
-            row = acc[b]
-            # x + o < 0: the first sample; x + o >= W - 1: the last; between, interpolated. The
-            # middle run indexes slices from 0 (numba's negative-index wrap of rv[x + o] made every
-            # load a gather and kept the loop scalar).
-            lo = min(max(-o, 0), W)
-            hi = min(max(W - 1 - o, lo), W)
-            for x in range(lo):
-                row[x] += abs(centre[x] - rv[0])
-            n = hi - lo
-            if n > 0:
-                r0 = rv[lo + o:hi + o]
-                r1 = rv[lo + o + 1:hi + o + 1]
-                c = centre[lo:hi]
-                a = row[lo:hi]
-                for i in range(n):
-                    a[i] += abs(c[i] - (gx * r0[i] + fx * r1[i]))
-            for x in range(hi, W):
-                row[x] += abs(centre[x] - rv[W - 1])
+        _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
         for bb in range(n_blocks):
             for x in range(W):
                 out[bb, y, x] = acc[bb, x]
@@ -370,7 +375,7 @@ class WindowCost:
 def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rects: np.ndarray,
                               counts: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     """``(H, W)`` float32: each pixel's least mean absolute difference over its allowed windows
-    (reference of :func:`min_window_cost`).
+    (the last step of :func:`min_window_costs_reference`).
 
     ``integrals`` ``(S, H + 1, W + 1)`` int64 from :func:`set_integrals`; window ``k`` is the
     rectangle ``rects[k]`` (``y0, y1, x0, x1`` offsets, clipped to the image) matched over table
@@ -390,76 +395,227 @@ def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rec
         c = total / ((yb - ya) * (xb - xa) * counts[k])
         ok = np.broadcast_to(allowed[..., k], (H, W))
         best = np.where(ok & (c < best), c, best)
-    return best.astype(np.float32)
+    with np.errstate(over="ignore"):  # 1e300: inf
+        return best.astype(np.float32)
 
 
 @numba.njit(cache=True, parallel=True)
-def _min_window_cost_kernel(integrals, window_set, rects, counts, allowed, out):
-    # allowed: (H, W, K) bool, or (1, 1, K) for every pixel alike. Each pixel's least cost over its
-    # allowed windows (NaN costs never win; 1e300 if none is finite). Within a row, window by
-    # window along x, so that each summed-area table is read along its rows (not all K tables at
-    # every pixel); the least of the same values, so the same map in any order.
-    H = out.shape[0]
-    W = out.shape[1]
-    per_pixel = allowed.shape[0] > 1
-    for y in numba.prange(H):
-        best = np.full(W, 1e300)
-        for k in range(rects.shape[0]):
-            ya = max(y + rects[k, 0], 0)
-            yb = min(y + rects[k, 1], H - 1) + 1
-            ii = integrals[window_set[k]]
-            top = ii[ya]
-            bottom = ii[yb]
-            ck = counts[k]
-            if not per_pixel and not allowed[0, 0, k]:
-                continue
-            ra = rects[k, 2]
-            rb = rects[k, 3]
-            # [lo, hi): the window's columns inside the image; there the loop indexes slices from
-            # 0 and vectorises (numba's negative-index wrap of top[x + ra] made loads gathers)
-            lo = min(max(-ra, 0), W)
-            hi = min(max(W - 1 - rb, lo), W)
+def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order,
+                             window_set, rects, counts, allowed, n_chunks, out):
+    # The whole chain block_abs_diff -> set_integrals -> min_window_cost_reference for one
+    # candidate, without the images in between. The rows are dealt out in n_chunks chunks; a chunk
+    # walks down its rows keeping a ring of the set images' last rows (each pixel's set value
+    # rounded to a multiple of 1 / FIXED_POINT as set_integrals does, held as an integer-valued
+    # float64) and each window's column sums over its rows (a row added below, one taken away
+    # above). Those are exact integers: the caller makes sure every window sum stays below 2^53,
+    # where float64 adds and subtracts integers exactly, so a window's sum is the integer the
+    # summed-area tables give, in any order, and its cost (min_window_cost_reference's float64
+    # expression) the same bits. A set whose blocks begin with another set's (set_from, -1: none)
+    # continues that set's float64 sum: the same additions in the same order (set_order puts that
+    # set first). Rows at a chunk's edge are made by both chunks next to it; no value depends on
+    # the chunking.
+    H = gray.shape[2]
+    W = gray.shape[3]
+    S = set_blocks.shape[0]
+    K = rects.shape[0]
+    up = 0  # rows above and below a pixel that its windows reach
+    down = 0
+    for k in range(K):
+        up = max(up, -rects[k, 0])
+        down = max(down, rects[k, 1])
+    R = up + down + 2  # and the row just above the windows, taken away from the column sums
+    per_pixel = allowed.shape[1] > 1 or allowed.shape[2] > 1  # (K, H, W), or (K, 1, 1) for all alike
+    for chunk in numba.prange(n_chunks):
+        c0 = chunk * H // n_chunks
+        c1 = (chunk + 1) * H // n_chunks
+        ring = np.empty((R, S, W), np.float64)
+        acc = np.empty((N_BLOCKS, W), np.float32)
+        rv = np.empty(W, np.float32)
+        sums = np.empty((S, W), np.float64)
+        cols = np.empty((K, W), np.float64)
+        tot = np.empty(W, np.float64)
+        pairs = np.empty(W, np.float64)
+        zero = np.zeros(W, np.float64)
+        best = np.empty(W, np.float64)
+        nxt = max(c0 - up, 0)  # the next row to put in the ring
+        for y in range(c0, c1):
+            while nxt <= min(y + down, H - 1):
+                acc[:] = 0.0
+                _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, nxt, acc, rv)
+                slot = ring[nxt % R]
+                for i in range(S):
+                    s = set_order[i]
+                    v = sums[s]
+                    t = 0
+                    p = set_from[s]
+                    if p >= 0:
+                        before = sums[p]
+                        while t < set_blocks.shape[1] and set_blocks[p, t] >= 0:
+                            t += 1
+                        row_b = acc[set_blocks[s, t]]
+                        for x in range(W):
+                            v[x] = before[x] + row_b[x]
+                    else:
+                        row_b = acc[set_blocks[s, 0]]
+                        for x in range(W):
+                            v[x] = row_b[x]  # 0.0 + a: a itself (a block sum is >= 0 or NaN)
+                    t += 1
+                    while t < set_blocks.shape[1] and set_blocks[s, t] >= 0:
+                        row_b = acc[set_blocks[s, t]]
+                        for x in range(W):
+                            v[x] += row_b[x]
+                        t += 1
+                    fixed = slot[s]
+                    for x in range(W):
+                        fixed[x] = np.floor(v[x] * FIXED_POINT + 0.5)
+                nxt += 1
             for x in range(W):
-                if lo <= x < hi:
+                best[x] = 1e300
+            for k in range(K):
+                if not per_pixel and not allowed[k, 0, 0]:
                     continue
-                if per_pixel and not allowed[y, x, k]:
-                    continue
-                xa = max(x + ra, 0)
-                xb = min(x + rb, W - 1) + 1
-                total = (bottom[xb] - top[xb] - bottom[xa] + top[xa]) * FIXED_INV
-                c = total / ((yb - ya) * (xb - xa) * ck)
-                if c < best[x]:
-                    best[x] = c
-            n = hi - lo
-            if n > 0:
-                b1 = bottom[lo + rb + 1:hi + rb + 1]
-                t1 = top[lo + rb + 1:hi + rb + 1]
-                b0 = bottom[lo + ra:hi + ra]
-                t0 = top[lo + ra:hi + ra]
-                bs = best[lo:hi]
-                denom = (yb - ya) * (rb - ra + 1) * ck
-                if per_pixel:
-                    al = allowed[y, lo:hi, k]
-                    for i in range(n):
-                        c = (b1[i] - t1[i] - b0[i] + t0[i]) * FIXED_INV / denom
-                        bs[i] = c if al[i] and c < bs[i] else bs[i]
+                s = window_set[k]
+                ya = max(y + rects[k, 0], 0)
+                yb = min(y + rects[k, 1], H - 1) + 1
+                col = cols[k]
+                if y == c0:
+                    f = ring[ya % R, s]
+                    for x in range(W):
+                        col[x] = f[x]
+                    for r in range(ya + 1, yb):
+                        f = ring[r % R, s]
+                        for x in range(W):
+                            col[x] += f[x]
                 else:
-                    for i in range(n):
-                        c = (b1[i] - t1[i] - b0[i] + t0[i]) * FIXED_INV / denom
-                        bs[i] = c if c < bs[i] else bs[i]
-        for x in range(W):
-            out[y, x] = best[x]
+                    if y + rects[k, 0] - 1 >= 0:  # the row that left the window, then the new one
+                        f = ring[(y + rects[k, 0] - 1) % R, s]
+                        for x in range(W):
+                            col[x] -= f[x]
+                    if y + rects[k, 1] <= H - 1:
+                        f = ring[(y + rects[k, 1]) % R, s]
+                        for x in range(W):
+                            col[x] += f[x]
+                ck = counts[k]
+                ra = rects[k, 2]
+                rb = rects[k, 3]
+                # [lo, hi): the window's columns inside the image; there the sums run over slices
+                # indexed from 0 and vectorise
+                lo = min(max(-ra, 0), W)
+                hi = min(max(W - 1 - rb, lo), W)
+                for e in range(lo + W - hi):  # the pixels whose window the left or right edge cuts
+                    x = e if e < lo else hi + e - lo
+                    if per_pixel and not allowed[k, y, x]:
+                        continue
+                    xa = max(x + ra, 0)
+                    xb = min(x + rb, W - 1) + 1
+                    total = 0.0
+                    for j in range(xa, xb):
+                        total += col[j]
+                    c = total * FIXED_INV / ((yb - ya) * (xb - xa) * ck)
+                    if c < best[x]:
+                        best[x] = c
+                n = hi - lo
+                if n > 0:  # the window's columns as pairs (a, b: the last two; the rest in tot) and one (c)
+                    width = rb - ra + 1
+                    n_pairs = width // 2
+                    a = zero[:n]
+                    b = zero[:n]
+                    c1 = col[lo + rb:hi + rb] if width % 2 else zero[:n]
+                    if n_pairs > 0:
+                        for x in range(W - 1):
+                            pairs[x] = col[x] + col[x + 1]
+                        b = pairs[lo + ra + 2 * (n_pairs - 1):hi + ra + 2 * (n_pairs - 1)]
+                    if n_pairs > 1:
+                        a = pairs[lo + ra:hi + ra]
+                    if n_pairs > 2:
+                        head = tot[:n]
+                        for i in range(n):
+                            head[i] = a[i]
+                        for q in range(1, n_pairs - 1):
+                            nb = pairs[lo + ra + 2 * q:hi + ra + 2 * q]
+                            for i in range(n):
+                                head[i] += nb[i]
+                        a = head
+                    bs = best[lo:hi]
+                    denom = (yb - ya) * width * ck
+                    if per_pixel:
+                        al = allowed[k, y, lo:hi]
+                        for i in range(n):  # & not and: no branch, the loop vectorises
+                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
+                            bs[i] = c if al[i] & (c < bs[i]) else bs[i]
+                    else:
+                        for i in range(n):
+                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
+                            bs[i] = c if c < bs[i] else bs[i]
+            for x in range(W):
+                out[y, x] = best[x]
 
 
-def min_window_cost(integrals: np.ndarray, window_set: np.ndarray, rects: np.ndarray, counts: np.ndarray,
-                    allowed: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
-    """Compiled twin of :func:`min_window_cost_reference` (same arguments and map; ``counts``
-    float64, ``allowed`` a contiguous bool array), written into ``out`` when given."""
-    S, H1, W1 = integrals.shape
+#: Largest window sum, in units of ``1 / FIXED_POINT``, that :func:`min_window_costs` adds up in
+#: float64 (exact for integers below 2^53); a search that could exceed it uses the int64 tables.
+EXACT_FLOAT_SUM = float(2 ** 53)
+
+
+def min_window_costs_reference(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
+                               window_set: np.ndarray, rects: np.ndarray, counts: np.ndarray,
+                               allowed: np.ndarray, view_mask: np.ndarray | None = None) -> np.ndarray:
+    """``(H, W)`` float32: each pixel's least mean absolute difference at ``disparity`` over its
+    allowed windows, step by step (readable twin of :func:`min_window_costs`): the block images
+    (:func:`block_abs_diff`), the summed-area tables of the view sets ``sets`` (0..10)
+    (:func:`set_integrals_reference`) and the least window cost (:func:`min_window_cost_reference`;
+    window ``k`` matched over set ``sets[window_set[k]]``, where ``allowed[k]`` says, ``(K, H, W)``
+    or ``(K, 1, 1)`` bool)."""
+    blocks = block_abs_diff(gray, disparity, view_mask=view_mask)
+    integrals = set_integrals_reference(blocks, np.asarray(sets))
+    return min_window_cost_reference(integrals, window_set, rects, counts, np.moveaxis(allowed, 0, -1))
+
+
+def min_window_costs(gray: np.ndarray, disparity: float, *, sets: np.ndarray, window_set: np.ndarray,
+                     rects: np.ndarray, counts: np.ndarray, allowed: np.ndarray,
+                     view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Compiled twin of :func:`min_window_costs_reference` (same arguments and map, bit for bit;
+    ``gray`` contiguous float32, ``counts`` float64, ``allowed`` a contiguous bool array), written
+    into ``out`` when given. One pass over the rows, with none of the ``(9, H, W)`` block images
+    or ``(S, H + 1, W + 1)`` tables in memory."""
+    U, V, H, W = gray.shape
     if out is None:
-        out = np.empty((H1 - 1, W1 - 1), np.float32)
-    _min_window_cost_kernel(integrals, window_set, rects, counts, allowed, out)
+        out = np.empty((H, W), np.float32)
+    n_chunks = max(1, min(numba.get_num_threads(), H))
+    _min_window_costs_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity),
+                             *_set_sums_plan(np.asarray(sets)), window_set, rects, counts, allowed,
+                             n_chunks, out)
     return out
+
+
+def _set_sums_plan(sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(set_blocks, set_from, set_order)`` of :func:`_min_window_costs_kernel`: the blocks of
+    each set (:func:`_set_block_lists`), per set the longest other set whose blocks begin its own
+    (``-1``: none), whose sum it continues, and the order that makes each set after that one
+    (fewest blocks first)."""
+    table = _set_block_lists(sets)
+    n = (table >= 0).sum(axis=1)
+    set_from = np.full(len(sets), -1, np.int64)
+    for s in range(len(sets)):
+        for p in range(len(sets)):
+            if n[p] < n[s] and (table[p, :n[p]] == table[s, :n[p]]).all() and (
+                    set_from[s] < 0 or n[p] > n[set_from[s]]):
+                set_from[s] = p
+    return table, set_from, np.argsort(n, kind="stable").astype(np.int64)
+
+
+def window_sum_bound(gray: np.ndarray, *, rects: np.ndarray, view_mask: np.ndarray | None = None) -> float:
+    """An upper bound of every window sum :func:`min_window_costs` adds up, in units of
+    ``1 / FIXED_POINT``: the largest absolute difference of two grey values of ``gray``
+    (``(U, V, H, W)``) times the number of views, times the largest window's pixels, with one unit
+    of rounding per pixel (``inf`` for views holding NaN or inf)."""
+    U, V = gray.shape[:2]
+    mask = np.ones((U, V), bool) if view_mask is None else np.asarray(view_mask, bool)
+    used = gray[mask]
+    lo, hi = float(used.min(initial=0.0)), float(used.max(initial=0.0))
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return np.inf
+    area = int(((rects[:, 1] - rects[:, 0] + 1) * (rects[:, 3] - rects[:, 2] + 1)).max())
+    return (2 * (hi - lo) * int(mask.sum()) * FIXED_POINT + 1) * area
 
 
 def cost_ambiguity_reference(costs: np.ndarray, delta: float) -> np.ndarray:

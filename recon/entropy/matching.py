@@ -12,8 +12,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from recon.entropy.cost import (FIXED_INV, N_BLOCKS, WindowCost, block_abs_diff, block_abs_diff_reference,
-                                cost_ambiguity, min_window_cost, set_integrals, set_view_counts)
+from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, N_BLOCKS, WindowCost, block_abs_diff,
+                                block_abs_diff_reference, cost_ambiguity, min_window_costs,
+                                min_window_costs_reference, set_integrals, set_view_counts, window_sum_bound)
 from recon.entropy.layout import row_order, window_major_penalty
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
@@ -40,18 +41,22 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     rects = np.array([window_rect(w[0], w[1]) for w in windows], np.int64)
     wcounts = np.array([counts[w[2]] for w in windows], np.float64)
     gray = np.ascontiguousarray(gray, dtype=np.float32)
-    buf = np.empty((N_BLOCKS, H, W), np.float32)
-    integrals = None
     if allowed is None:
-        allowed = np.ones((1, 1, len(windows)), np.bool_)
+        allowed = np.ones((len(windows), 1, 1), np.bool_)
     elif allowed.shape != (H, W, len(windows)) or not allowed.any(axis=2).all():
         raise ValueError(f"allowed must be ({H}, {W}, {len(windows)}) bool with a window at every pixel")
-    allowed = np.ascontiguousarray(allowed, dtype=np.bool_)
+    else:  # window by window: the kernels read each window's row contiguously
+        allowed = np.ascontiguousarray(np.moveaxis(allowed, 2, 0), dtype=np.bool_)
+    exact = window_sum_bound(gray, rects=rects, view_mask=view_mask) < EXACT_FLOAT_SUM
     costs = np.empty((len(candidates), H, W), np.float32)
     for i, d in enumerate(candidates):
-        block_abs_diff(gray, float(d), view_mask=view_mask, out=buf)
-        integrals = set_integrals(buf, sets, out=integrals)
-        min_window_cost(integrals, window_set, rects, wcounts, allowed, out=costs[i])
+        if exact:
+            min_window_costs(gray, float(d), sets=sets, window_set=window_set, rects=rects, counts=wcounts,
+                             allowed=allowed, view_mask=view_mask, out=costs[i])
+        else:  # sums beyond float64's integers: the int64 tables
+            costs[i] = min_window_costs_reference(gray, float(d), sets=sets, window_set=window_set,
+                                                  rects=rects, counts=wcounts, allowed=allowed,
+                                                  view_mask=view_mask)
         if progress is not None:
             progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
