@@ -118,15 +118,47 @@ def _add(counts, k, s, xlogx):
     return s + xlogx[c + 1] - xlogx[c]
 
 
+def ring_order(rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The order in which :func:`select_windows` adds the pixels of one shape's nested windows to
+    the histograms, for a window that the image does not clip.
+
+    ``rects``: ``(n_sizes, 4)`` ``(y0, y1, x0, x1)`` inclusive offsets of the shape's windows,
+    ascending. Returns ``(offsets, ends)``: ``(n, 2)`` int64 ``(dy, dx)`` of every pixel of the
+    largest window, each size's new pixels row by row (top to bottom; in a row of the previous
+    window, those left of it and then those right of it, else the whole row, left to right), and
+    ``(n_sizes,)`` int64: the pixels up to and including size ``k`` are ``offsets[:ends[k]]``."""
+    offsets: list[tuple[int, int]] = []
+    ends = np.zeros(len(rects), np.int64)
+    py0, py1, px0, px1 = 0, -1, 0, -1
+    for k, (y0, y1, x0, x1) in enumerate(np.asarray(rects, np.int64).tolist()):
+        for yy in range(y0, y1 + 1):
+            if py0 <= yy <= py1:
+                runs = ((x0, min(px0, x1 + 1)), (max(px1 + 1, x0), x1 + 1))
+            else:
+                runs = ((x0, x1 + 1), (0, 0))
+            for a, b in runs:
+                offsets.extend((yy, xx) for xx in range(a, b))
+        ends[k] = len(offsets)
+        py0, py1, px0, px1 = y0, y1, x0, x1
+    return np.array(offsets, np.int64).reshape(-1, 2), ends
+
+
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, layers, gap, max_size, order, shape_map, size_map,
-                   best_e, all_e):
+                   n_disp, xlogx, side_radius, layers, gap, max_size, order, ring, ring_end,
+                   shape_map, size_map, best_e, all_e):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
-    # edges try 11 shapes, elsewhere 1).
+    # edges try 11 shapes, elsewhere 1). A pixel whose largest window the image does not clip adds
+    # each size's new pixels from ``ring`` (ring_order's, as flat offsets): the same pixels in the
+    # same order as the clipped windows' row runs below, so the same sums bit for bit.
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
+    r_max = (sizes_n[n_sizes - 1] - 1) // 2
+    grey_f = grey_q.ravel()
+    disp_f = disp_q.ravel()
+    labels_f = labels.ravel()
+    layers_f = layers.ravel()
     for jr in numba.prange(H):
         y = order[jr]
         hg = np.zeros(n_grey, np.int64)
@@ -138,8 +170,10 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             opposite = 1 if lab == 0 else 0
             a2 = a2_occl if occl else a2_other
             s_first = 1 if occl else 0
-            r_max = (sizes_n[n_sizes - 1] - 1) // 2
             s_last = n_shapes if (occl or side_radius[y, x] <= r_max) else 1
+            inside = r_max <= y < H - r_max and r_max <= x < W - r_max
+            base = y * W + x
+            m_centre = layers[y, x]
             best = -1e300
             best_shape = 0
             best_size = 0
@@ -155,35 +189,65 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                 px0 = 0
                 px1 = -1
                 for k in range(n_sizes):
-                    ya = max(y + rects[s, k, 0], 0)
-                    yb = min(y + rects[s, k, 1], H - 1)
-                    xa = max(x + rects[s, k, 2], 0)
-                    xb = min(x + rects[s, k, 3], W - 1)
-                    for yy in range(ya, yb + 1):
-                        # the pixels new to this size, row by row left to right: in a row of the
-                        # previous window, those left of it and those right of it
-                        if py0 <= yy <= py1:
-                            runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
-                        else:
-                            runs = ((xa, xb + 1), (0, 0))
-                        for run in runs:
-                            for xx in range(run[0], run[1]):
-                                g = grey_q[yy, xx]
+                    if inside:
+                        i0 = n
+                        n = ring_end[s, k]
+                        if occl:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                g = grey_f[q]
                                 sg = _add(hg, g, sg, xlogx)
-                                sd = _add(hd, disp_q[yy, xx], sd, xlogx)
-                                n += 1
-                                if occl and labels[yy, xx] == opposite:
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                                if labels_f[q] == opposite:
                                     sm = _add(hm, g, sm, xlogx)
                                     m += 1
-                                if gap >= 0 and abs(layers[yy, xx] - layers[y, x]) > gap:
+                        elif gap >= 0:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                sg = _add(hg, grey_f[q], sg, xlogx)
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                                if abs(layers_f[q] - m_centre) > gap:
                                     mixed = True
-                    py0, py1, px0, px1 = ya, yb, xa, xb
-                    if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
-                        continue  # side window not offered at this size (no layer jump within r)
-                    if s == 0 and not occl and k > 0 and sizes_n[k] > max_size[y, x]:
-                        continue  # the square's mean disparity is off the pixel's (a crease)
-                    if mixed and not occl and not (s == 0 and k == 0):
-                        continue  # the window reaches another layer (the smallest square stays)
+                        else:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                sg = _add(hg, grey_f[q], sg, xlogx)
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                    else:
+                        ya = max(y + rects[s, k, 0], 0)
+                        yb = min(y + rects[s, k, 1], H - 1)
+                        xa = max(x + rects[s, k, 2], 0)
+                        xb = min(x + rects[s, k, 3], W - 1)
+                        for yy in range(ya, yb + 1):
+                            # the pixels new to this size, row by row left to right: in a row of
+                            # the previous window, those left of it and those right of it
+                            if py0 <= yy <= py1:
+                                runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
+                            else:
+                                runs = ((xa, xb + 1), (0, 0))
+                            for run in runs:
+                                for xx in range(run[0], run[1]):
+                                    g = grey_q[yy, xx]
+                                    sg = _add(hg, g, sg, xlogx)
+                                    sd = _add(hd, disp_q[yy, xx], sd, xlogx)
+                                    n += 1
+                                    if occl and labels[yy, xx] == opposite:
+                                        sm = _add(hm, g, sm, xlogx)
+                                        m += 1
+                                    if gap >= 0 and abs(layers[yy, xx] - m_centre) > gap:
+                                        mixed = True
+                        py0, py1, px0, px1 = ya, yb, xa, xb
+                    if not occl:
+                        # a window not offered here is not offered at any larger size either
+                        # (the cap and the layers only shut more), except the smaller side
+                        # windows, which open with the size
+                        if s == 0 and k > 0 and (sizes_n[k] > max_size[y, x] or mixed):
+                            break  # the square's mean disparity is off the pixel's (a crease),
+                            # or it reaches another layer (the smallest square stays)
+                        if s > 0 and mixed:
+                            break  # the window reaches another layer
+                        if s > 0 and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
+                            continue  # side window not offered at this size (no layer jump within r)
                     logn = np.log(n)
                     e = (logn - sg / n) + alpha1 * (sd / n - logn)
                     if m > 0:
@@ -193,12 +257,19 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                         best = e
                         best_shape = s
                         best_size = sizes_n[k]
-                # reset the histograms over the largest window
-                for yy in range(py0, py1 + 1):
-                    for xx in range(px0, px1 + 1):
-                        hg[grey_q[yy, xx]] = 0
-                        hd[disp_q[yy, xx]] = 0
-                        hm[grey_q[yy, xx]] = 0
+                # reset the histograms over the pixels added
+                if inside:
+                    for i in range(n):
+                        q = base + ring[s, i]
+                        hg[grey_f[q]] = 0
+                        hd[disp_f[q]] = 0
+                        hm[grey_f[q]] = 0
+                else:
+                    for yy in range(py0, py1 + 1):
+                        for xx in range(px0, px1 + 1):
+                            hg[grey_q[yy, xx]] = 0
+                            hd[disp_q[yy, xx]] = 0
+                            hm[grey_q[yy, xx]] = 0
             shape_map[y, x] = best_shape
             size_map[y, x] = best_size
             best_e[y, x] = best
@@ -250,6 +321,11 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     H, W = grey_q.shape
     n_shapes = N_SHAPES if strips else 9
     rects = np.array([[window_rect(s, z) for z in sizes] for s in range(n_shapes)], np.int64)
+    rings = [ring_order(r) for r in rects]
+    ring = np.zeros((n_shapes, max(len(o) for o, _ in rings)), np.int64)
+    for s, (offsets, _) in enumerate(rings):
+        ring[s, :len(offsets)] = offsets[:, 0] * W + offsets[:, 1]
+    ring_end = np.array([ends for _, ends in rings], np.int64)
     grey_q = np.ascontiguousarray(grey_q, np.int64)
     disp_q = np.ascontiguousarray(disp_q, np.int64)
     n_grey = int(grey_q.max()) + 1
@@ -271,7 +347,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    -1.0 if layer_gap is None or layers is None else float(layer_gap),
                    np.full((H, W), max(sizes), np.int64) if max_size is None
                    else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
-                   row_order(H), shape_map, size_map, best_e, all_e)
+                   row_order(H), ring, ring_end, shape_map, size_map, best_e, all_e)
     if return_all:
         return shape_map, size_map, best_e.astype(np.float32), all_e
     return shape_map, size_map, best_e.astype(np.float32)
