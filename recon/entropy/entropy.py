@@ -31,6 +31,7 @@ import numpy as np
 
 from recon.entropy.labels import OCCLUDED, OCCLUDING
 from recon.entropy.layout import row_order
+from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, window_rect
 
 
@@ -145,12 +146,16 @@ def ring_order(rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, layers, gap, max_size, order, ring, ring_end,
-                   shape_map, size_map, best_e, all_e):
+                   n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring, ring_end,
+                   shape_map, size_map, best_e, all_e, dense, row_values, counts, mask):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
-    # edges try 11 shapes, elsewhere 1). A pixel whose largest window the image does not clip adds
-    # each size's new pixels from ``ring`` (ring_order's, as flat offsets): the same pixels in the
-    # same order as the clipped windows' row runs below, so the same sums bit for bit.
+    # edges try 11 shapes, elsewhere 1). A pixel at least ``margin`` from the border (its largest
+    # window not clipped by the image) adds each size's new pixels from ``ring`` (ring_order's, as
+    # flat offsets): the same pixels in the same order as the clipped windows' row runs below, so
+    # the same sums bit for bit. Each
+    # offered window's entropy goes to ``all_e`` if ``dense``, and always to the sparse volume's
+    # parts: row y's values one after the other from ``row_values[y * W * K]``, the count per
+    # pixel in ``counts``, the bit of window k in ``mask`` (np.packbits' order).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -159,8 +164,10 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
     disp_f = disp_q.ravel()
     labels_f = labels.ravel()
     layers_f = layers.ravel()
+    K = n_shapes * n_sizes
     for jr in numba.prange(H):
         y = order[jr]
+        row_n = y * W * K
         hg = np.zeros(n_grey, np.int64)
         hd = np.zeros(n_disp, np.int64)
         hm = np.zeros(n_grey, np.int64)
@@ -171,7 +178,7 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             a2 = a2_occl if occl else a2_other
             s_first = 1 if occl else 0
             s_last = n_shapes if (occl or side_radius[y, x] <= r_max) else 1
-            inside = r_max <= y < H - r_max and r_max <= x < W - r_max
+            inside = margin <= y < H - margin and margin <= x < W - margin
             base = y * W + x
             m_centre = layers[y, x]
             best = -1e300
@@ -252,7 +259,13 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                     e = (logn - sg / n) + alpha1 * (sd / n - logn)
                     if m > 0:
                         e += a2 * (sm / n - m / n * logn)
-                    all_e[y, x, s * n_sizes + k] = e
+                    kk = s * n_sizes + k
+                    if dense:
+                        all_e[y, x, kk] = e
+                    row_values[row_n] = e
+                    row_n += 1
+                    counts[y * W + x] += 1
+                    mask[y, x, kk >> 3] |= np.uint8(0x80 >> (kk & 7))
                     if e > best + 1e-9 or (abs(e - best) <= 1e-9 and sizes_n[k] > best_size):
                         best = e
                         best_shape = s
@@ -275,12 +288,17 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             best_e[y, x] = best
 
 
+def _ring_margin(sizes: tuple[int, ...]) -> int:
+    # pixels this far from the border sum their windows along ring_order (none clipped)
+    return (max(sizes) - 1) // 2
+
+
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
                    sizes: tuple[int, ...], alpha1: float, alpha2_occlusion: float,
                    alpha2_other: float, strips: bool = True,
                    side_radius: np.ndarray | None = None, layers: np.ndarray | None = None,
                    layer_gap: float | None = None, max_size: np.ndarray | None = None,
-                   return_all: bool = False):
+                   return_all: bool | str = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -313,9 +331,12 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
 
     Returns
     -------
-    ``(shape_map, size_map, entropy)``: ``(H, W)`` int64, int64, float32; with ``return_all`` also
-    ``(H, W, 9 * len(sizes))`` float32 entropy of every window ``shape * len(sizes) + size_index``
-    (``-inf`` for windows not allowed in the pixel's region).
+    ``(shape_map, size_map, entropy)``: ``(H, W)`` int64, int64, float32; with ``return_all``
+    also the entropy of every window ``k = shape * len(sizes) + size_index`` (``K = 11 *
+    len(sizes)`` windows with ``strips``, else ``9 * len(sizes)``), ``-inf`` for the windows not
+    offered: ``return_all=True`` an ``(H, W, K)`` float32 array, ``return_all="sparse"`` the
+    same as a :class:`recon.entropy.volume.SparseVolume` (what ``SparseVolume.pack`` makes of the
+    dense array, bit for bit, without the dense array).
     """
     sizes = tuple(sorted(int(s) for s in sizes))
     H, W = grey_q.shape
@@ -335,7 +356,14 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     shape_map = np.zeros((H, W), np.int64)
     size_map = np.zeros((H, W), np.int64)
     best_e = np.zeros((H, W), np.float64)
-    all_e = np.full((H, W, n_shapes * len(sizes)), -np.inf, np.float32)
+    K = n_shapes * len(sizes)
+    if return_all not in (False, True, "sparse"):
+        raise ValueError(f"return_all must be False, True or 'sparse', got {return_all!r}")
+    dense = return_all is True
+    all_e = np.full((H, W, K) if dense else (0, 0, 0), -np.inf, np.float32)
+    row_values = np.empty(H * W * K, np.float32)  # only the pages a row's values fill are touched
+    counts = np.zeros(H * W, np.int64)
+    mask = np.zeros((H, W, (K + 7) // 8), np.uint8)
     if side_radius is None:
         side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
@@ -347,7 +375,16 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    -1.0 if layer_gap is None or layers is None else float(layer_gap),
                    np.full((H, W), max(sizes), np.int64) if max_size is None
                    else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
-                   row_order(H), ring, ring_end, shape_map, size_map, best_e, all_e)
-    if return_all:
+                   row_order(H), _ring_margin(sizes), ring, ring_end, shape_map, size_map, best_e,
+                   all_e, dense, row_values, counts, mask)
+    if dense:
         return shape_map, size_map, best_e.astype(np.float32), all_e
+    if return_all == "sparse":
+        start = np.zeros(H * W + 1, np.int64)
+        np.cumsum(counts, out=start[1:])
+        per_row = start[W::W] - start[:-1:W]
+        values = np.concatenate([row_values[y * W * K:y * W * K + per_row[y]] for y in range(H)])
+        del row_values
+        return (shape_map, size_map, best_e.astype(np.float32),
+                SparseVolume((H, W, K), float(-np.inf), mask, start, values))
     return shape_map, size_map, best_e.astype(np.float32)
