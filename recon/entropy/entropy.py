@@ -152,10 +152,10 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
     # edges try 11 shapes, elsewhere 1). A pixel at least ``margin`` from the border (its largest
     # window not clipped by the image) adds each size's new pixels from ``ring`` (ring_order's, as
     # flat offsets): the same pixels in the same order as the clipped windows' row runs below, so
-    # the same sums bit for bit. Each
-    # offered window's entropy goes to ``all_e`` if ``dense``, and always to the sparse volume's
-    # parts: row y's values one after the other from ``row_values[y * W * K]``, the count per
-    # pixel in ``counts``, the bit of window k in ``mask`` (np.packbits' order).
+    # the same sums bit for bit. Each offered window's entropy goes to ``all_e`` if ``dense``, and
+    # always to the sparse volume's parts: row y's values one after the other from
+    # ``row_values[y * W * K]``, the count per pixel in ``counts``, the bit of window k in ``mask``
+    # (np.packbits' order).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
