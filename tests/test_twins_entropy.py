@@ -4,9 +4,12 @@ readable twin's."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from recon.entropy import entropy
 from recon.entropy.entropy import matching_entropy_reference, select_windows, select_windows_reference
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
+from recon.entropy.volume import SparseVolume
 from kernel_inputs import seeded
 
 
@@ -55,3 +58,54 @@ def test_window_avoids_a_disparity_edge():
     assert size[15, 14] >= 11
     assert size[15, 12] <= 7  # square windows shrink near the edge (it is 4 px away)
     assert size[15, 3] >= 11  # and large far from it
+
+
+SIZES = (3, 5, 7, 9, 11, 13, 15)
+
+
+def _window_inputs(rng, H=44, W=43):
+    """Grey and disparity bins, labels in patches (windows straddle them), a two-layer map with a
+    slant, side radii and size caps: every window rule of select_windows at work."""
+    y, x = np.mgrid[0:H, 0:W]
+    layers = np.where(x + y // 3 < 20, 0.0, 1.0) + 0.004 * x
+    grey = rng.integers(0, 6, (H, W)) + (x > 25) * 3  # few levels: counts grow, sums round
+    disp = (layers * 10).astype(np.int64) + rng.integers(0, 3, (H, W))
+    patch = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH, TEXTURE], (H // 4 + 1, W // 4 + 1))
+    labels = patch.repeat(4, 0).repeat(4, 1)[:H, :W].astype(np.uint8)
+    labels[rng.random((H, W)) < 0.1] = OCCLUDED
+    return grey, disp, labels, dict(
+        sizes=SIZES, alpha1=1.0, alpha2_occlusion=1.0, alpha2_other=0.0,
+        side_radius=rng.integers(0, 9, (H, W)), layers=layers.astype(np.float32), layer_gap=0.25,
+        max_size=rng.choice(SIZES, (H, W)))
+
+
+@pytest.mark.parametrize("variant", ["default", "no strips", "no layers"])
+def test_unclipped_windows_sum_as_the_clipped_ones(monkeypatch, variant):
+    # Pixels whose windows the image does not clip add their pixels along ring_order; summed the
+    # clipped way instead (every pixel treated as near the border), every bit stays.
+    grey, disp, labels, kw = _window_inputs(seeded())
+    if variant == "no strips":
+        kw["strips"] = False
+    if variant == "no layers":
+        kw["layers"] = None
+    ring = select_windows(grey, disp, labels, return_all=True, **kw)
+    monkeypatch.setattr(entropy, "_ring_margin", lambda sizes: 10 ** 6)
+    clipped = select_windows(grey, disp, labels, return_all=True, **kw)
+    assert np.isfinite(ring[3]).sum() > 10 * grey.size  # many windows offered
+    for a, b in zip(ring, clipped):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def test_sparse_entropies_are_the_packed_dense_ones():
+    grey, disp, labels, kw = _window_inputs(seeded(), H=23, W=29)
+    dense = select_windows(grey, disp, labels, return_all=True, **kw)
+    sparse = select_windows(grey, disp, labels, return_all="sparse", **kw)
+    for a, b in zip(dense[:3], sparse[:3]):
+        assert a.tobytes() == b.tobytes()
+    packed, got = SparseVolume.pack(dense[3]), sparse[3]
+    assert got.shape == packed.shape and got.fill == packed.fill
+    assert np.array_equal(got.mask, packed.mask) and np.array_equal(got.start, packed.start)
+    assert got.values.dtype == np.float32 and got.values.tobytes() == packed.values.tobytes()
+    assert got.rows(0, 23).tobytes() == dense[3].tobytes()
+    with pytest.raises(ValueError, match="return_all"):
+        select_windows(grey, disp, labels, return_all="dense", **kw)

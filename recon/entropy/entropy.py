@@ -31,6 +31,7 @@ import numpy as np
 
 from recon.entropy.labels import OCCLUDED, OCCLUDING
 from recon.entropy.layout import row_order
+from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, window_rect
 
 
@@ -118,17 +119,55 @@ def _add(counts, k, s, xlogx):
     return s + xlogx[c + 1] - xlogx[c]
 
 
+def ring_order(rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The order in which :func:`select_windows` adds the pixels of one shape's nested windows to
+    the histograms, for a window that the image does not clip.
+
+    ``rects``: ``(n_sizes, 4)`` ``(y0, y1, x0, x1)`` inclusive offsets of the shape's windows,
+    ascending. Returns ``(offsets, ends)``: ``(n, 2)`` int64 ``(dy, dx)`` of every pixel of the
+    largest window, each size's new pixels row by row (top to bottom; in a row of the previous
+    window, those left of it and then those right of it, else the whole row, left to right), and
+    ``(n_sizes,)`` int64: the pixels up to and including size ``k`` are ``offsets[:ends[k]]``."""
+    offsets: list[tuple[int, int]] = []
+    ends = np.zeros(len(rects), np.int64)
+    py0, py1, px0, px1 = 0, -1, 0, -1
+    for k, (y0, y1, x0, x1) in enumerate(np.asarray(rects, np.int64).tolist()):
+        for yy in range(y0, y1 + 1):
+            if py0 <= yy <= py1:
+                runs = ((x0, min(px0, x1 + 1)), (max(px1 + 1, x0), x1 + 1))
+            else:
+                runs = ((x0, x1 + 1), (0, 0))
+            for a, b in runs:
+                offsets.extend((yy, xx) for xx in range(a, b))
+        ends[k] = len(offsets)
+        py0, py1, px0, px1 = y0, y1, x0, x1
+    return np.array(offsets, np.int64).reshape(-1, 2), ends
+
+
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
-                   n_disp, xlogx, side_radius, layers, gap, max_size, order, shape_map, size_map,
-                   best_e, all_e):
+                   n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring, ring_end,
+                   shape_map, size_map, best_e, all_e, dense, row_values, counts, mask):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
-    # edges try 11 shapes, elsewhere 1).
+    # edges try 11 shapes, elsewhere 1). A pixel at least ``margin`` from the border (its largest
+    # window not clipped by the image) adds each size's new pixels from ``ring`` (ring_order's, as
+    # flat offsets): the same pixels in the same order as the clipped windows' row runs below, so
+    # the same sums bit for bit. Each offered window's entropy goes to ``all_e`` if ``dense``, and
+    # always to the sparse volume's parts: row y's values one after the other from
+    # ``row_values[y * W * K]``, the count per pixel in ``counts``, the bit of window k in ``mask``
+    # (np.packbits' order).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
+    r_max = (sizes_n[n_sizes - 1] - 1) // 2
+    grey_f = grey_q.ravel()
+    disp_f = disp_q.ravel()
+    labels_f = labels.ravel()
+    layers_f = layers.ravel()
+    K = n_shapes * n_sizes
     for jr in numba.prange(H):
         y = order[jr]
+        row_n = y * W * K
         hg = np.zeros(n_grey, np.int64)
         hd = np.zeros(n_disp, np.int64)
         hm = np.zeros(n_grey, np.int64)
@@ -138,8 +177,10 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             opposite = 1 if lab == 0 else 0
             a2 = a2_occl if occl else a2_other
             s_first = 1 if occl else 0
-            r_max = (sizes_n[n_sizes - 1] - 1) // 2
             s_last = n_shapes if (occl or side_radius[y, x] <= r_max) else 1
+            inside = margin <= y < H - margin and margin <= x < W - margin
+            base = y * W + x
+            m_centre = layers[y, x]
             best = -1e300
             best_shape = 0
             best_size = 0
@@ -155,53 +196,101 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                 px0 = 0
                 px1 = -1
                 for k in range(n_sizes):
-                    ya = max(y + rects[s, k, 0], 0)
-                    yb = min(y + rects[s, k, 1], H - 1)
-                    xa = max(x + rects[s, k, 2], 0)
-                    xb = min(x + rects[s, k, 3], W - 1)
-                    for yy in range(ya, yb + 1):
-                        # the pixels new to this size, row by row left to right: in a row of the
-                        # previous window, those left of it and those right of it
-                        if py0 <= yy <= py1:
-                            runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
-                        else:
-                            runs = ((xa, xb + 1), (0, 0))
-                        for run in runs:
-                            for xx in range(run[0], run[1]):
-                                g = grey_q[yy, xx]
+                    if inside:
+                        i0 = n
+                        n = ring_end[s, k]
+                        if occl:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                g = grey_f[q]
                                 sg = _add(hg, g, sg, xlogx)
-                                sd = _add(hd, disp_q[yy, xx], sd, xlogx)
-                                n += 1
-                                if occl and labels[yy, xx] == opposite:
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                                if labels_f[q] == opposite:
                                     sm = _add(hm, g, sm, xlogx)
                                     m += 1
-                                if gap >= 0 and abs(layers[yy, xx] - layers[y, x]) > gap:
+                        elif gap >= 0:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                sg = _add(hg, grey_f[q], sg, xlogx)
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                                if abs(layers_f[q] - m_centre) > gap:
                                     mixed = True
-                    py0, py1, px0, px1 = ya, yb, xa, xb
-                    if s > 0 and not occl and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
-                        continue  # side window not offered at this size (no layer jump within r)
-                    if s == 0 and not occl and k > 0 and sizes_n[k] > max_size[y, x]:
-                        continue  # the square's mean disparity is off the pixel's (a crease)
-                    if mixed and not occl and not (s == 0 and k == 0):
-                        continue  # the window reaches another layer (the smallest square stays)
+                        else:
+                            for i in range(i0, n):
+                                q = base + ring[s, i]
+                                sg = _add(hg, grey_f[q], sg, xlogx)
+                                sd = _add(hd, disp_f[q], sd, xlogx)
+                    else:
+                        ya = max(y + rects[s, k, 0], 0)
+                        yb = min(y + rects[s, k, 1], H - 1)
+                        xa = max(x + rects[s, k, 2], 0)
+                        xb = min(x + rects[s, k, 3], W - 1)
+                        for yy in range(ya, yb + 1):
+                            # the pixels new to this size, row by row left to right: in a row of
+                            # the previous window, those left of it and those right of it
+                            if py0 <= yy <= py1:
+                                runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
+                            else:
+                                runs = ((xa, xb + 1), (0, 0))
+                            for run in runs:
+                                for xx in range(run[0], run[1]):
+                                    g = grey_q[yy, xx]
+                                    sg = _add(hg, g, sg, xlogx)
+                                    sd = _add(hd, disp_q[yy, xx], sd, xlogx)
+                                    n += 1
+                                    if occl and labels[yy, xx] == opposite:
+                                        sm = _add(hm, g, sm, xlogx)
+                                        m += 1
+                                    if gap >= 0 and abs(layers[yy, xx] - m_centre) > gap:
+                                        mixed = True
+                        py0, py1, px0, px1 = ya, yb, xa, xb
+                    if not occl:
+                        # a window not offered here is not offered at any larger size either
+                        # (the cap and the layers only shut more), except the smaller side
+                        # windows, which open with the size
+                        if s == 0 and k > 0 and (sizes_n[k] > max_size[y, x] or mixed):
+                            break  # the square's mean disparity is off the pixel's (a crease),
+                            # or it reaches another layer (the smallest square stays)
+                        if s > 0 and mixed:
+                            break  # the window reaches another layer
+                        if s > 0 and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
+                            continue  # side window not offered at this size (no layer jump within r)
                     logn = np.log(n)
                     e = (logn - sg / n) + alpha1 * (sd / n - logn)
                     if m > 0:
                         e += a2 * (sm / n - m / n * logn)
-                    all_e[y, x, s * n_sizes + k] = e
+                    kk = s * n_sizes + k
+                    if dense:
+                        all_e[y, x, kk] = e
+                    row_values[row_n] = e
+                    row_n += 1
+                    counts[y * W + x] += 1
+                    mask[y, x, kk >> 3] |= np.uint8(0x80 >> (kk & 7))
                     if e > best + 1e-9 or (abs(e - best) <= 1e-9 and sizes_n[k] > best_size):
                         best = e
                         best_shape = s
                         best_size = sizes_n[k]
-                # reset the histograms over the largest window
-                for yy in range(py0, py1 + 1):
-                    for xx in range(px0, px1 + 1):
-                        hg[grey_q[yy, xx]] = 0
-                        hd[disp_q[yy, xx]] = 0
-                        hm[grey_q[yy, xx]] = 0
+                # reset the histograms over the pixels added
+                if inside:
+                    for i in range(n):
+                        q = base + ring[s, i]
+                        hg[grey_f[q]] = 0
+                        hd[disp_f[q]] = 0
+                        hm[grey_f[q]] = 0
+                else:
+                    for yy in range(py0, py1 + 1):
+                        for xx in range(px0, px1 + 1):
+                            hg[grey_q[yy, xx]] = 0
+                            hd[disp_q[yy, xx]] = 0
+                            hm[grey_q[yy, xx]] = 0
             shape_map[y, x] = best_shape
             size_map[y, x] = best_size
             best_e[y, x] = best
+
+
+def _ring_margin(sizes: tuple[int, ...]) -> int:
+    # pixels this far from the border sum their windows along ring_order (none clipped)
+    return (max(sizes) - 1) // 2
 
 
 def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *,
@@ -209,7 +298,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    alpha2_other: float, strips: bool = True,
                    side_radius: np.ndarray | None = None, layers: np.ndarray | None = None,
                    layer_gap: float | None = None, max_size: np.ndarray | None = None,
-                   return_all: bool = False):
+                   return_all: bool | str = False):
     """Window of largest matching entropy per pixel (compiled).
 
     Parameters
@@ -242,14 +331,22 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
 
     Returns
     -------
-    ``(shape_map, size_map, entropy)``: ``(H, W)`` int64, int64, float32; with ``return_all`` also
-    ``(H, W, 9 * len(sizes))`` float32 entropy of every window ``shape * len(sizes) + size_index``
-    (``-inf`` for windows not allowed in the pixel's region).
+    ``(shape_map, size_map, entropy)``: ``(H, W)`` int64, int64, float32; with ``return_all``
+    also the entropy of every window ``k = shape * len(sizes) + size_index`` (``K = 11 *
+    len(sizes)`` windows with ``strips``, else ``9 * len(sizes)``), ``-inf`` for the windows not
+    offered: ``return_all=True`` an ``(H, W, K)`` float32 array, ``return_all="sparse"`` the
+    same as a :class:`recon.entropy.volume.SparseVolume` (what ``SparseVolume.pack`` makes of the
+    dense array, bit for bit, without the dense array).
     """
     sizes = tuple(sorted(int(s) for s in sizes))
     H, W = grey_q.shape
     n_shapes = N_SHAPES if strips else 9
     rects = np.array([[window_rect(s, z) for z in sizes] for s in range(n_shapes)], np.int64)
+    rings = [ring_order(r) for r in rects]
+    ring = np.zeros((n_shapes, max(len(o) for o, _ in rings)), np.int64)
+    for s, (offsets, _) in enumerate(rings):
+        ring[s, :len(offsets)] = offsets[:, 0] * W + offsets[:, 1]
+    ring_end = np.array([ends for _, ends in rings], np.int64)
     grey_q = np.ascontiguousarray(grey_q, np.int64)
     disp_q = np.ascontiguousarray(disp_q, np.int64)
     n_grey = int(grey_q.max()) + 1
@@ -259,7 +356,14 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     shape_map = np.zeros((H, W), np.int64)
     size_map = np.zeros((H, W), np.int64)
     best_e = np.zeros((H, W), np.float64)
-    all_e = np.full((H, W, n_shapes * len(sizes)), -np.inf, np.float32)
+    K = n_shapes * len(sizes)
+    if return_all not in (False, True, "sparse"):
+        raise ValueError(f"return_all must be False, True or 'sparse', got {return_all!r}")
+    dense = return_all is True
+    all_e = np.full((H, W, K) if dense else (0, 0, 0), -np.inf, np.float32)
+    row_values = np.empty(H * W * K, np.float32)  # only the pages a row's values fill are touched
+    counts = np.zeros(H * W, np.int64)
+    mask = np.zeros((H, W, (K + 7) // 8), np.uint8)
     if side_radius is None:
         side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
     _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.int64), rects,
@@ -271,7 +375,16 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    -1.0 if layer_gap is None or layers is None else float(layer_gap),
                    np.full((H, W), max(sizes), np.int64) if max_size is None
                    else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
-                   row_order(H), shape_map, size_map, best_e, all_e)
-    if return_all:
+                   row_order(H), _ring_margin(sizes), ring, ring_end, shape_map, size_map, best_e,
+                   all_e, dense, row_values, counts, mask)
+    if dense:
         return shape_map, size_map, best_e.astype(np.float32), all_e
+    if return_all == "sparse":
+        start = np.zeros(H * W + 1, np.int64)
+        np.cumsum(counts, out=start[1:])
+        per_row = start[W::W] - start[:-1:W]
+        values = np.concatenate([row_values[y * W * K:y * W * K + per_row[y]] for y in range(H)])
+        del row_values
+        return (shape_map, size_map, best_e.astype(np.float32),
+                SparseVolume((H, W, K), float(-np.inf), mask, start, values))
     return shape_map, size_map, best_e.astype(np.float32)

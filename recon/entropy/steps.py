@@ -27,7 +27,6 @@ from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
-from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.lf.lightfield import to_gray, view_shift_px
 
@@ -207,10 +206,10 @@ def windows_step(s: State) -> None:
     shape_map, size_map, entropy, all_entropy = select_windows(
         grey_q, disp_q, s.labels, sizes=sizes, alpha1=o.alpha1, alpha2_occlusion=o.alpha2_occlusion,
         alpha2_other=o.alpha2_other, strips=o.strip_windows, side_radius=side_radius,
-        layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all=True,
+        layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all="sparse",
         max_size=max_size)
     s.windows = {"sizes": sizes, "shape": shape_map, "size": size_map, "entropy": entropy,
-                 "all_entropy": SparseVolume.pack(all_entropy)}  # -inf: not offered
+                 "all_entropy": all_entropy}  # SparseVolume, -inf: not offered
     s.lap("windows")
 
 
