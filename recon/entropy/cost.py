@@ -238,6 +238,13 @@ def _window_cost_kernel(integrals, set_index, rects, set_counts, out):
 FIXED_POINT = float(2 ** 28)
 FIXED_INV = 1.0 / FIXED_POINT
 
+#: Exact ``float64 <-> int64`` conversions that vectorise (AVX2 has no vector instruction for
+#: them): for an integer ``t`` with ``|t| < 2^51``, the bits of ``MAGIC_FLOAT + t`` (1.5 * 2^52,
+#: whose ulp is 1) are ``MAGIC_BITS + t``.
+MAGIC_FLOAT = 6755399441055744.0
+MAGIC_BITS = np.int64(0x4338000000000000)
+MAGIC_LIMIT = 2 ** 51
+
 
 @numba.njit(cache=True, parallel=True)
 def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
