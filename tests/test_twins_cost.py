@@ -98,6 +98,19 @@ def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
         numba.set_num_threads(threads)
 
 
+def test_set_integrals_converts_large_set_values_exactly():
+    # set values just below and above the vectorised conversion's limit (2^51 units of
+    # 1 / FIXED_POINT), with fractions that round half up: the reference's int64 values
+    from recon.entropy.cost import FIXED_LIMIT, set_integrals, set_integrals_reference
+    rng = np.random.default_rng(5)
+    blocks = rng.random((9, 6, 21)).astype(np.float32)
+    blocks[:, 1] = np.float32(FIXED_LIMIT / 9) * (1 - rng.random((9, 21)).astype(np.float32) * 1e-6)
+    blocks[:, 3] = np.float32(FIXED_LIMIT / 9) * np.float32(1.01)  # set 0 over the limit: row 3
+    blocks[:, 4] = np.round(blocks[:, 4] * 2 ** 29) / 2 ** 29  # ties of the rounding
+    sets = np.arange(11)
+    np.testing.assert_array_equal(set_integrals(blocks, sets), set_integrals_reference(blocks, sets))
+
+
 def _min_window_inputs(windows, grid=(9, 9), view_mask=None):
     from recon.entropy.cost import set_view_counts
     from recon.entropy.windows import window_rect

@@ -58,40 +58,64 @@ def test_joint_line_search_fast_matches_reference():
     assert (np.abs(d - cands[i_ref]) <= 0.5 * 0.4 + 1e-6).all()
 
 
-def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
-    from recon.entropy.cost import block_abs_diff, set_integrals
+def _joint_kernels(integral_sets, H, W, windows, rects, shapes, penalty, occluded, counts):
+    """Each kernel's ``(objectives per candidate, least, window)`` over the candidates' summed-area
+    tables ``integral_sets``: the pixelwise twin and the window-major kernel with either int64 ->
+    float64 conversion."""
     from recon.entropy.layout import row_order, window_major_penalty
     from recon.entropy.legacy_matching import _joint_cost_pixelwise
     from recon.entropy.matching import _joint_cost_kernel
-    rng = np.random.default_rng(13)
+    starts, ks, pens = _compact_penalty(penalty)
+    dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
+    order = row_order(H)
+    state = {}
+    for name in ("pixelwise", "window-major", "window-major magic"):
+        least = np.full((H, W), np.inf, np.float32)
+        best_k = np.full((H, W), -1, np.int64)
+        outs = []
+        for integrals in integral_sets:
+            out = np.empty((H, W), np.float32)
+            if name == "pixelwise":
+                _joint_cost_pixelwise(integrals, occluded, rects, shapes, counts, starts, ks, pens,
+                                      255.0, order, out, least, best_k)
+            else:
+                _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, run_start,
+                                   runs, 255.0, order, name.endswith("magic"), out, least, best_k)
+            outs.append(out)
+        state[name] = (np.stack(outs), least, best_k)
+    return state
+
+
+def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
+    from recon.entropy.cost import block_abs_diff, set_integrals
     from recon.entropy.layout import RUN_GAP
+    rng = np.random.default_rng(13)
     # (6, 9): the 15-px windows wider than the image; the widest: rows with several runs
     for H, W in ((21, 33), (6, 9), (7, RUN_GAP + 20)):
         gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8
-        windows, rects, shapes, penalty, occluded, counts = joint_inputs(rng, H, W)
-        starts, ks, pens = _compact_penalty(penalty)
-        dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
-        order = row_order(H)
-        state = {}
-        for name in ("pixelwise", "window-major"):
-            least = np.full((H, W), np.inf, np.float32)
-            best_k = np.full((H, W), -1, np.int64)
-            outs = []
-            for d in (-0.7, 0.0, 0.35, 1.1):
-                blocks = block_abs_diff(gray, d)
-                integrals = set_integrals(blocks, np.arange(11))
-                out = np.empty((H, W), np.float32)
-                if name == "pixelwise":
-                    _joint_cost_pixelwise(integrals, occluded, rects, shapes, counts, starts, ks, pens,
-                                          255.0, order, out, least, best_k)
-                else:
-                    _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, run_start,
-                                       runs, 255.0, order, out, least, best_k)
-                outs.append(out)
-            state[name] = (np.stack(outs), least, best_k)
-        for a, b in zip(state["pixelwise"], state["window-major"]):
-            np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
-        assert (state["window-major"][2] >= 0).all()
+        inputs = joint_inputs(rng, H, W)
+        tables = [set_integrals(block_abs_diff(gray, d), np.arange(11)) for d in (-0.7, 0.0, 0.35, 1.1)]
+        state = _joint_kernels(tables, H, W, *inputs)
+        for name in ("window-major", "window-major magic"):
+            for a, b in zip(state["pixelwise"], state[name]):
+                np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
+            assert (state[name][2] >= 0).all()
+
+
+def test_joint_cost_kernel_converts_large_window_totals_exactly():
+    # window totals up to 2^51 (the magic conversion's limit) whose float64 values differ in the
+    # last bits: the same maps as the twin's int64 -> float64 conversion
+    from recon.entropy.matching import MAGIC_LIMIT
+    rng = np.random.default_rng(17)
+    H, W = 12, 40
+    inputs = joint_inputs(rng, H, W)
+    pixels = rng.integers(0, MAGIC_LIMIT // (15 * 15), (3, 11, H, W), dtype=np.int64)
+    pixels[..., ::5] |= 2 ** 40 - 1  # low bits set: float64 rounding at 2^-28 units would show
+    tables = np.zeros((3, 11, H + 1, W + 1), np.int64)
+    tables[..., 1:, 1:] = pixels.cumsum(axis=2).cumsum(axis=3)
+    state = _joint_kernels(list(tables), H, W, *inputs)
+    for a, b in zip(state["pixelwise"], state["window-major magic"]):
+        np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
 
 
 def test_compact_penalty_is_identical_to_reference():

@@ -243,6 +243,15 @@ def _window_cost_kernel(integrals, set_index, rects, set_counts, out):
 FIXED_POINT = float(2 ** 28)
 FIXED_INV = 1.0 / FIXED_POINT
 
+#: Exact ``float64 <-> int64`` conversions that vectorise (AVX2 has no vector instruction for
+#: them): for an integer ``t`` with ``|t| < 2^51``, the bits of ``MAGIC_FLOAT + t`` (1.5 * 2^52,
+#: whose ulp is 1) are ``MAGIC_BITS + t``.
+MAGIC_FLOAT = 6755399441055744.0
+MAGIC_BITS = np.int64(0x4338000000000000)
+MAGIC_LIMIT = 2 ** 51
+#: Set values (``[0, 1]`` grey units summed over views) whose fixed-point value is below ``MAGIC_LIMIT``.
+FIXED_LIMIT = float(MAGIC_LIMIT // 2 ** 28 - 1)
+
 
 @numba.njit(cache=True, parallel=True)
 def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
@@ -263,6 +272,7 @@ def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
         y1 = (band + 1) * H // n_bands
         v = np.empty(W, np.float64)
         fixed = np.empty(W, np.int64)
+        fixed_bits = fixed.view(np.float64)
         for y in range(y0, y1):
             for s in range(S):
                 for x in range(W):
@@ -274,8 +284,20 @@ def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
                     row_b = blocks_ad[b, y]
                     for x in range(W):
                         v[x] += row_b[x]
-                for x in range(W):  # rounded apart from the running sum: this loop vectorises
-                    fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+                # rounded apart from the running sum: these loops vectorise (float64 -> int64 as
+                # the bits of f + MAGIC_FLOAT less MAGIC_BITS, exact for integral |f| < 2^51; a
+                # row with a value out of that range, or NaN, takes the scalar conversion)
+                out_of_range = 0
+                for x in range(W):
+                    out_of_range += not (abs(v[x]) < FIXED_LIMIT)
+                if out_of_range == 0:
+                    for x in range(W):
+                        fixed_bits[x] = np.floor(v[x] * FIXED_POINT + 0.5) + MAGIC_FLOAT
+                    for x in range(W):
+                        fixed[x] -= MAGIC_BITS
+                else:
+                    for x in range(W):
+                        fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
                 cur = out[s, y + 1]
                 cur[0] = 0
                 acc = np.int64(0)

@@ -12,9 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, N_BLOCKS, WindowCost, block_abs_diff,
-                                block_abs_diff_reference, cost_ambiguity, min_window_costs,
-                                min_window_costs_reference, set_integrals, set_view_counts, window_sum_bound)
+from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
+                                WindowCost, block_abs_diff, block_abs_diff_reference, cost_ambiguity,
+                                min_window_costs, min_window_costs_reference, set_integrals, set_view_counts,
+                                window_sum_bound)
 from recon.entropy.layout import row_order, window_major_penalty
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
@@ -82,7 +83,7 @@ def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
 
 @numba.njit(cache=True, parallel=True)
 def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, run_start,
-                       runs, scale, order, out, best, best_k):
+                       runs, scale, order, magic, out, best, best_k):
     # Window-major twin of _joint_cost_pixelwise (the same float64 arithmetic for every pixel and
     # window, windows in ascending order, strict <: the same maps bit for bit). For one row and
     # one window the four corners of every pixel's window lie on two rows of one integral table,
@@ -92,11 +93,18 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
     # with i = (k * H + y) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
     # visible set (pass 1: occluded pixels, shaped windows). See window_major_penalty.
+    # magic: every window total is below MAGIC_LIMIT (its int64 -> float64 conversion vectorises,
+    # recon.entropy.cost.MAGIC_FLOAT).
+    # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
+    # same value as a strict < (no objective is NaN or -0.0), and a plain store, not a masked one.
     K, H, W = penalty.shape
     for jr in numba.prange(H):
         y = order[jr]
         c_best = np.full(W, 1e300)
         k_best = np.full(W, -1, np.int64)
+        tb = np.empty(W, np.int64)
+        fb = tb.view(np.float64)
+        tf = np.empty(W, np.float64)
         occluded = pixel_set[y]
         for k in range(K):
             ya = max(y + rects[k, 0], 0)
@@ -111,32 +119,39 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
                 s = window_shape[k] if pas == 1 else 0
                 every = window_shape[k] == 0  # a square: the same set for every pixel
                 want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
-                ii = integrals[s]
-                iya = ii[ya]
-                iyb = ii[yb]
                 cnt = counts[s]
                 lo = min(max(x0, -ra), x1)  # [lo, hi): the window's columns inside the image
                 hi = max(min(x1, W - 1 - rb), lo)
+                n = hi - lo
+                denom = (yb - ya) * (rb - ra + 1) * cnt
+                iya = integrals[s, ya]
+                iyb = integrals[s, yb]
                 for x in range(x0, lo):  # left edge: the window clipped
                     _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
                                       want, occluded, c_best, k_best)
-                if hi > lo:
-                    n = hi - lo
+                if n > 0:
                     b1 = iyb[lo + rb + 1:hi + rb + 1]
                     a1 = iya[lo + rb + 1:hi + rb + 1]
                     b0 = iyb[lo + ra:hi + ra]
                     a0 = iya[lo + ra:hi + ra]
+                    if magic:
+                        for i in range(n):
+                            tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
+                        for i in range(n):
+                            tf[i] = fb[i] - MAGIC_FLOAT
+                    else:
+                        for i in range(n):
+                            tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
                     pn = pen[lo:hi]
                     oc = occluded[lo:hi]
                     cb = c_best[lo:hi]
                     kb = k_best[lo:hi]
-                    denom = (yb - ya) * (rb - ra + 1) * cnt
                     for i in range(n):
-                        total = (b1[i] - a1[i] - b0[i] + a0[i]) * FIXED_INV
-                        c = scale * total / denom + pn[i]
-                        better = (every | (oc[i] == want)) & (c < cb[i])
-                        cb[i] = c if better else cb[i]
-                        kb[i] = k if better else kb[i]
+                        c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
+                        c = c if (every | (oc[i] == want)) else np.inf
+                        old = cb[i]
+                        kb[i] = k if c < old else kb[i]
+                        cb[i] = min(old, c)
                 for x in range(hi, x1):  # right edge
                     _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
                                       want, occluded, c_best, k_best)
@@ -230,8 +245,10 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     for i, d in enumerate(candidates):
         block_abs_diff(gray, float(d), view_mask=view_mask, out=buf)
         integrals = set_integrals(buf, all_sets, out=integrals)
+        # no window total exceeds its table's whole-image total (the set values are >= 0)
+        magic = bool(integrals[:, -1, -1].max() < MAGIC_LIMIT)
         _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty, run_start, runs,
-                           float(intensity_scale), order, costs[i], least, window_index)
+                           float(intensity_scale), order, magic, costs[i], least, window_index)
         if progress is not None:
             progress((i + 1) / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
