@@ -54,6 +54,69 @@ def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
         np.testing.assert_array_equal(banded[name], value, err_msg=name)
 
 
+def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    # A budget of a few rows cuts the nine-view search into bands with halos that hold only the
+    # nine views; every map must be the whole image's, bit for bit.
+    from recon.entropy import estimate_disparity, steps
+    from recon.entropy.initial import initial_view_mask
+    from recon.entropy.scenes import make_scene
+    lf = make_scene("bars", size=72).lf
+    whole = _maps(estimate_disparity(lf))
+    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
+    cuts = []
+    search = steps.initial_disparity
+
+    def counted(views, *args, **kwargs):
+        cuts.append(views.shape[2])
+        if views.shape[2] < H:  # the other views are never written: poison them
+            views[~initial_view_mask((U, V))] = np.nan
+        return search(views, *args, **kwargs)
+
+    monkeypatch.setattr(steps, "initial_disparity", counted)
+    rows = steps.initial_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
+    monkeypatch.setattr(steps, "INITIAL_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
+    banded = _maps(estimate_disparity(lf))
+    assert len(cuts) >= 3 and max(cuts) < H
+    for name, value in whole.items():
+        assert value.dtype == banded[name].dtype, name
+        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_window_selection_in_bands_gives_the_whole_image_maps(monkeypatch):
+    # Bands of a few rows for the window selection, their entropies packed band by band: every map
+    # (and the joint search that reads the packed entropies) must be the whole image's.
+    from recon.entropy import estimate_disparity, steps
+    from recon.entropy.scenes import make_scene
+    lf = make_scene("bars", size=72).lf
+    whole = _maps(estimate_disparity(lf))
+    H, W = lf.views.shape[2:4]
+    cuts = []
+    select = steps.select_windows
+
+    def counted(grey_q, *args, **kwargs):
+        cuts.append(grey_q.shape[0])
+        return select(grey_q, *args, **kwargs)
+
+    monkeypatch.setattr(steps, "select_windows", counted)
+    monkeypatch.setattr(steps, "WINDOWS_BAND_MIB", 30 / steps.windows_band_rows(W, n_windows=77, budget_mib=1.0))
+    banded = _maps(estimate_disparity(lf))
+    assert len(cuts) >= 3 and max(cuts) < H
+    for name, value in whole.items():
+        assert value.dtype == banded[name].dtype, name
+        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_row_bands_cover_the_image_once_with_their_halos():
+    from recon.entropy.steps import row_bands
+    for H, rows, halo in ((100, 40, 7), (100, 10, 7), (5, 40, 3), (100, 100, 20), (64, 30, 0)):
+        bands = list(row_bands(H, rows=rows, halo=halo))
+        assert bands[0][0] == 0 and bands[-1][1] == H
+        assert all(b0[1] == b1[0] for b0, b1 in zip(bands, bands[1:]))
+        for y0, y1, a, b in bands:
+            assert y0 < y1 and a == max(y0 - halo, 0) and b == min(y1 + halo, H)
+            assert len(bands) == 1 or y1 - y0 >= min(halo, H - y0)
+
+
 def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     # The strips barred where not informative; a pixel left with nothing keeps its strips.
     from recon.entropy.steps import _bar_strips
@@ -138,3 +201,8 @@ def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
     expected = np.take_along_axis(dense, index[..., None], 2)[..., 0]
     np.testing.assert_array_equal(packed.take(index).view(np.uint32), expected.view(np.uint32))
     assert volume.CHUNK_ROWS < H
+    parts = [SparseVolume.pack(dense[a:b]) for a, b in ((0, 70), (70, 71), (71, 150))]
+    stacked = SparseVolume.stack(parts)
+    for name in ("mask", "start", "values"):
+        np.testing.assert_array_equal(getattr(stacked, name).view(np.uint8), getattr(packed, name).view(np.uint8))
+    assert stacked.shape == packed.shape and stacked.values.dtype == np.float32

@@ -17,7 +17,8 @@ from recon.entropy.aperture import informative_strips
 from recon.entropy.boundary import boundary_reach_px, snap_boundaries
 from recon.entropy.calibration import matching_cost, probability_right
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
-from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
+from recon.entropy.initial import (discover_range, initial_disparity, initial_view_mask, range_from_initial,
+                                  sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.matching import cost_ambiguity, disparity_candidates, joint_line_search, line_search
 from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
@@ -52,15 +53,80 @@ def flat_reach(options: EntropyOptions, reach: Reach) -> int:
 
 
 def initial_step(s: State) -> None:
-    """The raw nine-view estimate ``s.d0`` and its cost ambiguity ``s.ambiguity0`` (candidates)."""
-    o = s.options
+    """The raw nine-view estimate ``s.d0`` and its cost ambiguity ``s.ambiguity0`` (candidates),
+    in bands of rows when the whole image's search would take more than :data:`INITIAL_BAND_MIB`
+    (:func:`initial_in_bands`)."""
     s.reporter.step("initial", "initial disparity (nine views)")
+    s.d0, s.ambiguity0 = initial_in_bands(s)
+
+
+#: Working memory (MiB) the nine-view initial search may take at once: its cost volume (one
+#: float32 map per candidate), one candidate's block images and summed-area tables, the window
+#: gate and the nine views' rows. An image whose search needs more is searched in bands of rows,
+#: each with a halo of the rows its windows and views reach (the same maps bit for bit, as the
+#: joint search's bands). 512x512 with 52 candidates: 0.2 MB a row, one band; the 1198x906 demo
+#: capture (30 candidates): 0.5 MB a row, seven bands of 136 rows with halos of 20.
+INITIAL_BAND_MIB = 96
+
+
+def initial_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
+                      budget_mib: float = INITIAL_BAND_MIB) -> int:
+    """How many rows of a ``(U, V, H, W)`` view set one band of the nine-view search
+    (:func:`recon.entropy.initial.initial_disparity`) takes within ``budget_mib`` (at least one).
+    Per pixel of a row: the nine float32 view samples, ``n_candidates`` float32 costs, nine float32
+    block images, a int64 summed-area table per window (at most one per shape), the ``n_windows``
+    bool gate and the float32 and int32 maps it returns."""
+    W = views_shape[3]
+    per_row = W * (4 * 9 + 4 * n_candidates + 4 * 9 + 8 * n_windows + n_windows + 16)
+    return max(int(budget_mib * 2 ** 20 // per_row), 1)
+
+
+def row_bands(H: int, *, rows: int, halo: int):
+    """``(y0, y1, a, b)`` per band: the core rows ``[y0, y1)`` a band gives and the rows
+    ``[a, b)`` it reads (``halo`` rows around the core, within the image), for bands of at most
+    ``rows`` rows (the whole image when ``rows >= H``; a core of at least ``halo`` rows)."""
+    core = H if rows >= H else max(rows - 2 * halo, halo)
+    for y0 in range(0, H, core):
+        y1 = min(y0 + core, H)
+        yield y0, y1, max(y0 - halo, 0), min(y1 + halo, H)
+
+
+def initial_in_bands(s: State, *, budget_mib: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`recon.entropy.initial.initial_disparity` over ``s.raw`` with the options' window,
+    step and strip gate, in bands of rows within ``budget_mib`` (default :data:`INITIAL_BAND_MIB`).
+    Each band is searched with a halo of the window's half side plus the farthest view shift of the
+    candidates plus two rows, so that every pixel of its core gets the whole image's values (a
+    pixel's costs read the views within that reach; the summed-area tables are exact integers). A
+    band holds only the nine views the search reads. Returns ``(d0 float32, ambiguity0 int32)``,
+    ``(H, W)`` each."""
+    o = s.options
+    U, V, H, W = s.raw.shape
     strip_ok = _strip_ok(s.centre, (o.initial_window,), s.noise_sigma, o)
-    s.d0, _, s.ambiguity0 = initial_disparity(
-        s.raw, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
-        shiftable=o.initial_shiftable, strips=o.strip_windows,
-        ambiguity_delta=s.hole_delta / o.intensity_scale, progress=s.reporter.within,
-        strip_ok=None if strip_ok is None else strip_ok[..., 0])
+    candidates = disparity_candidates(s.initial_range[0], s.initial_range[1], o.initial_step)
+    rows = initial_band_rows(s.raw.shape, n_candidates=len(candidates), n_windows=N_SHAPES,
+                             budget_mib=INITIAL_BAND_MIB if budget_mib is None else budget_mib)
+    halo = o.initial_window // 2 + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
+    bands = list(row_bands(H, rows=rows, halo=halo))
+    nine = [tuple(uv) for uv in np.argwhere(initial_view_mask((U, V)))]
+    d0 = np.empty((H, W), np.float32)
+    ambiguity0 = np.empty((H, W), np.int32)
+    for i, (y0, y1, a, b) in enumerate(bands):
+        if len(bands) == 1:
+            views = s.raw
+        else:  # only the nine views are written (and so take memory); the search reads no other
+            views = np.empty((U, V, b - a, W), np.float32)
+            for u, v in nine:
+                views[u, v] = s.raw[u, v, a:b]
+        d, _, amb = initial_disparity(
+            views, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
+            shiftable=o.initial_shiftable, strips=o.strip_windows,
+            ambiguity_delta=s.hole_delta / o.intensity_scale,
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)),
+            strip_ok=None if strip_ok is None else strip_ok[a:b, :, 0])
+        d0[y0:y1] = d[y0 - a:y1 - a]
+        ambiguity0[y0:y1] = amb[y0 - a:y1 - a]
+        del views, d, amb
+    return d0, ambiguity0
 
 
 def initial_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -204,14 +270,44 @@ def windows_step(s: State) -> None:
         s.noise_limited, max(sizes),  # a harmonic fill there: its curvature was not measured
         curvature_size_cap(layers, sizes, tolerance=o.crease_tolerance, measured=~s.noise_limited,
                            initial=s.d0, noise_factor=o.crease_noise))
-    shape_map, size_map, entropy, all_entropy = select_windows(
-        grey_q, disp_q, s.labels, sizes=sizes, alpha1=o.alpha1, alpha2_occlusion=o.alpha2_occlusion,
-        alpha2_other=o.alpha2_other, strips=o.strip_windows, side_radius=side_radius,
-        layers=layers if o.single_layer_windows else None, layer_gap=o.layer_gap, return_all=True,
-        max_size=max_size)
-    s.windows = {"sizes": sizes, "shape": shape_map, "size": size_map, "entropy": entropy,
-                 "all_entropy": SparseVolume.pack(all_entropy)}  # -inf: not offered
+    n_windows = (N_SHAPES if o.strip_windows else 9) * len(sizes)
+    halo = o.windows.largest_radius_px + 1  # a window's pixels and the layers within it
+    maps = (np.empty((H, W), np.int64), np.empty((H, W), np.int64), np.empty((H, W), np.float32))
+    packed = []
+    for y0, y1, a, b in row_bands(H, rows=windows_band_rows(W, n_windows=n_windows), halo=halo):
+        def cut(m):
+            return None if m is None else m[a:b]
+
+        *band, all_entropy = select_windows(
+            grey_q[a:b], disp_q[a:b], s.labels[a:b], sizes=sizes, alpha1=o.alpha1,
+            alpha2_occlusion=o.alpha2_occlusion, alpha2_other=o.alpha2_other, strips=o.strip_windows,
+            side_radius=cut(side_radius), layers=cut(layers) if o.single_layer_windows else None,
+            layer_gap=o.layer_gap, return_all=True, max_size=cut(max_size))
+        for out, got in zip(maps, band):
+            out[y0:y1] = got[y0 - a:y1 - a]
+        packed.append(SparseVolume.pack(all_entropy[y0 - a:y1 - a]))  # -inf: not offered
+        del band, all_entropy
+    s.windows = {"sizes": sizes, "shape": maps[0], "size": maps[1], "entropy": maps[2],
+                 "all_entropy": SparseVolume.stack(packed)}
     s.lap("windows")
+
+
+#: Working memory (MiB) the window selection may take at once: the entropy of every window at
+#: every pixel (``K`` float32 per pixel) and its inputs and outputs; an image that needs more is
+#: scored in bands of rows with a halo of the largest window's half side (the same maps bit for
+#: bit), each band's entropies packed (:class:`recon.entropy.volume.SparseVolume`) before the next.
+#: 512x512 with 77 windows: 0.4 MB a row, one band; the 1198x906 demo capture: 0.9 MB a row,
+#: seven bands.
+WINDOWS_BAND_MIB = 96
+
+
+def windows_band_rows(width: int, *, n_windows: int, budget_mib: float | None = None) -> int:
+    """Rows of an image ``width`` pixels wide that one band of the window selection takes within
+    ``budget_mib`` (default :data:`WINDOWS_BAND_MIB`; at least one). Per pixel: the ``n_windows``
+    float32 entropies and their packing (a bool and a float32 each at most), the int64 and float32
+    maps it reads and writes (80 bytes)."""
+    budget = WINDOWS_BAND_MIB if budget_mib is None else budget_mib
+    return max(int(budget * 2 ** 20 // (width * (9 * n_windows + 80))), 1)
 
 
 def windows_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -338,6 +434,7 @@ def boundary_step(s: State) -> None:
     """With ``boundary_snap``: the boundary test on ``s.matched`` (``docs/entropy-method.md``)."""
     if s.options.boundary_snap:
         s.matched = _snap(s.raw, s.matched, s.noise_sigma, s.disparity_range, s.options)
+    s.raw = None  # the last step that reads the views: the refinement needs only the centre's maps
     s.lap("matching")
 
 

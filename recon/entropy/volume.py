@@ -47,6 +47,20 @@ class SparseVolume:
         return cls((H, W, K), float(fill), np.concatenate(masks), start,
                    np.concatenate(values).astype(np.float32, copy=False))
 
+    @classmethod
+    def stack(cls, parts: list[SparseVolume]) -> SparseVolume:
+        """The volumes of ``parts`` (the same ``W``, ``K`` and fill) one below the other along
+        ``H``: what :meth:`pack` gives for their dense volumes stacked."""
+        if not parts:
+            raise ValueError("stack needs at least one volume")
+        W, K, fill = parts[0].shape[1], parts[0].shape[2], parts[0].fill
+        if any(p.shape[1:] != (W, K) or p.fill != fill for p in parts):
+            raise ValueError("stack needs volumes of the same width, depth and fill")
+        offsets = np.cumsum([0] + [p.values.size for p in parts])
+        start = np.concatenate([p.start[:-1] + o for p, o in zip(parts, offsets)] + [offsets[-1:]])
+        return cls((sum(p.shape[0] for p in parts), W, K), fill, np.concatenate([p.mask for p in parts]),
+                   start.astype(np.int64), np.concatenate([p.values for p in parts]))
+
     @property
     def nbytes(self) -> int:
         return self.mask.nbytes + self.start.nbytes + self.values.nbytes
