@@ -44,7 +44,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from recon.entropy.options import make_options
-    from recon.entropy.plan import PLAN, start
+    from recon.entropy.plan import PLAN, run_step, start
     from recon.errors import LfrigError
     from recon.lf import read_lightfield
 
@@ -73,7 +73,7 @@ def main() -> int:
         for step in phase.steps:
             reset_peak()
             t = time.perf_counter()
-            step.run(state)
+            run_step(state, step)
             row(step.name, time.perf_counter() - t)
     name, _, peak, _ = max(rows, key=lambda r: r[2])
     print(f"{lf.views.shape[3]}x{lf.views.shape[2]}, {lf.grid_shape[0]}x{lf.grid_shape[1]} views: "

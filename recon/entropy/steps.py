@@ -64,9 +64,9 @@ def initial_step(s: State) -> None:
 #: float32 map per candidate), one candidate's block images and summed-area tables, the window
 #: gate and the nine views' rows. An image whose search needs more is searched in bands of rows,
 #: each with a halo of the rows its windows and views reach (the same maps bit for bit, as the
-#: joint search's bands). 512x512 with 52 candidates: 0.2 MB a row, one band; the 1198x906 demo
-#: capture (30 candidates): 0.5 MB a row, seven bands of 136 rows with halos of 20.
-INITIAL_BAND_MIB = 96
+#: joint search's bands). 512x512 with 52 candidates: 0.2 MB a row, one band; a 1198x906 view
+#: set with 30 candidates: 0.4 MB a row, three bands.
+INITIAL_BAND_MIB = 128
 
 
 def initial_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
@@ -296,9 +296,9 @@ def windows_step(s: State) -> None:
 #: every pixel (``K`` float32 per pixel) and its inputs and outputs; an image that needs more is
 #: scored in bands of rows with a halo of the largest window's half side (the same maps bit for
 #: bit), each band's entropies packed (:class:`recon.entropy.volume.SparseVolume`) before the next.
-#: 512x512 with 77 windows: 0.4 MB a row, one band; the 1198x906 demo capture: 0.9 MB a row,
-#: seven bands.
-WINDOWS_BAND_MIB = 96
+#: 512x512 with 77 windows: 0.4 MB a row, two bands; the 1198x906 demo capture: 0.9 MB a row,
+#: five bands (the search after it takes more).
+WINDOWS_BAND_MIB = 192
 
 
 def windows_band_rows(width: int, *, n_windows: int, budget_mib: float | None = None) -> int:
@@ -343,15 +343,15 @@ def line_search_step(s: State) -> None:
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
 
 
-#: Working memory (MiB) the joint line search may take at once, unless the grey views take more
-#: (then as much as they): its cost volume (one float32 map per candidate), the penalty (both
+#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map per candidate), the penalty (both
 #: layouts while the second is made), the summed-area tables and a copy of the views' rows. An
 #: image whose search needs more is searched in bands of rows, each with a halo of the rows its
 #: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
 #: on the rows within the halo), so that the search's memory grows with the image, not with the
 #: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
 #: one band; the 1198x906 demo capture (25 candidates over 3.35..4.29 px/view): 1.1 MB a row,
-#: four bands of 258 rows with halos of 27.
+#: five bands of 184 rows with halos of 27 (the rows swept: +24 %). The budget does not grow
+#: with the views: at 2000x1500 they alone take 972 MiB.
 JOINT_BAND_MIB = 256
 
 
@@ -372,36 +372,31 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
     ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
     when the whole image's search would take more than ``budget_mib`` (default
-    :data:`JOINT_BAND_MIB` or the grey views' size, whichever is larger). Each band is searched with a halo of ``largest_radius_px`` plus the
+    :data:`JOINT_BAND_MIB`). Each band is searched with a halo of ``largest_radius_px`` plus the
     farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
     whole image's values; the penalty is made band by band, and only one band's cost volume is
     alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
     o, w = s.options, s.windows
     sizes = w["sizes"]
     U, V, H, W = s.views.shape
-    if budget_mib is None:
-        budget_mib = max(JOINT_BAND_MIB, s.views.nbytes / 2 ** 20)
     rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
-                           budget_mib=budget_mib)
+                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib)
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
-    core = H if rows >= H else max(rows - 2 * halo, halo)
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 
     def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
         p = _search_penalty(w["all_entropy"].rows(a, b), s.noise_limited[a:b], o, len(sizes))
         return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
 
-    starts = range(0, H, core)
+    bands = list(row_bands(H, rows=rows, halo=halo))
     maps = (np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
             np.empty((H, W), np.int32))
-    for i, y0 in enumerate(starts):
-        y1 = min(y0 + core, H)
-        a, b = max(y0 - halo, 0), min(y1 + halo, H)
+    for i, (y0, y1, a, b) in enumerate(bands):
         band = joint_line_search(  # the penalty a temporary, freed in there
             s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
             use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
             ambiguity_delta=s.hole_delta,
-            progress=lambda f, i=i: s.reporter.within((i + f) / len(starts)))
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)))
         for out, got in zip(maps, band):
             out[y0:y1] = got[y0 - a:y1 - a]
         del band
