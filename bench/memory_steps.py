@@ -3,7 +3,8 @@
     .venv/bin/python bench/memory_steps.py FOLDER [--preset paper]
 
 Reads ``FOLDER`` (any light field ``lfrig`` reads, e.g. ``runs/capture-speed/rectified``), then
-runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image and prints, per
+runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image as the plan runs
+them (:func:`recon.entropy.plan.run_step`: each followed by the heap's trim) and prints, per
 step, the process's resident memory after it and its peak within it (MiB; Linux: the peak,
 ``VmHWM`` of ``/proc/self/status``, is reset before each step by writing 5 to
 ``/proc/self/clear_refs``) and the step's wall seconds. Memory figures hold under load; times do

@@ -29,81 +29,57 @@ def _maps(result) -> dict:
     return out
 
 
-def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
-    # A budget of a few rows cuts the joint search into bands with halos; every map must be the
-    # whole image's, bit for bit (the occluding bars reach the bands' edges with depth jumps).
+def _check_bands(monkeypatch, step_function: str, budget: str, rows_per_mib: int, *, poison=None) -> None:
+    """Run the estimator on a scene whole, then with ``steps.<budget>`` set to about 40 rows a
+    band (``rows_per_mib``: rows a band takes at 1 MiB) and ``steps.<step_function>`` counting its
+    calls (``poison(views)`` first, if given); every map must be the whole image's, bit for bit
+    (the occluding bars reach the bands' edges with depth jumps)."""
     from recon.entropy import estimate_disparity, steps
     from recon.entropy.scenes import make_scene
     lf = make_scene("bars", size=72).lf
     whole = _maps(estimate_disparity(lf))
-    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
+    H = lf.views.shape[2]
     cuts = []
-    search = steps.joint_line_search
+    function = getattr(steps, step_function)
 
-    def counted(views, *args, **kwargs):
-        cuts.append(views.shape[2])
-        return search(views, *args, **kwargs)
+    def counted(first, *args, **kwargs):  # first: the views (U, V, rows, W) or a map (rows, W)
+        cuts.append(first.shape[-2])
+        if poison is not None and first.shape[-2] < H:
+            poison(first)
+        return function(first, *args, **kwargs)
 
-    monkeypatch.setattr(steps, "joint_line_search", counted)
-    rows = steps.joint_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
-    monkeypatch.setattr(steps, "JOINT_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
+    monkeypatch.setattr(steps, step_function, counted)
+    monkeypatch.setattr(steps, budget, 40 / rows_per_mib)
     banded = _maps(estimate_disparity(lf))
     assert len(cuts) >= 3 and max(cuts) < H
     for name, value in whole.items():
         assert value.dtype == banded[name].dtype, name
         np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    from recon.entropy import steps
+    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    _check_bands(monkeypatch, "joint_line_search", "JOINT_BAND_MIB", rows)
 
 
 def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
-    # A budget of a few rows cuts the nine-view search into bands with halos that hold only the
-    # nine views; every map must be the whole image's, bit for bit.
-    from recon.entropy import estimate_disparity, steps
+    # The bands hold only the nine views: the others are never written (poisoned here).
+    from recon.entropy import steps
     from recon.entropy.initial import initial_view_mask
-    from recon.entropy.scenes import make_scene
-    lf = make_scene("bars", size=72).lf
-    whole = _maps(estimate_disparity(lf))
-    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
-    cuts = []
-    search = steps.initial_disparity
 
-    def counted(views, *args, **kwargs):
-        cuts.append(views.shape[2])
-        if views.shape[2] < H:  # the other views are never written: poison them
-            views[~initial_view_mask((U, V))] = np.nan
-        return search(views, *args, **kwargs)
+    def poison(views):
+        views[~initial_view_mask(views.shape[:2])] = np.nan
 
-    monkeypatch.setattr(steps, "initial_disparity", counted)
-    rows = steps.initial_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
-    monkeypatch.setattr(steps, "INITIAL_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
-    banded = _maps(estimate_disparity(lf))
-    assert len(cuts) >= 3 and max(cuts) < H
-    for name, value in whole.items():
-        assert value.dtype == banded[name].dtype, name
-        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+    rows = steps.initial_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    _check_bands(monkeypatch, "initial_disparity", "INITIAL_BAND_MIB", rows, poison=poison)
 
 
 def test_window_selection_in_bands_gives_the_whole_image_maps(monkeypatch):
-    # Bands of a few rows for the window selection, their entropies packed band by band: every map
-    # (and the joint search that reads the packed entropies) must be the whole image's.
-    from recon.entropy import estimate_disparity, steps
-    from recon.entropy.scenes import make_scene
-    lf = make_scene("bars", size=72).lf
-    whole = _maps(estimate_disparity(lf))
-    H, W = lf.views.shape[2:4]
-    cuts = []
-    select = steps.select_windows
-
-    def counted(grey_q, *args, **kwargs):
-        cuts.append(grey_q.shape[0])
-        return select(grey_q, *args, **kwargs)
-
-    monkeypatch.setattr(steps, "select_windows", counted)
-    monkeypatch.setattr(steps, "WINDOWS_BAND_MIB", 30 / steps.windows_band_rows(W, n_windows=77, budget_mib=1.0))
-    banded = _maps(estimate_disparity(lf))
-    assert len(cuts) >= 3 and max(cuts) < H
-    for name, value in whole.items():
-        assert value.dtype == banded[name].dtype, name
-        np.testing.assert_array_equal(banded[name], value, err_msg=name)
+    # Each band's entropies packed on their own, then stacked for the joint search.
+    from recon.entropy import steps
+    _check_bands(monkeypatch, "select_windows", "WINDOWS_BAND_MIB",
+                 steps.windows_band_rows(72, n_windows=77, budget_mib=1.0))
 
 
 def test_row_bands_cover_the_image_once_with_their_halos():
