@@ -75,6 +75,27 @@ def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
     _check_bands(monkeypatch, "initial_disparity", "INITIAL_BAND_MIB", rows, poison=poison)
 
 
+def test_initial_step_is_the_nine_view_search_with_the_strip_gate():
+    # The step's bands against one call of initial_disparity over the whole image with the
+    # aperture gate of the horizontal and the vertical strip ((H, W, 2): a gate of one strip for
+    # both would change the estimate).
+    from recon.entropy import steps
+    from recon.entropy.options import make_options
+    from recon.entropy.plan import start
+    from recon.entropy.scenes import make_scene
+    s = start(make_scene("stripes", size=72).lf, make_options(None))
+    o = s.options
+    gate = steps._strip_ok(s.centre, (o.initial_window,), s.noise_sigma, o)
+    assert gate is not None and not np.array_equal(gate[..., 0, 0], gate[..., 1, 0])
+    d0, _, ambiguity0 = steps.initial_disparity(
+        s.raw, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
+        shiftable=o.initial_shiftable, strips=o.strip_windows, ambiguity_delta=s.hole_delta / o.intensity_scale,
+        strip_ok=gate[..., 0])
+    steps.initial_step(s)
+    np.testing.assert_array_equal(s.d0, d0)
+    np.testing.assert_array_equal(s.ambiguity0, ambiguity0)
+
+
 def test_window_selection_in_bands_gives_the_whole_image_maps(monkeypatch):
     # Each band's entropies packed on their own, then stacked for the joint search.
     from recon.entropy import steps

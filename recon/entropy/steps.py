@@ -122,7 +122,7 @@ def initial_in_bands(s: State, *, budget_mib: float | None = None) -> tuple[np.n
             shiftable=o.initial_shiftable, strips=o.strip_windows,
             ambiguity_delta=s.hole_delta / o.intensity_scale,
             progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)),
-            strip_ok=None if strip_ok is None else strip_ok[a:b, :, 0])
+            strip_ok=None if strip_ok is None else strip_ok[a:b, ..., 0])
         d0[y0:y1] = d[y0 - a:y1 - a]
         ambiguity0[y0:y1] = amb[y0 - a:y1 - a]
         del views, d, amb
