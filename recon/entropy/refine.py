@@ -191,7 +191,8 @@ def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float
 @numba.njit(cache=True)
 def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
     # The iterations of tv_refine_reference, the same float64 operations in the same order (so the
-    # same values), two sweeps per iteration (the plain twin of _tv_wavefront, which runs): dual ascent and projection, then the primal step with
+    # same values), two sweeps per iteration (the plain twin of _tv_wavefront, which runs): dual
+    # ascent and projection, then the primal step with
     # the divergence. Needs H, W >= 2. The arrays hold the rows top .. top + n - 1 of an image of H
     # rows; a row whose neighbour lies outside them (not outside the image) gets a wrong value, and
     # after k iterations so do the k rows nearest each such side (_tv_blocks keeps them out).
@@ -259,8 +260,8 @@ def _tv_primal(f, mask, weight, mu, bar, x, div, tau):
 def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, dy):
     # One iteration of _tv_kernel at row i: its dual step (reads bar's rows i and i + 1), then its
     # primal step (reads py's rows i - 1 and i, writes bar's and mu's row i), with the tests of
-    # the image's edges taken out of the loops over x (so that they vectorise). ``dy``: (W,)
-    # scratch for the divergence's y part.
+    # the image's edges taken out of the loops over x (the loops themselves have no branch on x).
+    # ``dy``: (W,) scratch for the divergence's y part.
     n, W = f.shape
     y = top + i
     m = W - 1

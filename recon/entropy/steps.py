@@ -343,9 +343,10 @@ def line_search_step(s: State) -> None:
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
 
 
-#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map per candidate), the penalty (both
-#: layouts while the second is made), the summed-area tables and a copy of the views' rows. An
-#: image whose search needs more is searched in bands of rows, each with a halo of the rows its
+#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
+#: per candidate), the penalty (both layouts while the second is made), the summed-area tables and
+#: a copy of the views' rows. An image whose search needs more is searched in bands of rows, each
+#: with a halo of the rows its
 #: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
 #: on the rows within the halo), so that the search's memory grows with the image, not with the
 #: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
