@@ -3,7 +3,8 @@
     .venv/bin/python bench/memory_steps.py FOLDER [--preset paper]
 
 Reads ``FOLDER`` (any light field ``lfrig`` reads, e.g. ``runs/capture-speed/rectified``), then
-runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image and prints, per
+runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image as the plan runs
+them (:func:`recon.entropy.plan.run_step`: each followed by the heap's trim) and prints, per
 step, the process's resident memory after it and its peak within it (MiB; Linux: the peak,
 ``VmHWM`` of ``/proc/self/status``, is reset before each step by writing 5 to
 ``/proc/self/clear_refs``) and the step's wall seconds. Memory figures hold under load; times do
@@ -44,7 +45,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from recon.entropy.options import make_options
-    from recon.entropy.plan import PLAN, start
+    from recon.entropy.plan import PLAN, run_step, start
     from recon.errors import LfrigError
     from recon.lf import read_lightfield
 
@@ -73,7 +74,7 @@ def main() -> int:
         for step in phase.steps:
             reset_peak()
             t = time.perf_counter()
-            step.run(state)
+            run_step(state, step)
             row(step.name, time.perf_counter() - t)
     name, _, peak, _ = max(rows, key=lambda r: r[2])
     print(f"{lf.views.shape[3]}x{lf.views.shape[2]}, {lf.grid_shape[0]}x{lf.grid_shape[1]} views: "

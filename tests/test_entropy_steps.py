@@ -29,29 +29,82 @@ def _maps(result) -> dict:
     return out
 
 
-def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
-    # A budget of a few rows cuts the joint search into bands with halos; every map must be the
-    # whole image's, bit for bit (the occluding bars reach the bands' edges with depth jumps).
+def _check_bands(monkeypatch, step_function: str, budget: str, rows_per_mib: int, *, poison=None) -> None:
+    """Run the estimator on a scene whole, then with ``steps.<budget>`` set to about 40 rows a
+    band (``rows_per_mib``: rows a band takes at 1 MiB) and ``steps.<step_function>`` counting its
+    calls (``poison(views)`` first, if given); every map must be the whole image's, bit for bit
+    (the occluding bars reach the bands' edges with depth jumps)."""
     from recon.entropy import estimate_disparity, steps
     from recon.entropy.scenes import make_scene
     lf = make_scene("bars", size=72).lf
     whole = _maps(estimate_disparity(lf))
-    U, V, H, W = lf.grid_shape + lf.views.shape[2:4]
+    H = lf.views.shape[2]
     cuts = []
-    search = steps.joint_line_search
+    function = getattr(steps, step_function)
 
-    def counted(views, *args, **kwargs):
-        cuts.append(views.shape[2])
-        return search(views, *args, **kwargs)
+    def counted(first, *args, **kwargs):  # first: the views (U, V, rows, W) or a map (rows, W)
+        cuts.append(first.shape[-2])
+        if poison is not None and first.shape[-2] < H:
+            poison(first)
+        return function(first, *args, **kwargs)
 
-    monkeypatch.setattr(steps, "joint_line_search", counted)
-    rows = steps.joint_band_rows((U, V, H, W), n_candidates=1, n_windows=1, budget_mib=1.0)
-    monkeypatch.setattr(steps, "JOINT_BAND_MIB", 1.0 * 40 / rows)  # about 40 rows a band
+    monkeypatch.setattr(steps, step_function, counted)
+    monkeypatch.setattr(steps, budget, 40 / rows_per_mib)
     banded = _maps(estimate_disparity(lf))
     assert len(cuts) >= 3 and max(cuts) < H
     for name, value in whole.items():
         assert value.dtype == banded[name].dtype, name
         np.testing.assert_array_equal(banded[name], value, err_msg=name)
+
+
+def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    from recon.entropy import steps
+    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    _check_bands(monkeypatch, "joint_line_search", "JOINT_BAND_MIB", rows)
+
+
+def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
+    # The bands hold only the nine views: the others are never written (poisoned here).
+    from recon.entropy import steps
+    from recon.entropy.initial import initial_view_mask
+
+    def poison(views):
+        views[~initial_view_mask(views.shape[:2])] = np.nan
+
+    rows = steps.initial_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    _check_bands(monkeypatch, "initial_disparity", "INITIAL_BAND_MIB", rows, poison=poison)
+
+
+def test_initial_step_is_the_nine_view_search_with_the_strip_gate():
+    # The step's bands against one call of initial_disparity over the whole image with the
+    # aperture gate of the horizontal and the vertical strip ((H, W, 2): a gate of one strip for
+    # both would change the estimate).
+    from recon.entropy import steps
+    from recon.entropy.options import make_options
+    from recon.entropy.plan import start
+    from recon.entropy.scenes import make_scene
+    s = start(make_scene("stripes", size=72).lf, make_options(None))
+    o = s.options
+    gate = steps._strip_ok(s.centre, (o.initial_window,), s.noise_sigma, o)
+    assert gate is not None and not np.array_equal(gate[..., 0, 0], gate[..., 1, 0])
+    d0, _, ambiguity0 = steps.initial_disparity(
+        s.raw, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
+        shiftable=o.initial_shiftable, strips=o.strip_windows, ambiguity_delta=s.hole_delta / o.intensity_scale,
+        strip_ok=gate[..., 0])
+    steps.initial_step(s)
+    np.testing.assert_array_equal(s.d0, d0)
+    np.testing.assert_array_equal(s.ambiguity0, ambiguity0)
+
+
+def test_row_bands_cover_the_image_once_with_their_halos():
+    from recon.entropy.steps import row_bands
+    for H, rows, halo in ((100, 40, 7), (100, 10, 7), (5, 40, 3), (100, 100, 20), (64, 30, 0)):
+        bands = list(row_bands(H, rows=rows, halo=halo))
+        assert bands[0][0] == 0 and bands[-1][1] == H
+        assert all(b0[1] == b1[0] for b0, b1 in zip(bands, bands[1:]))
+        for y0, y1, a, b in bands:
+            assert y0 < y1 and a == max(y0 - halo, 0) and b == min(y1 + halo, H)
+            assert len(bands) == 1 or y1 - y0 >= min(halo, H - y0)
 
 
 def test_bar_strips_in_place_is_the_gate_with_its_fallback():

@@ -66,6 +66,28 @@ def test_tv_refine_in_bands_gives_the_one_thread_values():
     assert np.abs(one[0] - f).max() > 0.01
 
 
+def test_tv_wavefront_gives_the_two_sweep_values():
+    # The wavefront kernel (several iterations per sweep down the rows) against the plain kernel
+    # (two sweeps per iteration), bit for bit: whole images, a band of rows of a taller image (its
+    # cut edges), iteration counts below, at and above the sweep's depth.
+    from recon.entropy.refine import _tv_kernel, _tv_wavefront
+
+    rng = np.random.default_rng(12)
+    for n, W, top, H, iterations, depth in ((61, 37, 0, 61, 23, 8), (2, 5, 0, 2, 9, 4), (17, 9, 5, 40, 3, 8),
+                                            (30, 12, 10, 40, 16, 16), (25, 2, 0, 25, 40, 7)):
+        f = 0.5 + 0.1 * rng.standard_normal((n, W))
+        mask = rng.random(f.shape) < 0.8
+        weight = np.where(rng.random(f.shape) < 0.2, rng.uniform(0.0, 1.0, f.shape), 1.0)
+        plain = [f + 0.01 * rng.standard_normal(f.shape), None, 0.01 * rng.standard_normal(f.shape), np.zeros_like(f)]
+        plain[1] = plain[0].copy()
+        wave = [a.copy() for a in plain]
+        _tv_kernel(f, mask, weight, 0.2, iterations, *plain, top, H)
+        _tv_wavefront(f, mask, weight, 0.2, iterations, *wave, top, H, depth)
+        for a, b in zip(wave, plain):
+            np.testing.assert_array_equal(a, b)
+        assert np.abs(plain[0] - f).max() > 0.001
+
+
 def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin():
     from recon.entropy.refine import centroid_correction, centroid_correction_reference
     from recon.entropy.windows import N_SHAPES, window_rect

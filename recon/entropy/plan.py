@@ -16,6 +16,7 @@ To add a step: write ``run`` and ``reach_px`` in a module of :mod:`recon.entropy
 
 from __future__ import annotations
 
+import ctypes
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -97,10 +98,36 @@ def start(lf: LightField, options: EntropyOptions, *, progress: ProgressCallback
     return state
 
 
+def run_step(state: State, step: Step) -> None:
+    """Run ``step`` on ``state``, then hand the memory its temporaries left free back to the
+    system (:func:`release_free_memory`)."""
+    step.run(state)
+    release_free_memory()
+
+
 def run_phase(state: State, phase: Phase) -> None:
     """Run the steps of ``phase`` on ``state``."""
     for step in phase.steps:
-        step.run(state)
+        run_step(state, step)
+
+
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(None).malloc_trim  # the C library the interpreter runs on
+    except (OSError, AttributeError):  # not glibc: nothing to do
+        return None
+
+
+_TRIM = _malloc_trim()
+
+
+def release_free_memory() -> None:
+    """Return the free pages of the C heap to the system (glibc's ``malloc_trim``; nothing
+    elsewhere). The maps a step keeps (a few MB each) and the temporaries it frees come from the
+    same heap, so the freed ones stay resident between the kept ones; on the 1198x906 demo capture
+    that was 100-190 MiB after the window selection, under the line search's peak."""
+    if _TRIM is not None:
+        _TRIM(0)
 
 
 def run_plan(state: State, plan: tuple[Phase, ...] = PLAN) -> State:

@@ -191,7 +191,8 @@ def tv_refine_reference(disparity: np.ndarray, mask: np.ndarray, *, gamma: float
 @numba.njit(cache=True)
 def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
     # The iterations of tv_refine_reference, the same float64 operations in the same order (so the
-    # same values), two sweeps per iteration: dual ascent and projection, then the primal step with
+    # same values), two sweeps per iteration (the plain twin of _tv_wavefront, which runs): dual
+    # ascent and projection, then the primal step with
     # the divergence. Needs H, W >= 2. The arrays hold the rows top .. top + n - 1 of an image of H
     # rows; a row whose neighbour lies outside them (not outside the image) gets a wrong value, and
     # after k iterations so do the k rows nearest each such side (_tv_blocks keeps them out).
@@ -234,6 +235,92 @@ def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
                 mu[i, x] = new
 
 
+@numba.njit(cache=True, inline="always")
+def _tv_dual(py_row, px_row, x, gy, gx, sigma, gamma):
+    # _tv_kernel's dual step at one pixel, given its forward differences.
+    qy = py_row[x] + sigma * gy
+    qx = px_row[x] + sigma * gx
+    norm = max(1.0, np.sqrt(qy ** 2 + qx ** 2) / gamma)
+    py_row[x] = qy / norm
+    px_row[x] = qx / norm
+
+
+@numba.njit(cache=True, inline="always")
+def _tv_primal(f, mask, weight, mu, bar, x, div, tau):
+    # _tv_kernel's primal step at one pixel of a row, given its divergence (dy + dx, in that
+    # order); the masked value is computed everywhere and chosen (no branch in the loop).
+    v = mu[x] + tau * div
+    w = 2 * tau * weight[x]
+    new = (v + w * f[x]) / (1 + w) if mask[x] else f[x]
+    bar[x] = 2 * new - mu[x]
+    mu[x] = new
+
+
+@numba.njit(cache=True, inline="always")
+def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, dy):
+    # One iteration of _tv_kernel at row i: its dual step (reads bar's rows i and i + 1), then its
+    # primal step (reads py's rows i - 1 and i, writes bar's and mu's row i), with the tests of
+    # the image's edges taken out of the loops over x (the loops themselves have no branch on x).
+    # ``dy``: (W,) scratch for the divergence's y part.
+    n, W = f.shape
+    y = top + i
+    m = W - 1
+    b0 = bar[i]
+    qy = py[i]
+    qx = px[i]
+    if y < H - 1 and i < n - 1:
+        b1 = bar[i + 1]
+        for x in range(m):
+            _tv_dual(qy, qx, x, b1[x] - b0[x], b0[x + 1] - b0[x], sigma, gamma)
+        _tv_dual(qy, qx, m, b1[m] - b0[m], 0.0, sigma, gamma)
+    else:
+        for x in range(m):
+            _tv_dual(qy, qx, x, 0.0, b0[x + 1] - b0[x], sigma, gamma)
+        _tv_dual(qy, qx, m, 0.0, 0.0, sigma, gamma)
+    if y == 0 or i == 0:
+        for x in range(W):
+            dy[x] = qy[x]
+    elif y < H - 1:
+        above = py[i - 1]
+        for x in range(W):
+            dy[x] = qy[x] - above[x]
+    else:
+        above = py[i - 1]
+        for x in range(W):
+            dy[x] = -above[x]
+    fi, mi, wi, mui = f[i], mask[i], weight[i], mu[i]
+    _tv_primal(fi, mi, wi, mui, b0, 0, dy[0] + qx[0], tau)
+    for x in range(m - 1):
+        _tv_primal(fi, mi, wi, mui, b0, x + 1, dy[x + 1] + (qx[x + 1] - qx[x]), tau)
+    _tv_primal(fi, mi, wi, mui, b0, m, dy[m] + -qx[m - 1], tau)
+
+
+#: Iterations the TV kernel carries through the rows in one sweep (:func:`_tv_wavefront`).
+TV_WAVE_ITERATIONS = 8
+
+
+@numba.njit(cache=True)
+def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, depth):
+    # _tv_kernel with the same operations on every value in an order that keeps the rows it works
+    # on in cache: `depth` iterations at a time in one sweep down the rows, iteration t + 1 one row
+    # behind iteration t (row i of iteration t + 1 needs rows i and i + 1 of iteration t, and
+    # overwrites row i's dual values only after iteration t's row i + 1 has read them). Each row's
+    # two steps follow each other (the dual step of row i reads no primal value of this iteration).
+    n, W = f.shape
+    tau = 1.0 / np.sqrt(8.0)
+    sigma = tau
+    dy = np.empty(W)
+    done = 0
+    while done < iterations:
+        k = min(depth, iterations - done)
+        for front in range(n + k - 1):
+            for j in range(k):
+                i = front - j
+                if 0 <= i < n:
+                    _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, dy)
+        done += k
+
+
 @numba.njit(cache=True, parallel=True)
 def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, halo):
     # The image in n_blocks bands of rows, one per thread, each iterated on a private copy of its
@@ -256,7 +343,7 @@ def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, ha
             r = state[1][a:z].copy()
             qy = state[2][a:z].copy()
             qx = state[3][a:z].copy()
-            _tv_kernel(f[a:z], mask[a:z], weight[a:z], gamma, k, m, r, qy, qx, a, H)
+            _tv_wavefront(f[a:z], mask[a:z], weight[a:z], gamma, k, m, r, qy, qx, a, H, TV_WAVE_ITERATIONS)
             nxt[0][lo:hi] = m[lo - a:hi - a]
             nxt[1][lo:hi] = r[lo - a:hi - a]
             nxt[2][lo:hi] = qy[lo - a:hi - a]
@@ -295,7 +382,7 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     H = f.shape[0]
     n_blocks = min(numba.get_num_threads(), H // (4 * TV_HALO_ROWS))
     if n_blocks < 2:
-        _tv_kernel(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H)
+        _tv_wavefront(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H, TV_WAVE_ITERATIONS)
         return mu.astype(np.float32)
     return _tv_blocks(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, n_blocks,
                       TV_HALO_ROWS).astype(np.float32)

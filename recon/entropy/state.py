@@ -47,8 +47,9 @@ class State:
     #: The light field the grey views were read from.
     source: Any
     #: ``(U, V, H, W)`` float32 grey views in ``[0, 1]`` as read (from the view filters to the
-    #: end of the line search: filtered in place, :attr:`views`).
-    raw: np.ndarray
+    #: end of the line search: filtered in place, :attr:`views`); ``None`` after the boundary
+    #: step, the last that reads them.
+    raw: np.ndarray | None
     #: ``(H, W)`` float32 centre view of :attr:`raw` as read (:attr:`centre`).
     raw_centre: np.ndarray
     #: The range given by the options or the light field, or ``None``.

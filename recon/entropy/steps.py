@@ -17,7 +17,8 @@ from recon.entropy.aperture import informative_strips
 from recon.entropy.boundary import boundary_reach_px, snap_boundaries
 from recon.entropy.calibration import matching_cost, probability_right
 from recon.entropy.entropy import quantise_disparity, quantise_grey, select_windows
-from recon.entropy.initial import discover_range, initial_disparity, range_from_initial, sure_pixels
+from recon.entropy.initial import (discover_range, initial_disparity, initial_view_mask, range_from_initial,
+                                  sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.matching import cost_ambiguity, disparity_candidates, joint_line_search, line_search
 from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
@@ -51,15 +52,80 @@ def flat_reach(options: EntropyOptions, reach: Reach) -> int:
 
 
 def initial_step(s: State) -> None:
-    """The raw nine-view estimate ``s.d0`` and its cost ambiguity ``s.ambiguity0`` (candidates)."""
-    o = s.options
+    """The raw nine-view estimate ``s.d0`` and its cost ambiguity ``s.ambiguity0`` (candidates),
+    in bands of rows when the whole image's search would take more than :data:`INITIAL_BAND_MIB`
+    (:func:`initial_in_bands`)."""
     s.reporter.step("initial", "initial disparity (nine views)")
+    s.d0, s.ambiguity0 = initial_in_bands(s)
+
+
+#: Working memory (MiB) the nine-view initial search may take at once: its cost volume (one
+#: float32 map per candidate), one candidate's block images and summed-area tables, the window
+#: gate and the nine views' rows. An image whose search needs more is searched in bands of rows,
+#: each with a halo of the rows its windows and views reach (the same maps bit for bit, as the
+#: joint search's bands). 512x512 with 52 candidates: 0.2 MB a row, one band; a 1198x906 view
+#: set with 30 candidates: 0.4 MB a row, three bands.
+INITIAL_BAND_MIB = 128
+
+
+def initial_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
+                      budget_mib: float = INITIAL_BAND_MIB) -> int:
+    """How many rows of a ``(U, V, H, W)`` view set one band of the nine-view search
+    (:func:`recon.entropy.initial.initial_disparity`) takes within ``budget_mib`` (at least one).
+    Per pixel of a row: the nine float32 view samples, ``n_candidates`` float32 costs, nine float32
+    block images, a int64 summed-area table per window (at most one per shape), the ``n_windows``
+    bool gate and the float32 and int32 maps it returns."""
+    W = views_shape[3]
+    per_row = W * (4 * 9 + 4 * n_candidates + 4 * 9 + 8 * n_windows + n_windows + 16)
+    return max(int(budget_mib * 2 ** 20 // per_row), 1)
+
+
+def row_bands(H: int, *, rows: int, halo: int):
+    """``(y0, y1, a, b)`` per band: the core rows ``[y0, y1)`` a band gives and the rows
+    ``[a, b)`` it reads (``halo`` rows around the core, within the image), for bands of at most
+    ``rows`` rows (the whole image when ``rows >= H``; a core of at least ``halo`` rows)."""
+    core = H if rows >= H else max(rows - 2 * halo, halo)
+    for y0 in range(0, H, core):
+        y1 = min(y0 + core, H)
+        yield y0, y1, max(y0 - halo, 0), min(y1 + halo, H)
+
+
+def initial_in_bands(s: State, *, budget_mib: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`recon.entropy.initial.initial_disparity` over ``s.raw`` with the options' window,
+    step and strip gate, in bands of rows within ``budget_mib`` (default :data:`INITIAL_BAND_MIB`).
+    Each band is searched with a halo of the window's half side plus the farthest view shift of the
+    candidates plus two rows, so that every pixel of its core gets the whole image's values (a
+    pixel's costs read the views within that reach; the summed-area tables are exact integers). A
+    band holds only the nine views the search reads. Returns ``(d0 float32, ambiguity0 int32)``,
+    ``(H, W)`` each."""
+    o = s.options
+    U, V, H, W = s.raw.shape
     strip_ok = _strip_ok(s.centre, (o.initial_window,), s.noise_sigma, o)
-    s.d0, _, s.ambiguity0 = initial_disparity(
-        s.raw, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
-        shiftable=o.initial_shiftable, strips=o.strip_windows,
-        ambiguity_delta=s.hole_delta / o.intensity_scale, progress=s.reporter.within,
-        strip_ok=None if strip_ok is None else strip_ok[..., 0])
+    candidates = disparity_candidates(s.initial_range[0], s.initial_range[1], o.initial_step)
+    rows = initial_band_rows(s.raw.shape, n_candidates=len(candidates), n_windows=N_SHAPES,
+                             budget_mib=INITIAL_BAND_MIB if budget_mib is None else budget_mib)
+    halo = o.initial_window // 2 + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
+    bands = list(row_bands(H, rows=rows, halo=halo))
+    nine = [tuple(uv) for uv in np.argwhere(initial_view_mask((U, V)))]
+    d0 = np.empty((H, W), np.float32)
+    ambiguity0 = np.empty((H, W), np.int32)
+    for i, (y0, y1, a, b) in enumerate(bands):
+        if len(bands) == 1:
+            views = s.raw
+        else:  # only the nine views are written (and so take memory); the search reads no other
+            views = np.empty((U, V, b - a, W), np.float32)
+            for u, v in nine:
+                views[u, v] = s.raw[u, v, a:b]
+        d, _, amb = initial_disparity(
+            views, disparity_range=s.initial_range, step=o.initial_step, window=o.initial_window,
+            shiftable=o.initial_shiftable, strips=o.strip_windows,
+            ambiguity_delta=s.hole_delta / o.intensity_scale,
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)),
+            strip_ok=None if strip_ok is None else strip_ok[a:b, ..., 0])
+        d0[y0:y1] = d[y0 - a:y1 - a]
+        ambiguity0[y0:y1] = amb[y0 - a:y1 - a]
+        del views, d, amb
+    return d0, ambiguity0
 
 
 def initial_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -246,15 +312,16 @@ def line_search_step(s: State) -> None:
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
 
 
-#: Working memory (MiB) the joint line search may take at once, unless the grey views take more
-#: (then as much as they): its cost volume (one float32 map per candidate), the penalty (both
-#: layouts while the second is made), the summed-area tables and a copy of the views' rows. An
-#: image whose search needs more is searched in bands of rows, each with a halo of the rows its
+#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
+#: per candidate), the penalty (both layouts while the second is made), the summed-area tables and
+#: a copy of the views' rows. An image whose search needs more is searched in bands of rows, each
+#: with a halo of the rows its
 #: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
 #: on the rows within the halo), so that the search's memory grows with the image, not with the
 #: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
 #: one band; the 1198x906 demo capture (25 candidates over 3.35..4.29 px/view): 1.1 MB a row,
-#: four bands of 258 rows with halos of 27.
+#: five bands of 184 rows with halos of 27 (the rows swept: +24 %). The budget does not grow
+#: with the views: at 2000x1500 they alone take 972 MiB.
 JOINT_BAND_MIB = 256
 
 
@@ -275,36 +342,31 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
     ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
     when the whole image's search would take more than ``budget_mib`` (default
-    :data:`JOINT_BAND_MIB` or the grey views' size, whichever is larger). Each band is searched with a halo of ``largest_radius_px`` plus the
+    :data:`JOINT_BAND_MIB`). Each band is searched with a halo of ``largest_radius_px`` plus the
     farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
     whole image's values; the penalty is made band by band, and only one band's cost volume is
     alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
     o, w = s.options, s.windows
     sizes = w["sizes"]
     U, V, H, W = s.views.shape
-    if budget_mib is None:
-        budget_mib = max(JOINT_BAND_MIB, s.views.nbytes / 2 ** 20)
     rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
-                           budget_mib=budget_mib)
+                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib)
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
-    core = H if rows >= H else max(rows - 2 * halo, halo)
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 
     def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
         p = _search_penalty(w["all_entropy"].rows(a, b), s.noise_limited[a:b], o, len(sizes))
         return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
 
-    starts = range(0, H, core)
+    bands = list(row_bands(H, rows=rows, halo=halo))
     maps = (np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
             np.empty((H, W), np.int32))
-    for i, y0 in enumerate(starts):
-        y1 = min(y0 + core, H)
-        a, b = max(y0 - halo, 0), min(y1 + halo, H)
+    for i, (y0, y1, a, b) in enumerate(bands):
         band = joint_line_search(  # the penalty a temporary, freed in there
             s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
             use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
             ambiguity_delta=s.hole_delta,
-            progress=lambda f, i=i: s.reporter.within((i + f) / len(starts)))
+            progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)))
         for out, got in zip(maps, band):
             out[y0:y1] = got[y0 - a:y1 - a]
         del band
@@ -337,6 +399,7 @@ def boundary_step(s: State) -> None:
     """With ``boundary_snap``: the boundary test on ``s.matched`` (``docs/entropy-method.md``)."""
     if s.options.boundary_snap:
         s.matched = _snap(s.raw, s.matched, s.noise_sigma, s.disparity_range, s.options)
+    s.raw = None  # the last step that reads the views: the refinement needs only the centre's maps
     s.lap("matching")
 
 
