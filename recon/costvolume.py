@@ -86,8 +86,8 @@ def _add_view_row(img, c_row, y, oy, fy, ox, fx, acc, rv):
     # separable: the view's two source rows are blended into one row (one fraction fy for the
     # whole row), then that row is sampled along x with one fraction fx for the whole row, since
     # the shift is the same for every pixel. The integer parts oy, ox and the fractions depend
-    # only on the shift, not on where the image starts. The middle run indexes slices from 0 so
-    # that numba vectorises it (float32, 8 SIMD lanes). rv: a float32 row to work in.
+    # only on the shift, not on where the image starts (add_shifted_row_diff). rv: a float32 row to
+    # work in.
     H, W = img.shape
     one = np.float32(1.0)
     y0 = y + oy
@@ -104,7 +104,17 @@ def _add_view_row(img, c_row, y, oy, fy, ox, fx, acc, rv):
         for x in range(W):
             rv[x] = g * a[x] + fy * b[x]
         row = rv
-    g = one - fx
+    add_shifted_row_diff(acc, c_row, row, ox, fx)
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def add_shifted_row_diff(acc, c_row, row, ox, fx):
+    # Adds to acc (float32, W) |c_row[x] - row sampled at x + ox + fx| (linear between two samples,
+    # fx in [0, 1) the same for the whole row; the first or last sample beyond the row's ends). The
+    # middle run indexes slices from 0 so that numba vectorises it (numba's negative-index wrap of
+    # row[x + ox] made every load a gather and kept the loop scalar); float32, 8 SIMD lanes.
+    W = acc.shape[0]
+    g = np.float32(1.0) - fx
     lo = min(max(-ox, 0), W)
     hi = min(max(W - 1 - ox, lo), W)
     for x in range(lo):

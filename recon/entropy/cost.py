@@ -19,6 +19,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from recon.costvolume import add_shifted_row_diff
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 N_BLOCKS = 9
@@ -113,27 +114,7 @@ def _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
             rv[x] = gy * img[y0, x] + fy * img[y1, x]
         base = -vdv[k] * disparity
         fl = np.floor(base)
-        fx = base - fl
-        gx = np.float32(1.0) - fx
-        o = int(fl)
-        row = acc[vblock[k]]
-        # x + o < 0: the first sample; x + o >= W - 1: the last; between, interpolated. The
-        # middle run indexes slices from 0 (numba's negative-index wrap of rv[x + o] made every
-        # load a gather and kept the loop scalar).
-        lo = min(max(-o, 0), W)
-        hi = min(max(W - 1 - o, lo), W)
-        for x in range(lo):
-            row[x] += abs(centre[x] - rv[0])
-        n = hi - lo
-        if n > 0:
-            r0 = rv[lo + o:hi + o]
-            r1 = rv[lo + o + 1:hi + o + 1]
-            c = centre[lo:hi]
-            a = row[lo:hi]
-            for i in range(n):
-                a[i] += abs(c[i] - (gx * r0[i] + fx * r1[i]))
-        for x in range(hi, W):
-            row[x] += abs(centre[x] - rv[W - 1])
+        add_shifted_row_diff(acc[vblock[k]], centre, rv, int(fl), base - fl)
 
 
 @numba.njit(cache=True, parallel=True)
