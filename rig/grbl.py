@@ -793,6 +793,9 @@ class GrblStage:
         self._homing = False  # a $H sent and not yet answered
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
         self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
+        # the programs that shared the port when it opened: named in later errors even after they
+        # exit (a reader such as `cat` sees end-of-file once pyserial sets the port's VMIN to 0)
+        self._opened_with: list[tuple[int, str]] = port_holders(url) if port is None else []
         note = self._holders_note() if port is None else ""
         if note:  # opened before lfrig, so the exclusive mode does not keep it out
             log.warning("%s: the port is shared%s", self.url, note)
@@ -1018,8 +1021,14 @@ class GrblStage:
             self.open_state = None
 
     def _holder_names(self) -> str:
-        """The other processes that have the port open (:func:`port_holders`), for a message, or ``""``."""
-        return ", ".join(f"process {pid} ({name})" for pid, name in port_holders(self.url))
+        """The other processes that have the port open (:func:`port_holders`), for a message, or ``""``.
+        Those that had it open when lfrig opened it and have since let go are named too: a reader that
+        took a reply may exit before the error is built."""
+        now = port_holders(self.url)
+        gone = [holder for holder in self._opened_with if holder not in now]
+        return ", ".join([f"process {pid} ({name})" for pid, name in now] +
+                         [f"process {pid} ({name}), which had it open when lfrig opened it and has since closed it"
+                          for pid, name in gone])
 
     def _holders_note(self) -> str:
         names = self._holder_names()
