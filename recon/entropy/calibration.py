@@ -18,7 +18,10 @@ A logistic model over a few per-pixel features (:data:`FEATURES`) of the estimat
 - the **distance to the nearest disparity jump** (a step over ``JUMP_PX`` between 4-neighbours;
   pixels, capped at ``JUMP_REACH_PX``, log): most wrong pixels sit at outlines;
 - the **spread** of the final map in the 5x5 box (standard deviation, log) and the chosen window's
-  **matching entropy** (the ``E`` of Eq. 6: the texture the match had).
+  **matching entropy** (the ``E`` of Eq. 6: the texture the match had), raised to
+  :data:`ENTROPY_FLOOR`: below it a window has next to no texture, its disparity comes from the
+  refinement's fill, and a lower entropy says no more about it (a plain scene's entropies lie
+  mostly below every textured scene's: left linear, the model would call its filled walls wrong).
 
 ``p = 1 / (1 + exp(-(b + sum_i c_i f_i)))``; ``p = 0`` where the disparity is not finite, lies
 outside the searched range or sits on its first or last candidate. The coefficients
@@ -45,6 +48,9 @@ FEATURES = ("log_width", "log_change", "log_neighbour", "log_initial", "occludin
 TOLERANCE_PX = 0.07
 
 _EPS = 0.01  # px/view (or noise sigmas) added before the logs: a floor below any difference that matters
+
+#: The matching entropy feature is ``max(E, ENTROPY_FLOOR)`` (the module docstring).
+ENTROPY_FLOOR = 0.5
 
 #: A step between 4-neighbours over this (px/view) is a disparity jump (an outline).
 JUMP_PX = 0.25
@@ -201,7 +207,7 @@ FEATURE_FUNCTIONS = {
     "neighbours_agreeing": lambda b: b.neighbours()[1] / 8.0,
     "log_jump_distance": lambda b: np.log(jump_distance(b.d_halo)[b.core] + 1.0),
     "log_spread": lambda b: np.log(b.inputs.spread.rows(b.y0, b.y1) + _EPS),
-    "entropy": lambda b: np.nan_to_num(b.rows("entropy")),
+    "entropy": lambda b: np.maximum(np.nan_to_num(b.rows("entropy")), ENTROPY_FLOOR),
 }
 
 
