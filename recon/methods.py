@@ -59,8 +59,10 @@ def _warm_entropy() -> None:
     import recon.entropy.estimate  # noqa: F401  numba, scipy and the estimator's modules
     import recon.entropy.outputs  # noqa: F401
     from recon.costvolume import start_numba
+    from recon.entropy.preload import load_kernels
 
     start_numba()
+    load_kernels()  # each kernel the estimate calls, with its argument types
 
 
 def _check_baseline(options: dict[str, Any]) -> None:

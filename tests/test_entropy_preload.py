@@ -1,0 +1,51 @@
+"""The entropy method's warm-up loads every kernel a default estimate calls, with the argument types
+it calls them with (``recon.entropy.preload``): the estimate then loads or compiles nothing itself."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from numba.core import types
+
+from recon.entropy.preload import KERNELS, argument_types
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# A fresh process: what the warm-up loaded, then what the estimate added (kernel -> signatures).
+PROBE = """
+import gc, json
+from numba.core.registry import CPUDispatcher
+from recon.methods import warm_in_background
+from recon.synthetic import occluding_square_scene
+from recon.entropy import estimate_disparity
+
+def signatures():
+    return {f"{d.py_func.__module__}.{d.py_func.__name__}": sorted(str(s) for s in d.signatures)
+            for d in gc.get_objects() if isinstance(d, CPUDispatcher) and d.signatures}
+
+warm_in_background("entropy").join()
+warmed = signatures()
+lf, _ = occluding_square_scene(40, seed=2, back=-0.5, front=1.0)
+estimate_disparity(lf)
+print(json.dumps({"warmed": warmed, "after": signatures()}))
+"""
+
+
+def test_the_estimate_adds_no_kernel_signature_after_the_warm_up():
+    out = subprocess.run([sys.executable, "-c", PROBE], cwd=ROOT, capture_output=True, text=True, check=True)
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    added = {name: sorted(set(sigs) - set(seen["warmed"].get(name, []))) for name, sigs in seen["after"].items()}
+    assert {name: sigs for name, sigs in added.items() if sigs} == {}
+    # and each listed kernel was loaded by the warm-up, with its listed types only
+    for module, name, tokens in KERNELS:
+        assert str(argument_types(tokens)) in seen["warmed"][f"{module}.{name}"]
+
+
+def test_argument_types_reads_scalars_arrays_and_read_only_arrays():
+    assert argument_types("int64 bool float32:3 int64:2:ro") == (
+        types.int64, types.boolean, types.Array(types.float32, 3, "C"),
+        types.Array(types.int64, 2, "C", readonly=True))
+    assert not argument_types("uint8:1:ro")[0].mutable
