@@ -15,7 +15,7 @@ the signal.
 
 A process that ran :func:`main` ends without the interpreter's last garbage collections
 (:func:`_skip_final_collections`): after a reconstruction they walk numba's and LLVM's objects for
-0.2-0.4 s of CPU, to free memory that the end of the process frees anyway.
+0.3-0.4 s of CPU, to free memory that the end of the process frees anyway.
 """
 
 from __future__ import annotations

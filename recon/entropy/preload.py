@@ -2,8 +2,8 @@
 caller can load them from numba's cache before the estimate needs them.
 
 In a fresh process numba loads a cached kernel at its first call: the index lookup, unpickling and
-LLVM's materialising of the object code, 10-50 ms per kernel and signature (the first one of a
-process also sets up numba's typing and target registries, 0.3-0.5 s: :func:`recon.costvolume.start_numba`).
+LLVM's materialising of the object code, 5-50 ms of CPU per kernel and signature (the first one of
+a process also sets up numba's typing and target registries, ~0.35 s: :func:`recon.costvolume.start_numba`).
 :func:`load_kernels` does that for every kernel of a default estimate, in the order the estimate
 first calls them; ``lfrig reconstruct`` runs it in a thread while the views are decoded
 (:func:`recon.methods.warm_in_background`). It computes nothing and changes no result.
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import importlib
 
-#: (module in ``recon.entropy`` or ``recon``, kernel, argument types), in the order of first use.
+#: (module, kernel, argument types), in the order of the estimate's first calls.
 KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.cost", "_min_window_costs_kernel",
      "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32 int64:2 int64:1 int64:1 int64:1 int64:2 "
