@@ -49,3 +49,16 @@ def test_argument_types_reads_scalars_arrays_and_read_only_arrays():
         types.int64, types.boolean, types.Array(types.float32, 3, "C"),
         types.Array(types.int64, 2, "C", readonly=True))
     assert not argument_types("uint8:1:ro")[0].mutable
+
+
+def test_the_first_warm_up_freezes_what_its_imports_made_without_collecting_meanwhile():
+    # recon.methods.warm_in_background: the collector is off during the first warm-up of a process
+    # (no full collection walks the new modules' objects) and they are frozen after it.
+    probe = ("import gc, json\n"
+             "from recon.methods import warm_in_background\n"
+             "full = gc.get_stats()[2]['collections']\n"
+             "warm_in_background('entropy').join()\n"
+             "print(json.dumps([gc.get_stats()[2]['collections'] - full, gc.get_freeze_count() > 10000,"
+             " gc.isenabled()]))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [0, True, True]
