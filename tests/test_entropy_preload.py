@@ -16,15 +16,17 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # A fresh process: what the warm-up loaded, then what the estimate added (kernel -> signatures).
 PROBE = """
-import gc, json
+import json, sys
 from numba.core.registry import CPUDispatcher
 from recon.methods import warm_in_background
 from recon.synthetic import occluding_square_scene
 from recon.entropy import estimate_disparity
 
-def signatures():
-    return {f"{d.py_func.__module__}.{d.py_func.__name__}": sorted(str(s) for s in d.signatures)
-            for d in gc.get_objects() if isinstance(d, CPUDispatcher) and d.signatures}
+def signatures():  # every kernel of lfrig's modules
+    kernels = {f"{k.py_func.__module__}.{k.py_func.__name__}": k for module in list(sys.modules.values())
+               if getattr(module, "__name__", "").startswith("recon.")
+               for k in vars(module).values() if isinstance(k, CPUDispatcher)}
+    return {name: sorted(str(s) for s in k.signatures) for name, k in kernels.items() if k.signatures}
 
 warm_in_background("entropy").join()
 warmed = signatures()
