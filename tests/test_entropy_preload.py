@@ -41,7 +41,7 @@ def test_the_estimate_adds_no_kernel_signature_after_the_warm_up():
     seen = json.loads(out.stdout.strip().splitlines()[-1])
     added = {name: sorted(set(sigs) - set(seen["warmed"].get(name, []))) for name, sigs in seen["after"].items()}
     assert {name: sigs for name, sigs in added.items() if sigs} == {}
-    # and each listed kernel was loaded by the warm-up, with its listed types only
+    # and the warm-up loaded each listed kernel with the listed types
     for module, name, tokens in KERNELS:
         assert str(argument_types(tokens)) in seen["warmed"][f"{module}.{name}"]
 
