@@ -9,6 +9,7 @@ that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_
 from __future__ import annotations
 
 import dataclasses
+import gc
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -59,8 +60,10 @@ def _warm_entropy() -> None:
     import recon.entropy.estimate  # noqa: F401  numba, scipy and the estimator's modules
     import recon.entropy.outputs  # noqa: F401
     from recon.costvolume import start_numba
+    from recon.entropy.preload import load_kernels
 
     start_numba()
+    load_kernels()  # each kernel the estimate calls, with its argument types
 
 
 def _check_baseline(options: dict[str, Any]) -> None:
@@ -112,6 +115,9 @@ def check_method_options(name: str, options: dict[str, Any]) -> None:
     _method(name).check(dict(options))
 
 
+_FROZE: list[str] = []  # the first warm-up of this process (it freezes: see below)
+
+
 def warm_in_background(name: str) -> threading.Thread | None:
     """Start method ``name``'s ``warm()`` in a daemon thread and return it (``None`` for an unknown
     name or a method without one).
@@ -121,16 +127,35 @@ def warm_in_background(name: str) -> threading.Thread | None:
     The method's own first call waits for it where it must (the import lock, numba's compiler
     lock); join the thread before the work to keep the two apart. A failure here is dropped: the
     method's own call meets the same problem and reports it.
+
+    The imports make some 10^5 objects that live as long as the process (numba's types and
+    templates, scipy's functions): the garbage collector is off while the first warm-up of a
+    process runs, and what is alive after it is frozen (``gc.freeze``), left out of later
+    collections. Without that, a reconstruction's ~265 collections (two of them full) walked those
+    objects again and again. Frozen objects are still freed when their last reference goes; only a
+    reference cycle that is already garbage at that moment stays.
     """
     method = METHODS.get(name)
     if method is None or method.warm is None:
         return None
 
+    first = not _FROZE
+    if first:
+        _FROZE.append(name)
+
     def warm() -> None:
+        collecting = gc.isenabled()
+        if first:
+            gc.disable()
         try:
             method.warm()
         except Exception:  # noqa: BLE001  reported by the method's own call (see above)
             pass
+        finally:
+            if first:
+                gc.freeze()
+                if collecting:
+                    gc.enable()
 
     thread = threading.Thread(target=warm, name=f"lfrig-warm-{name}", daemon=True)
     thread.start()

@@ -34,6 +34,24 @@ def test_help_loads_no_numba_numpy_or_opencv():
     assert _loaded_by(code) == []
 
 
+def test_a_process_that_ran_the_command_skips_the_final_collections():
+    # An object kept alive only by a reference cycle is found by the interpreter's collections at
+    # exit (its __del__ runs); after rig.main.main they leave the objects of that moment alone.
+    code = ("import sys\n"
+            "from rig.main import main\n"
+            "if sys.argv[1] == 'ran':\n"
+            "    import contextlib, io\n"
+            "    with contextlib.redirect_stdout(io.StringIO()):\n"
+            "        main(['--help'])\n"
+            "class Cycle:\n"
+            "    def __del__(self):\n"
+            "        print('collected', flush=True)\n"
+            "c = Cycle(); c.me = c; del c\n")
+    ends = {how: subprocess.run([sys.executable, "-c", code, how], cwd=ROOT, capture_output=True, text=True,
+                                check=True).stdout for how in ("ran", "not")}
+    assert ends == {"ran": "", "not": "collected\n"}
+
+
 def test_the_package_names_still_load_on_use():
     """``recon.lf`` and ``recon.entropy`` keep their names; the modules behind them load when used."""
     code = ("import recon.lf, recon.entropy\n"

@@ -1,0 +1,76 @@
+"""The compiled kernels an estimate calls, each with the argument types it is called with, so that a
+caller can load them from numba's cache before the estimate needs them.
+
+In a fresh process numba loads a cached kernel at its first call: the index lookup, unpickling and
+LLVM's materialising of the object code, 5-50 ms of CPU per kernel and signature (the first one of
+a process also sets up numba's typing and target registries, ~0.35 s: :func:`recon.costvolume.start_numba`).
+:func:`load_kernels` does that for every kernel of a default estimate, in the order the estimate
+first calls them; ``lfrig reconstruct`` runs it in a thread while the views are decoded
+(:func:`recon.methods.warm_in_background`). It computes nothing and changes no result.
+
+A signature is written as one token per argument: a scalar type by its numba name (``int64``,
+``float32``, ``bool``) and a C-contiguous array as ``dtype:ndim``, with ``:ro`` for a read-only
+one. A kernel called with other types than listed is still correct: numba then loads (or compiles)
+that signature at its call, as without this module. ``tests/test_entropy_preload.py`` runs an
+estimate in a fresh process after :func:`load_kernels` and checks that it adds no signature.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+#: (module, kernel, argument types), in the order of the estimate's first calls.
+KERNELS: tuple[tuple[str, str, str], ...] = (
+    ("recon.entropy.cost", "_min_window_costs_kernel",
+     "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32 int64:2 int64:1 int64:1 int64:1 int64:2 "
+     "float64:1 bool:3 int64 float32:2"),
+    ("recon.entropy.matching", "_subpixel_argmin_kernel", "float32:3 float64:1 float64 float32:2 float32:2"),
+    ("recon.entropy.cost", "_cost_ambiguity_kernel", "float32:3 float32 int32:2"),
+    ("recon.entropy.median", "_median_kernel", "float32:2 int64:1 int64:1 int64:2 int64 float32:2"),
+    ("recon.entropy.regions", "_occlusion_kernel", "float32:2 float64:2 float32 float32:2 float32:2"),
+    ("recon.entropy.entropy", "_select_kernel",
+     "int64:2 int64:2 int64:2 int64:3 int64:1 float64 float64 float64 int64 int64 float64:1 int64:2:ro float32:2 "
+     "float64 int64:2:ro int64:1 int64 int64:2 int64:2 int64:2 int64:2 float64:2 float32:3 bool float32:1 int64:1 "
+     "uint8:3"),
+    ("recon.entropy.layout", "_window_major_kernel", "float32:3 bool:2 int64:1 float32:3"),
+    ("recon.entropy.cost", "_block_abs_diff_kernel",
+     "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32 float32:3"),
+    ("recon.entropy.cost", "_set_integrals_kernel", "float32:3 int64:2 int64 int64:3"),
+    ("recon.entropy.matching", "_joint_cost_kernel",
+     "int64:3 bool:2 int64:2 int64:1 float64:1 float32:3 int64:1 int32:2 float64 int64:1 bool float32:2 float32:2 "
+     "int64:2"),
+    ("recon.entropy.refine", "_centroid_kernel", "float64:2 int64:3 float64 float64 float64:2"),
+    ("recon.entropy.boundary", "_snap_kernel",
+     "float32:4 float32:2 float32:2 float32:2 int64 int64:1 int64:1 float64:1 float64:1 float64 int64 float64 "
+     "float64:1 float64:1 int64:1 float64:1 float64:1"),
+    ("recon.entropy.refine", "_tv_blocks",
+     "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64 int64"),
+    ("recon.entropy.median", "_median_kernel", "float64:2 int64:1 int64:1 int64:2 int64 float64:2"),
+)
+
+
+def argument_types(tokens: str) -> tuple:
+    """The numba types of a signature written as in :data:`KERNELS` (``"float32:2 int64"``)."""
+    from numba.core import types
+
+    def one(token: str):
+        name, *array = token.split(":")
+        dtype = types.boolean if name == "bool" else getattr(types, name)
+        if not array:
+            return dtype
+        return types.Array(dtype, int(array[0]), "C", readonly=array[1:] == ["ro"])
+
+    return tuple(one(token) for token in tokens.split())
+
+
+def load_kernels() -> int:
+    """Load every kernel of :data:`KERNELS` with its signature (from numba's cache, or compile it
+    where the cache has none); return how many were not loaded yet."""
+    loaded = 0
+    for module, name, tokens in KERNELS:
+        kernel = getattr(importlib.import_module(module), name)
+        signature = argument_types(tokens)
+        if signature not in kernel.overloads:
+            kernel.compile(signature)
+            loaded += 1
+    return loaded

@@ -1,0 +1,66 @@
+"""The entropy method's warm-up loads every kernel a default estimate calls, with the argument types
+it calls them with (``recon.entropy.preload``): the estimate then loads or compiles nothing itself."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from numba.core import types
+
+from recon.entropy.preload import KERNELS, argument_types
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# A fresh process: what the warm-up loaded, then what the estimate added (kernel -> signatures).
+PROBE = """
+import json, sys
+from numba.core.registry import CPUDispatcher
+from recon.methods import warm_in_background
+from recon.synthetic import occluding_square_scene
+from recon.entropy import estimate_disparity
+
+def signatures():  # every kernel of lfrig's modules
+    kernels = {f"{k.py_func.__module__}.{k.py_func.__name__}": k for module in list(sys.modules.values())
+               if getattr(module, "__name__", "").startswith("recon.")
+               for k in vars(module).values() if isinstance(k, CPUDispatcher)}
+    return {name: sorted(str(s) for s in k.signatures) for name, k in kernels.items() if k.signatures}
+
+warm_in_background("entropy").join()
+warmed = signatures()
+lf, _ = occluding_square_scene(40, seed=2, back=-0.5, front=1.0)
+estimate_disparity(lf)
+print(json.dumps({"warmed": warmed, "after": signatures()}))
+"""
+
+
+def test_the_estimate_adds_no_kernel_signature_after_the_warm_up():
+    out = subprocess.run([sys.executable, "-c", PROBE], cwd=ROOT, capture_output=True, text=True, check=True)
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    added = {name: sorted(set(sigs) - set(seen["warmed"].get(name, []))) for name, sigs in seen["after"].items()}
+    assert {name: sigs for name, sigs in added.items() if sigs} == {}
+    # and the warm-up loaded each listed kernel with the listed types
+    for module, name, tokens in KERNELS:
+        assert str(argument_types(tokens)) in seen["warmed"][f"{module}.{name}"]
+
+
+def test_argument_types_reads_scalars_arrays_and_read_only_arrays():
+    assert argument_types("int64 bool float32:3 int64:2:ro") == (
+        types.int64, types.boolean, types.Array(types.float32, 3, "C"),
+        types.Array(types.int64, 2, "C", readonly=True))
+    assert not argument_types("uint8:1:ro")[0].mutable
+
+
+def test_the_first_warm_up_freezes_what_its_imports_made_without_collecting_meanwhile():
+    # recon.methods.warm_in_background: the collector is off during the first warm-up of a process
+    # (no full collection walks the new modules' objects) and they are frozen after it.
+    probe = ("import gc, json\n"
+             "from recon.methods import warm_in_background\n"
+             "full = gc.get_stats()[2]['collections']\n"
+             "warm_in_background('entropy').join()\n"
+             "print(json.dumps([gc.get_stats()[2]['collections'] - full, gc.get_freeze_count() > 10000,"
+             " gc.isenabled()]))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [0, True, True]
