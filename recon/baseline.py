@@ -17,7 +17,7 @@ from recon.lf.lightfield import LightField
 
 #: Most candidates per call of the sweep kernel; the calls take nearly equal shares and progress is
 #: reported after each. A call reads each view's rows once for all of its candidates: on backgammon
-#: (121 candidates) four calls take 0.1-0.15 s less CPU than sixteen of 8.
+#: (121 candidates) four calls take ~0.1 s less CPU than sixteen of 8.
 SWEEP_CHUNK = 32
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).

@@ -173,3 +173,18 @@ def test_the_warm_up_loads_the_kernel_the_estimate_calls():
     lf, _ = occluding_square_scene(24, back=-0.5, front=1.0)
     estimate_baseline(lf, window=5, step=0.1, disparity_range=(-0.6, 1.2))
     assert list(_sweep_kernel.signatures) == loaded
+
+
+def test_the_warm_up_does_not_import_scipy_linalg():
+    # numba's start-up checks for BLAS by importing scipy.linalg; the baseline's warm-up skips that
+    # check (recon.methods._warm_baseline) and puts numba's own check back afterwards.
+    import subprocess
+    import sys
+
+    code = ("import sys, numba.np.linalg as L; check = L.ensure_blas\n"
+            "from recon.methods import warm_in_background\n"
+            "warm_in_background('baseline').join()\n"
+            "from recon.costvolume import _sweep_kernel\n"
+            "print(len(_sweep_kernel.signatures), 'scipy.linalg' in sys.modules, L.ensure_blas is check)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "False", "True"]
