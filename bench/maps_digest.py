@@ -17,9 +17,9 @@ and records its ``disparity``, ``cost`` and ``candidates``:
 
     .venv/bin/python bench/maps_digest.py -o /tmp/base.json --methods baseline --size 192
 
-``--compare`` prints each digest that differs
-and exits 1 if any does (a digest the other file does not have is listed as new, not as a
-difference). Digests are of the bytes: dtype, shape and every bit count.
+``--compare`` prints each digest that differs and exits 1 if any does (a digest the other file does
+not have is listed as new, not as a difference). Digests are of the bytes: dtype, shape and every
+bit count.
 """
 
 from __future__ import annotations
