@@ -11,9 +11,15 @@ by ``--tiled``. For each run it records the SHA-256 of every array of the result
 ``initial_disparity``, ``matched_disparity``, ``labels``, window maps, ``entropy``, ``cost``,
 ``confidence``) and of every array in its ``info``, and the disparity range searched; a tiled run
 records the same of its stitched result (the confidence among them) and prints the maps in which
-it differs from the untiled run with the defaults. ``--compare`` prints each digest that differs
-and exits 1 if any does (a digest the other file does not have is listed as new, not as a
-difference). Digests are of the bytes: dtype, shape and every bit count.
+it differs from the untiled run with the defaults. ``--methods baseline`` (or ``entropy baseline``)
+also runs the 7x7 baseline (:func:`recon.baseline.estimate_baseline`, its defaults) on every scene
+and records its ``disparity``, ``cost`` and ``candidates``:
+
+    .venv/bin/python bench/maps_digest.py -o /tmp/base.json --methods baseline --size 192
+
+``--compare`` prints each digest that differs and exits 1 if any does (a digest the other file does
+not have is listed as new, not as a difference). Digests are of the bytes: dtype, shape and every
+bit count.
 """
 
 from __future__ import annotations
@@ -86,18 +92,28 @@ def main() -> int:
     parser.add_argument("--scenes", nargs="+", help="only these (backgammon, glossy-v1, ..., suite/bars, ...)")
     parser.add_argument("--no-shared", action="store_true", help="leave out the scenes of ../shared/data")
     parser.add_argument("--data", type=Path, default=DATA, help=f"the shared data folder (default {DATA})")
-    parser.add_argument("--presets", nargs="+", default=["default", "paper"])
+    parser.add_argument("--methods", nargs="+", choices=["entropy", "baseline"], default=["entropy"],
+                        help="the estimators to run (default entropy)")
+    parser.add_argument("--presets", nargs="+", default=["default", "paper"], help="the entropy estimator's presets")
     parser.add_argument("--tiled", nargs="*", default=["suite/bars", "suite/thin"],
                         help="scenes also run tiled with the default options (default suite/bars suite/thin)")
     parser.add_argument("--tile", type=int, default=40, help="tile core side in pixels (default 40)")
     args = parser.parse_args()
 
+    from recon.baseline import estimate_baseline
     from recon.entropy import estimate_disparity
     from recon.scale.tiles import tiled_disparity
 
     record: dict[str, dict] = {}
     for name, load in _scenes(args).items():
         lf = load()
+        if "baseline" in args.methods:
+            t = time.perf_counter()
+            base = estimate_baseline(lf)
+            record[f"{name} baseline"] = {key: _digest(getattr(base, key)) for key in ("disparity", "cost", "candidates")}
+            print(f"{name} baseline: {time.perf_counter() - t:.1f} s", flush=True)
+        if "entropy" not in args.methods:
+            continue
         for preset in args.presets:
             t = time.perf_counter()
             result = estimate_disparity(lf, preset=preset)

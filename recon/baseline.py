@@ -15,8 +15,10 @@ from recon.progress import ProgressCallback, report
 from recon.costvolume import sweep_least_cost, view_offsets
 from recon.lf.lightfield import LightField
 
-#: Candidates per call of the sweep kernel (progress is reported after each call).
-SWEEP_CHUNK = 8
+#: Most candidates per call of the sweep kernel; the calls take nearly equal shares and progress is
+#: reported after each. A call reads each view's rows once for all of its candidates: on backgammon
+#: (121 candidates) four calls take ~0.1 s less CPU than sixteen of 8.
+SWEEP_CHUNK = 32
 
 #: The search range used when neither the caller nor the light field gives one (pixels per view step).
 DEFAULT_DISPARITY_RANGE = (-4.0, 4.0)
@@ -119,7 +121,8 @@ def estimate_baseline(
     disparity_range
         ``(min, max)`` to search; defaults to ``lf.disparity_range``, else :data:`DEFAULT_DISPARITY_RANGE`.
     progress
-        ``progress(fraction, message)`` after every :data:`SWEEP_CHUNK` candidates (:mod:`recon.progress`).
+        ``progress(fraction, message)`` after each call of the sweep, at most :data:`SWEEP_CHUNK`
+        candidates (:mod:`recon.progress`).
 
     Returns
     -------
@@ -133,13 +136,14 @@ def estimate_baseline(
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
     # One plane sweep (recon.costvolume.sweep_least_cost): each candidate's window cost is compared
     # with the least so far; the volume of every candidate's cost is never held (what
-    # parabolic_refine would read of it is kept). In chunks, for the progress.
+    # parabolic_refine would read of it is kept). In a few calls of nearly equal size, for the progress.
+    calls = -(-len(candidates) // SWEEP_CHUNK)
+    bounds = [len(candidates) * i // calls for i in range(calls + 1)]
     state = None
-    for first in range(0, len(candidates), SWEEP_CHUNK):
-        chunk = candidates[first:first + SWEEP_CHUNK]
-        state = sweep_least_cost(gray, chunk, offsets=offsets, indices=indices, window=window, state=state,
-                                 first=first)
-        report(progress, (first + len(chunk)) / len(candidates), "disparity candidates")
+    for first, stop in zip(bounds, bounds[1:]):
+        state = sweep_least_cost(gray, candidates[first:stop], offsets=offsets, indices=indices, window=window,
+                                 state=state, first=first)
+        report(progress, stop / len(candidates), "disparity candidates")
     best_index, best = state["best_index"], state["best"]
     disparity, cost = parabola_vertex(best_index, state["c_minus"], best, state["c_plus"], candidates)
     return BaselineResult(disparity=disparity, cost=cost, candidates=candidates)

@@ -80,31 +80,34 @@ FAST = {"nnan", "ninf", "nsz"}
 
 
 @numba.njit(fastmath=FAST, cache=True)
-def _add_view_row(img, c_row, y, oy, fy, ox, fx, acc, rv):
-    # Adds to acc (float32, W) the absolute differences between the centre view's row y (c_row)
-    # and one view (img, (H, W)) sampled at (y + oy + fy, x + ox + fx). Bilinear sampling is
-    # separable: the view's two source rows are blended into one row (one fraction fy for the
-    # whole row), then that row is sampled along x with one fraction fx for the whole row, since
-    # the shift is the same for every pixel. The integer parts oy, ox and the fractions depend
-    # only on the shift, not on where the image starts (add_shifted_row_diff). rv: a float32 row to
-    # work in.
+def _view_row(img, y, oy, fy, rv):
+    # The row of one view (img, (H, W)) at y + oy + fy, blended from its two source rows with one
+    # fraction fy for the whole row (into rv, a float32 row to work in, or the source row itself
+    # where no blend is needed). Bilinear sampling is separable: the caller samples this row along x
+    # with one fraction fx for the whole row, since the shift is the same for every pixel. The
+    # integer part oy and the fraction depend only on the shift, not on where the image starts.
     H, W = img.shape
-    one = np.float32(1.0)
     y0 = y + oy
     if y0 < 0:  # above the image: its first row (edges replicated)
-        row = img[0]
-    elif y0 >= H - 1:  # below: its last row
-        row = img[H - 1]
-    elif fy == 0.0:  # on a row: 1 * a + 0 * b is a
-        row = img[y0]
-    else:
-        a = img[y0]
-        b = img[y0 + 1]
-        g = one - fy
-        for x in range(W):
-            rv[x] = g * a[x] + fy * b[x]
-        row = rv
-    add_shifted_row_diff(acc, c_row, row, ox, fx)
+        return img[0]
+    if y0 >= H - 1:  # below: its last row
+        return img[H - 1]
+    if fy == 0.0:  # on a row: 1 * a + 0 * b is a
+        return img[y0]
+    a = img[y0]
+    b = img[y0 + 1]
+    g = np.float32(1.0) - fy
+    for x in range(W):
+        rv[x] = g * a[x] + fy * b[x]
+    return rv
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def _add_view_row(img, c_row, y, oy, fy, ox, fx, acc, rv):
+    # Adds to acc (float32, W) the absolute differences between the centre view's row y (c_row)
+    # and one view (img, (H, W)) sampled at (y + oy + fy, x + ox + fx) (_view_row, then
+    # add_shifted_row_diff).
+    add_shifted_row_diff(acc, c_row, _view_row(img, y, oy, fy, rv), ox, fx)
 
 
 @numba.njit(fastmath=FAST, cache=True)
@@ -142,16 +145,65 @@ def _cost_row(gray, vu, vv, oy, fy, ox, fx, y, acc, rv):
 
 
 @numba.njit(fastmath=FAST, cache=True)
+def _sample(row, x, ox, fx):
+    # row sampled at x + ox + fx as add_shifted_row_diff samples it: linear between two samples,
+    # the first or last sample beyond the row's ends.
+    i = x + ox
+    if i < 0:
+        return row[0]
+    if i >= row.shape[0] - 1:
+        return row[row.shape[0] - 1]
+    return (np.float32(1.0) - fx) * row[i] + fx * row[i + 1]
+
+
+@numba.njit(fastmath=FAST, cache=True)
+def _add_two_shifted_row_diffs(acc, c_row, p, ox_p, fx_p, q, ox_q, fx_q):
+    # add_shifted_row_diff(acc, c_row, p, ox_p, fx_p), then the same with q, ox_q, fx_q, in one
+    # pass: each acc[x] gets p's difference added, then q's, as the two calls would add them (the
+    # same bits), but acc and c_row are read and acc written once for the two views. The middle
+    # run, where both samples lie inside their rows, is vectorised as in add_shifted_row_diff.
+    W = acc.shape[0]
+    gp = np.float32(1.0) - fx_p
+    gq = np.float32(1.0) - fx_q
+    lo = min(max(-ox_p, -ox_q, 0), W)
+    hi = min(max(min(W - 1 - ox_p, W - 1 - ox_q), lo), W)
+    for x in range(lo):
+        acc[x] = (acc[x] + abs(c_row[x] - _sample(p, x, ox_p, fx_p))) + abs(c_row[x] - _sample(q, x, ox_q, fx_q))
+    n = hi - lo
+    if n > 0:
+        p0 = p[lo + ox_p:hi + ox_p]
+        p1 = p[lo + ox_p + 1:hi + ox_p + 1]
+        q0 = q[lo + ox_q:hi + ox_q]
+        q1 = q[lo + ox_q + 1:hi + ox_q + 1]
+        c = c_row[lo:hi]
+        s = acc[lo:hi]
+        for i in range(n):
+            s[i] = (s[i] + abs(c[i] - (gp * p0[i] + fx_p * p1[i]))) + abs(c[i] - (gq * q0[i] + fx_q * q1[i]))
+    for x in range(hi, W):
+        acc[x] = (acc[x] + abs(c_row[x] - _sample(p, x, ox_p, fx_p))) + abs(c_row[x] - _sample(q, x, ox_q, fx_q))
+
+
+@numba.njit(fastmath=FAST, cache=True)
 def _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv):
-    # _cost_row for D candidates at once (oy, fy, ox, fx: (D, N); accs: (D, W) float32): each
-    # candidate's sum adds the views in the same order, but a view is taken for every candidate
-    # before the next view, so its few source rows are read from memory once, not D times.
+    # _cost_row for D candidates at once (oy, fy, ox, fx: (D, N); accs: (D, W) float32; rv: (2, W)
+    # float32 rows to work in): each candidate's sum adds the views in the same order, but two
+    # views are taken for every candidate before the next two, so their few source rows are read
+    # from memory once, not D times, and each candidate's sum is read and written once per two
+    # views (_add_two_shifted_row_diffs; 0.94 -> 0.82 s CPU on backgammon).
     c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
     accs[:] = 0.0
-    for k in range(vu.shape[0]):
-        img = gray[vu[k], vv[k]]
+    n = vu.shape[0]
+    for k in range(0, n - 1, 2):
+        p_img = gray[vu[k], vv[k]]
+        q_img = gray[vu[k + 1], vv[k + 1]]
         for j in range(oy.shape[0]):
-            _add_view_row(img, c_row, y, oy[j, k], fy[j, k], ox[j, k], fx[j, k], accs[j], rv)
+            p = _view_row(p_img, y, oy[j, k], fy[j, k], rv[0])
+            q = _view_row(q_img, y, oy[j, k + 1], fy[j, k + 1], rv[1])
+            _add_two_shifted_row_diffs(accs[j], c_row, p, ox[j, k], fx[j, k], q, ox[j, k + 1], fx[j, k + 1])
+    if n % 2:  # the last view of an odd number
+        img = gray[vu[n - 1], vv[n - 1]]
+        for j in range(oy.shape[0]):
+            _add_view_row(img, c_row, y, oy[j, n - 1], fy[j, n - 1], ox[j, n - 1], fx[j, n - 1], accs[j], rv[0])
 
 
 @numba.njit(parallel=True, fastmath=FAST, cache=True)
@@ -287,7 +339,7 @@ def _sweep_kernel(gray, vu, vv, oy, fy, ox, fx, first, window, edges, previous, 
         cost = np.empty(W, np.float32)
         ring = np.empty((D, n, W), np.float64)
         accs = np.empty((D, W), np.float32)
-        rv = np.empty(W, np.float32)
+        rv = np.empty((2, W), np.float32)
         col = np.empty(W, np.float64)
         for y in range(a, z):
             _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv)

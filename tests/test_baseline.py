@@ -92,6 +92,25 @@ def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
     np.testing.assert_array_equal(state["c_plus"][inner], volume[np.minimum(best + 1, 8), rows, cols][inner])
 
 
+@pytest.mark.parametrize("grid", [(3, 4), (1, 2), (5, 5)])  # 11 views, 1 view: the last of an odd number alone
+def test_sweep_adds_the_views_in_pairs_as_one_at_a_time(grid):
+    # The sweep adds two views in one pass (recon.costvolume._add_two_shifted_row_diffs); the cost
+    # volume's pixel_cost adds one at a time. Shifts of several pixels beyond both borders occur.
+    from recon.costvolume import box_mean, sweep_least_cost
+
+    gray = np.random.default_rng(7).random(grid + (13, 11)).astype(np.float32)
+    offsets = view_offsets(grid)
+    indices = (offsets + np.array([grid[0] // 2, grid[1] // 2])).astype(np.int64)
+    candidates = np.linspace(-6.3, 5.9, 11)
+    volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 3) for d in candidates])
+    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2)
+    best = np.argmin(volume, axis=0)
+    rows, cols = np.indices(best.shape)
+    np.testing.assert_array_equal(state["best_index"], best)
+    np.testing.assert_array_equal(state["best"], volume[best, rows, cols])
+    np.testing.assert_array_equal(state["previous"], volume[-1])
+
+
 def test_sweep_takes_the_first_nan_as_argmin_does():
     from recon.costvolume import box_mean, sweep_least_cost
 
@@ -154,3 +173,18 @@ def test_the_warm_up_loads_the_kernel_the_estimate_calls():
     lf, _ = occluding_square_scene(24, back=-0.5, front=1.0)
     estimate_baseline(lf, window=5, step=0.1, disparity_range=(-0.6, 1.2))
     assert list(_sweep_kernel.signatures) == loaded
+
+
+def test_the_warm_up_does_not_import_scipy_linalg():
+    # numba's start-up checks for BLAS by importing scipy.linalg; the baseline's warm-up skips that
+    # check (recon.methods._warm_baseline) and puts numba's own check back afterwards.
+    import subprocess
+    import sys
+
+    code = ("import sys, numba.np.linalg as L; check = L.ensure_blas\n"
+            "from recon.methods import warm_in_background\n"
+            "warm_in_background('baseline').join()\n"
+            "from recon.costvolume import _sweep_kernel\n"
+            "print(len(_sweep_kernel.signatures), 'scipy.linalg' in sys.modules, L.ensure_blas is check)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "False", "True"]
