@@ -89,15 +89,15 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
     # one window the four corners of every pixel's window lie on two rows of one integral table,
     # contiguous in x: away from the image's left and right edges the loop over x vectorises (the
     # slices index from 0, so that numba's negative-index wrap does not turn loads into gathers).
-    # penalty (K, H, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
-    # with i = (k * H + y) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
+    # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
+    # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
     # visible set (pass 1: occluded pixels, shaped windows). See window_major_penalty.
     # magic: every window total is below MAGIC_LIMIT (its int64 -> float64 conversion vectorises,
     # recon.entropy.cost.MAGIC_FLOAT).
     # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
     # same value as a strict < (no objective is NaN or -0.0), and a plain store, not a masked one.
-    K, H, W = penalty.shape
+    H, K, W = penalty.shape
     for jr in numba.prange(H):
         y = order[jr]
         c_best = np.full(W, 1e300)
@@ -111,11 +111,11 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
             yb = min(y + rects[k, 1], H - 1) + 1
             ra = rects[k, 2]
             rb = rects[k, 3]
-            pen = penalty[k, y]
-            for r in range(run_start[(k * H + y) * 2], run_start[(k * H + y) * 2 + 2]):
+            pen = penalty[y, k]
+            for r in range(run_start[(y * K + k) * 2], run_start[(y * K + k) * 2 + 2]):
                 x0 = runs[r, 0]
                 x1 = runs[r, 1]
-                pas = 1 if r >= run_start[(k * H + y) * 2 + 1] else 0
+                pas = 1 if r >= run_start[(y * K + k) * 2 + 1] else 0
                 s = window_shape[k] if pas == 1 else 0
                 every = window_shape[k] == 0  # a square: the same set for every pixel
                 want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
