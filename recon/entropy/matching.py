@@ -13,8 +13,8 @@ import numba
 import numpy as np
 
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
-                                WindowCost, block_abs_diff, block_abs_diff_reference, cost_ambiguity,
-                                min_window_costs, min_window_costs_reference, set_integrals, set_view_counts,
+                                WindowCost, block_abs_diff, block_abs_diff_reference, block_set_integrals,
+                                cost_ambiguity, min_window_costs, min_window_costs_reference, set_view_counts,
                                 window_sum_bound)
 from recon.entropy.layout import row_order, window_major_penalty
 from recon.entropy.windows import SET_BLOCKS, window_rect
@@ -235,7 +235,6 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty, run_start, runs = window_major_penalty(penalty, pixel_set, shapes)  # the caller's (H, W, K)
     # volume is freed here when it passed a temporary
-    buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)
@@ -243,8 +242,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     order = row_order(H)
     window_index = np.full((H, W), -1, np.int64)
     for i, d in enumerate(candidates):
-        block_abs_diff(gray, float(d), view_mask=view_mask, out=buf)
-        integrals = set_integrals(buf, all_sets, out=integrals)
+        integrals = block_set_integrals(gray, float(d), sets=all_sets, view_mask=view_mask, out=integrals)
         # no window total exceeds its table's whole-image total (the set values are >= 0)
         magic = bool(integrals[:, -1, -1].max() < MAGIC_LIMIT)
         _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty, run_start, runs,
