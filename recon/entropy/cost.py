@@ -304,42 +304,36 @@ def _set_table_row(rows, set_blocks, set_from, set_order, y, first, sums, fixed,
                 cur[x + 1] = acc
 
 
-@numba.njit(cache=True)
-def _band_carries(out, n_bands):
-    # (n_bands, S, W + 1) int64: the tables' rows summed over the bands above each band (of the
-    # n_bands bands the rows are cut into, each summed from 0 by _set_table_row).
+@numba.njit(cache=True, parallel=True)
+def _finish_tables(out, n_bands):
+    # The tables out (S, H + 1, W + 1) whose rows 1..H the n_bands bands of rows made each from 0
+    # (_set_table_row): their zero first row, and each band below the first the total of the
+    # bands above it added (integers: the same tables whatever the banding).
     S, H1, W1 = out.shape
     H = H1 - 1
-    carry = np.zeros((n_bands, S, W1), np.int64)
+    out[:, 0] = 0
+    carry = np.zeros((n_bands, S, W1), np.int64)  # total of the bands above each band
     for band in range(1, n_bands):
         last = band * H // n_bands  # table row of the last image row of the band above
         for s in range(S):
             for x in range(W1):
                 carry[band, s, x] = carry[band - 1, s, x] + out[s, last, x]
-    return carry
-
-
-@numba.njit(cache=True)
-def _add_carry(out, carry, y0, y1):
-    # carry (S, W + 1) added to the tables' rows y0 + 1 .. y1 (image rows y0 .. y1 - 1)
-    for s in range(out.shape[0]):
-        c = carry[s]
-        for y in range(y0 + 1, y1 + 1):
-            row = out[s, y]
-            for x in range(out.shape[2]):
-                row[x] += c[x]
+    for band in numba.prange(1, n_bands):
+        for s in range(S):
+            c = carry[band, s]
+            for y in range(band * H // n_bands + 1, (band + 1) * H // n_bands + 1):
+                row = out[s, y]
+                for x in range(W1):
+                    row[x] += c[x]
 
 
 @numba.njit(cache=True, parallel=True)
 def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, out):
-    # out[s] = summed-area table of round(FIXED_POINT * sum of blocks_ad over the blocks of set s),
-    # int64, zero first row/column (_set_table_row). The rows are cut into n_bands bands (one per
-    # thread); within a band, row by row, each set's row is made while it is in cache; then the
-    # bands below the first get the total of the bands above them added (integers: the same table
-    # whatever the banding).
+    # Rows 1..H of out[s], the summed-area table of round(FIXED_POINT * sum of blocks_ad over the
+    # blocks of set s) (_set_table_row), each of the n_bands bands of rows (one per thread) summed
+    # from 0, row by row, each set's row made while it is in cache (then _finish_tables).
     S = set_blocks.shape[0]
     B, H, W = blocks_ad.shape
-    out[:, 0] = 0
     for band in numba.prange(n_bands):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
@@ -347,10 +341,6 @@ def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, o
         fixed = np.empty(W, np.int64)
         for y in range(y0, y1):
             _set_table_row(blocks_ad[:, y], set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
-    if n_bands > 1:
-        carry = _band_carries(out, n_bands)
-        for band in numba.prange(1, n_bands):
-            _add_carry(out, carry[band], band * H // n_bands, (band + 1) * H // n_bands)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -358,11 +348,10 @@ def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_b
                                 set_order, n_bands, out):
     # _block_abs_diff_kernel and _set_integrals_kernel in one pass: each band makes its rows'
     # block rows (_block_row) and from them, while they are in cache, its rows of the tables; no
-    # (9, H, W) block images.
+    # (9, H, W) block images (then _finish_tables).
     S = set_blocks.shape[0]
     H = gray.shape[2]
     W = gray.shape[3]
-    out[:, 0] = 0
     for band in numba.prange(n_bands):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
@@ -374,10 +363,6 @@ def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_b
             acc[:] = 0.0
             _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
             _set_table_row(acc, set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
-    if n_bands > 1:
-        carry = _band_carries(out, n_bands)
-        for band in numba.prange(1, n_bands):
-            _add_carry(out, carry[band], band * H // n_bands, (band + 1) * H // n_bands)
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -412,6 +397,7 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
         out = np.empty((len(sets), H + 1, W + 1), np.int64)
     n_bands = max(1, min(numba.get_num_threads(), H))
     _set_integrals_kernel(blocks_ad, *_set_sums_plan(np.asarray(sets)), n_bands, out)
+    _finish_tables(out, n_bands)
     return out
 
 
@@ -434,6 +420,7 @@ def block_set_integrals(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
     n_bands = max(1, min(numba.get_num_threads(), H))
     _block_set_integrals_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity),
                                 *_set_sums_plan(np.asarray(sets)), n_bands, out)
+    _finish_tables(out, n_bands)
     return out
 
 
