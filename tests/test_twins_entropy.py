@@ -109,3 +109,12 @@ def test_sparse_entropies_are_the_packed_dense_ones():
     assert got.rows(0, 23).tobytes() == dense[3].tobytes()
     with pytest.raises(ValueError, match="return_all"):
         select_windows(grey, disp, labels, return_all="dense", **kw)
+
+
+def test_select_windows_refuses_negative_bins():
+    grey = np.zeros((9, 9), np.int64)
+    disp = np.zeros((9, 9), np.int64)
+    disp[4, 4] = -1  # a disparity below the bins' origin
+    labels = np.full((9, 9), TEXTURE, np.uint8)
+    with pytest.raises(ValueError, match="bin indices >= 0"):
+        select_windows(grey, disp, labels, sizes=(3, 5), alpha1=1.0, alpha2_occlusion=1.0, alpha2_other=0.0)

@@ -15,13 +15,13 @@ def test_window_major_penalty_layout():
     penalty[0, 0, 3] = np.nan  # not finite: not offered
     dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
     finite = np.isfinite(penalty)
-    np.testing.assert_array_equal(dense, np.where(finite, penalty, np.inf).transpose(2, 0, 1))
+    np.testing.assert_array_equal(dense, np.where(finite, penalty, np.inf).transpose(0, 2, 1))
     assert run_start[0] == 0 and run_start[-1] == len(runs) and (np.diff(run_start) >= 0).all()
     for k, shape in enumerate(shapes):
         for y in range(H):
             for pas in (0, 1):
                 who = finite[y, :, k] & ((occluded[y] & (shape != 0)) == bool(pas))
-                i = (k * H + y) * 2 + pas
+                i = (y * len(shapes) + k) * 2 + pas
                 mine = runs[run_start[i]:run_start[i + 1]]
                 covered = np.zeros(W, bool)
                 for lo, hi in mine:

@@ -234,79 +234,135 @@ MAGIC_LIMIT = 2 ** 51
 FIXED_LIMIT = float(MAGIC_LIMIT // 2 ** 28 - 1)
 
 
+@numba.njit(cache=True)
+def _set_sum(rows, set_blocks, set_from, s, sums):
+    # sums[s] = set s's row from the block rows rows (9, W): its blocks added in ascending order
+    # (float64, from 0.0; set_blocks[s] lists them, -1 padded), continuing the sum of set_from[s]
+    # (>= 0: the set whose blocks begin s's, whose sum is in sums already): the same additions in
+    # the same order. Returns sums[s].
+    W = rows.shape[1]
+    v = sums[s]
+    t = 0
+    p = set_from[s]
+    if p >= 0:
+        before = sums[p]
+        while t < set_blocks.shape[1] and set_blocks[p, t] >= 0:
+            t += 1
+        row_b = rows[set_blocks[s, t]]
+        for x in range(W):
+            v[x] = before[x] + row_b[x]
+    else:
+        row_b = rows[set_blocks[s, 0]]
+        for x in range(W):
+            v[x] = row_b[x]  # 0.0 + a: a itself (a block sum is >= 0 or NaN)
+    t += 1
+    while t < set_blocks.shape[1] and set_blocks[s, t] >= 0:
+        row_b = rows[set_blocks[s, t]]
+        for x in range(W):
+            v[x] += row_b[x]
+        t += 1
+    return v
+
+
+@numba.njit(cache=True)
+def _set_table_row(rows, set_blocks, set_from, set_order, y, first, sums, fixed, out):
+    # Row y + 1 of every set's table out (S, H + 1, W + 1) from the block rows of image row y,
+    # rows (9, W): each set's row (_set_sum, the sets in set_order: a set after the one it
+    # continues; sums (S, W) scratch) rounded to an int64 multiple of 1 / FIXED_POINT, summed
+    # along x and, unless y is the band's first row (first), onto the row above. fixed: (W,)
+    # int64 scratch.
+    W = rows.shape[1]
+    fixed_bits = fixed.view(np.float64)
+    for i in range(set_blocks.shape[0]):
+        s = set_order[i]
+        v = _set_sum(rows, set_blocks, set_from, s, sums)
+        # rounded apart from the running sum: these loops vectorise (float64 -> int64 as the bits
+        # of f + MAGIC_FLOAT less MAGIC_BITS, exact for integral |f| < 2^51; a row with a value out
+        # of that range, or NaN, takes the scalar conversion)
+        out_of_range = 0
+        for x in range(W):
+            out_of_range += not (abs(v[x]) < FIXED_LIMIT)
+        if out_of_range == 0:
+            for x in range(W):
+                fixed_bits[x] = np.floor(v[x] * FIXED_POINT + 0.5) + MAGIC_FLOAT
+            for x in range(W):
+                fixed[x] -= MAGIC_BITS
+        else:
+            for x in range(W):
+                fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+        cur = out[s, y + 1]
+        cur[0] = 0
+        acc = np.int64(0)
+        if not first:
+            prev = out[s, y]
+            for x in range(W):
+                acc += fixed[x]
+                cur[x + 1] = acc + prev[x + 1]
+        else:
+            for x in range(W):
+                acc += fixed[x]
+                cur[x + 1] = acc
+
+
 @numba.njit(cache=True, parallel=True)
-def _set_integrals_kernel(blocks_ad, set_blocks, n_bands, out):
-    # out[s] = summed-area table of round(FIXED_POINT * sum of blocks_ad over the blocks of set s),
-    # int64, zero first row/column; set_blocks[s] lists those blocks ascending (-1 padded) and
-    # they are added in that order (float64, from 0.0). The rows are cut into n_bands bands (one
-    # per thread); within a band, row by row and set by set, the set's row is added up along x
-    # (vectorisable), rounded, summed along x and onto the row above while it is in cache; then the
-    # bands below the first get the total of the bands above them added (integers: the same table
-    # whatever the banding).
+def _finish_tables(out, n_bands):
+    # The tables out (S, H + 1, W + 1) whose rows 1..H the n_bands bands of rows made each from 0
+    # (_set_table_row): their zero first row, and each band below the first the total of the
+    # bands above it added (integers: the same tables whatever the banding).
+    S, H1, W1 = out.shape
+    H = H1 - 1
+    out[:, 0] = 0
+    carry = np.zeros((n_bands, S, W1), np.int64)  # total of the bands above each band
+    for band in range(1, n_bands):
+        last = band * H // n_bands  # table row of the last image row of the band above
+        for s in range(S):
+            for x in range(W1):
+                carry[band, s, x] = carry[band - 1, s, x] + out[s, last, x]
+    for band in numba.prange(1, n_bands):
+        for s in range(S):
+            c = carry[band, s]
+            for y in range(band * H // n_bands + 1, (band + 1) * H // n_bands + 1):
+                row = out[s, y]
+                for x in range(W1):
+                    row[x] += c[x]
+
+
+@numba.njit(cache=True, parallel=True)
+def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, out):
+    # Rows 1..H of out[s], the summed-area table of round(FIXED_POINT * sum of blocks_ad over the
+    # blocks of set s) (_set_table_row), each of the n_bands bands of rows (one per thread) summed
+    # from 0, row by row, each set's row made while it is in cache (then _finish_tables).
     S = set_blocks.shape[0]
     B, H, W = blocks_ad.shape
-    for s in range(S):
-        for x in range(W + 1):
-            out[s, 0, x] = 0
     for band in numba.prange(n_bands):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
-        v = np.empty(W, np.float64)
+        sums = np.empty((S, W), np.float64)
         fixed = np.empty(W, np.int64)
-        fixed_bits = fixed.view(np.float64)
         for y in range(y0, y1):
-            for s in range(S):
-                for x in range(W):
-                    v[x] = 0.0
-                for t in range(set_blocks.shape[1]):
-                    b = set_blocks[s, t]
-                    if b < 0:
-                        break
-                    row_b = blocks_ad[b, y]
-                    for x in range(W):
-                        v[x] += row_b[x]
-                # rounded apart from the running sum: these loops vectorise (float64 -> int64 as
-                # the bits of f + MAGIC_FLOAT less MAGIC_BITS, exact for integral |f| < 2^51; a
-                # row with a value out of that range, or NaN, takes the scalar conversion)
-                out_of_range = 0
-                for x in range(W):
-                    out_of_range += not (abs(v[x]) < FIXED_LIMIT)
-                if out_of_range == 0:
-                    for x in range(W):
-                        fixed_bits[x] = np.floor(v[x] * FIXED_POINT + 0.5) + MAGIC_FLOAT
-                    for x in range(W):
-                        fixed[x] -= MAGIC_BITS
-                else:
-                    for x in range(W):
-                        fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
-                cur = out[s, y + 1]
-                cur[0] = 0
-                acc = np.int64(0)
-                if y > y0:
-                    prev = out[s, y]
-                    for x in range(W):
-                        acc += fixed[x]
-                        cur[x + 1] = acc + prev[x + 1]
-                else:
-                    for x in range(W):
-                        acc += fixed[x]
-                        cur[x + 1] = acc
-    if n_bands > 1:
-        carry = np.zeros((n_bands, S, W + 1), np.int64)  # total of the bands above each band
-        for band in range(1, n_bands):
-            last = band * H // n_bands  # table row of the last image row of the band above
-            for s in range(S):
-                for x in range(W + 1):
-                    carry[band, s, x] = carry[band - 1, s, x] + out[s, last, x]
-        for band in numba.prange(1, n_bands):
-            y0 = band * H // n_bands
-            y1 = (band + 1) * H // n_bands
-            for s in range(S):
-                c = carry[band, s]
-                for y in range(y0 + 1, y1 + 1):
-                    row = out[s, y]
-                    for x in range(W + 1):
-                        row[x] += c[x]
+            _set_table_row(blocks_ad[:, y], set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
+
+
+@numba.njit(cache=True, parallel=True)
+def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from,
+                                set_order, n_bands, out):
+    # _block_abs_diff_kernel and _set_integrals_kernel in one pass: each band makes its rows'
+    # block rows (_block_row) and from them, while they are in cache, its rows of the tables; no
+    # (9, H, W) block images (then _finish_tables).
+    S = set_blocks.shape[0]
+    H = gray.shape[2]
+    W = gray.shape[3]
+    for band in numba.prange(n_bands):
+        y0 = band * H // n_bands
+        y1 = (band + 1) * H // n_bands
+        acc = np.empty((N_BLOCKS, W), np.float32)
+        rv = np.empty(W, np.float32)
+        sums = np.empty((S, W), np.float64)
+        fixed = np.empty(W, np.int64)
+        for y in range(y0, y1):
+            acc[:] = 0.0
+            _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
+            _set_table_row(acc, set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -340,7 +396,31 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
     if out is None:
         out = np.empty((len(sets), H + 1, W + 1), np.int64)
     n_bands = max(1, min(numba.get_num_threads(), H))
-    _set_integrals_kernel(blocks_ad, _set_block_lists(np.asarray(sets)), n_bands, out)
+    _set_integrals_kernel(blocks_ad, *_set_sums_plan(np.asarray(sets)), n_bands, out)
+    _finish_tables(out, n_bands)
+    return out
+
+
+def block_set_integrals_reference(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
+                                  view_mask: np.ndarray | None = None) -> np.ndarray:
+    """``(S, H + 1, W + 1)`` int64 summed-area tables of the view sets ``sets`` at ``disparity``,
+    step by step (readable twin of :func:`block_set_integrals`): the block images
+    (:func:`block_abs_diff`), then their sets' tables (:func:`set_integrals_reference`)."""
+    return set_integrals_reference(block_abs_diff(gray, disparity, view_mask=view_mask), np.asarray(sets))
+
+
+def block_set_integrals(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
+                        view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Compiled twin of :func:`block_set_integrals_reference` (same arguments and tables, bit for
+    bit; ``gray`` contiguous float32), written into ``out`` when given: one pass over the rows,
+    without the ``(9, H, W)`` block images."""
+    U, V, H, W = gray.shape
+    if out is None:
+        out = np.empty((len(sets), H + 1, W + 1), np.int64)
+    n_bands = max(1, min(numba.get_num_threads(), H))
+    _block_set_integrals_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity),
+                                *_set_sums_plan(np.asarray(sets)), n_bands, out)
+    _finish_tables(out, n_bands)
     return out
 
 
@@ -448,26 +528,7 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
                 slot = ring[nxt % R]
                 for i in range(S):
                     s = set_order[i]
-                    v = sums[s]
-                    t = 0
-                    p = set_from[s]
-                    if p >= 0:
-                        before = sums[p]
-                        while t < set_blocks.shape[1] and set_blocks[p, t] >= 0:
-                            t += 1
-                        row_b = acc[set_blocks[s, t]]
-                        for x in range(W):
-                            v[x] = before[x] + row_b[x]
-                    else:
-                        row_b = acc[set_blocks[s, 0]]
-                        for x in range(W):
-                            v[x] = row_b[x]  # 0.0 + a: a itself (a block sum is >= 0 or NaN)
-                    t += 1
-                    while t < set_blocks.shape[1] and set_blocks[s, t] >= 0:
-                        row_b = acc[set_blocks[s, t]]
-                        for x in range(W):
-                            v[x] += row_b[x]
-                        t += 1
+                    v = _set_sum(acc, set_blocks, set_from, s, sums)
                     fixed = slot[s]
                     for x in range(W):
                         fixed[x] = np.floor(v[x] * FIXED_POINT + 0.5)

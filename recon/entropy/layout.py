@@ -17,71 +17,84 @@ RUN_GAP = 64
 
 
 @numba.njit(cache=True)
-def _offer_runs(dense, pixel_set, y, k, pas, shaped, runs, n):
-    # Runs of row y's pixels that offer window k in pass pas (see _joint_cost_kernel; dense is the
-    # (K, H, W) penalty, inf = not offered), gaps below RUN_GAP closed; written to runs[n:] if runs
-    # has rows, else only counted. Returns n + count.
-    W = dense.shape[2]
-    lo = -1
-    hi = -1
-    row = dense[k, y]
-    for x in range(W):
-        if row[x] == np.inf or (shaped and pixel_set[y, x]) != (pas == 1):
+def _offer_runs(row, occluded, shaped, runs, n, lo, hi):
+    # The runs of the pixels that offer one window in one row, both passes in one scan (see
+    # _joint_cost_kernel; row: (W,) penalty, inf = not offered; a pixel is in pass 1 if the window
+    # is shaped and the pixel occluded, else in pass 0), gaps below RUN_GAP closed. n: (2,) each
+    # pass's next run, advanced by the runs found, which are written to runs if it has rows;
+    # lo, hi: (2,) scratch.
+    lo[:] = -1
+    hi[:] = -1
+    for x in range(row.shape[0]):
+        if row[x] == np.inf:
             continue
-        if lo >= 0 and x - hi >= RUN_GAP:
-            if runs.shape[0] > 0:
-                runs[n, 0] = lo
-                runs[n, 1] = hi
-            n += 1
-            lo = -1
-        if lo < 0:
-            lo = x
-        hi = x + 1
-    if lo >= 0:
-        if runs.shape[0] > 0:
-            runs[n, 0] = lo
-            runs[n, 1] = hi
-        n += 1
-    return n
+        p = 1 if shaped and occluded[x] else 0
+        if lo[p] >= 0 and x - hi[p] >= RUN_GAP:
+            _put_run(runs, n, p, lo[p], hi[p])
+            lo[p] = -1
+        if lo[p] < 0:
+            lo[p] = x
+        hi[p] = x + 1
+    for p in range(2):
+        if lo[p] >= 0:
+            _put_run(runs, n, p, lo[p], hi[p])
+
+
+@numba.njit(cache=True)
+def _put_run(runs, n, p, lo, hi):
+    if runs.shape[0] > 0:
+        runs[n[p], 0] = lo
+        runs[n[p], 1] = hi
+    n[p] += 1
 
 
 @numba.njit(cache=True, parallel=True)
 def _window_major_kernel(penalty, pixel_set, window_shape, out):
-    # Row by row (a row of the (H, W, K) volume stays in cache), each window's row written along x;
-    # the runs counted per (window, row, pass), then laid out in that order and written.
+    # Row by row: the row's (W, K) penalties written window by window (out[y], (K, W), in cache
+    # while its runs are found), each window's runs of both passes counted in one scan; then laid
+    # out in the order (row, window, pass) and written in a second scan.
     H, W, K = penalty.shape
-    count = np.zeros(K * H * 2 + 1, np.int64)
+    count = np.zeros(H * K * 2 + 1, np.int64)
     none = np.empty((0, 2), np.int32)
     for y in numba.prange(H):
+        n = np.empty(2, np.int64)
+        lo = np.empty(2, np.int64)
+        hi = np.empty(2, np.int64)
+        src = penalty[y]
         for k in range(K):
+            dst = out[y, k]  # written along x: 117 -> 73 ms on backgammon against x outer
             for x in range(W):
-                v = penalty[y, x, k]
-                out[k, y, x] = v if np.isfinite(v) else np.inf
-            shaped = window_shape[k] != 0
-            for pas in range(2):
-                count[(k * H + y) * 2 + pas + 1] = _offer_runs(out, pixel_set, y, k, pas, shaped,
-                                                               none, 0)
-    for i in range(K * H * 2):
+                v = src[x, k]
+                dst[x] = v if np.isfinite(v) else np.inf
+            n[:] = 0
+            _offer_runs(dst, pixel_set[y], window_shape[k] != 0, none, n, lo, hi)
+            count[(y * K + k) * 2 + 1] = n[0]
+            count[(y * K + k) * 2 + 2] = n[1]
+    for i in range(H * K * 2):
         count[i + 1] += count[i]
-    runs = np.empty((count[K * H * 2], 2), np.int32)
+    runs = np.empty((count[H * K * 2], 2), np.int32)
     for y in numba.prange(H):
+        n = np.empty(2, np.int64)
+        lo = np.empty(2, np.int64)
+        hi = np.empty(2, np.int64)
         for k in range(K):
-            shaped = window_shape[k] != 0
-            for pas in range(2):
-                _offer_runs(out, pixel_set, y, k, pas, shaped, runs, count[(k * H + y) * 2 + pas])
+            n[0] = count[(y * K + k) * 2]
+            n[1] = count[(y * K + k) * 2 + 1]
+            _offer_runs(out[y, k], pixel_set[y], window_shape[k] != 0, runs, n, lo, hi)
     return count, runs
 
 
 def window_major_penalty(penalty: np.ndarray, use_shape_set: np.ndarray, window_shape: np.ndarray):
-    """The joint search's layout of its ``(H, W, K)`` penalty: ``(K, H, W)`` float32 (``inf`` where
-    the entry is not finite: window not offered) and the column runs of the pixels that offer each
-    window, per window ``k``, row ``y`` and pass (0: pixels matched over all views, every pixel for
-    a square window, shape 0; 1: shaped windows at ``use_shape_set`` pixels, matched over the
-    window's visible set): ``runs[run_start[i]:run_start[i + 1]]`` with ``i = (k * H + y) * 2 +
-    pass``, ``(n, 2)`` int32 ``[lo, hi)`` ascending, each starting and ending at an offering pixel,
-    runs closer than :data:`RUN_GAP` joined. Returns ``(penalty, run_start, runs)``."""
+    """The joint search's layout of its ``(H, W, K)`` penalty: ``(H, K, W)`` float32, each row's
+    windows one after another (``inf`` where the entry is not finite: window not offered) and the
+    column runs of the pixels that offer each window, per row ``y``, window ``k`` and pass (0:
+    pixels matched over all views, every pixel for a square window, shape 0; 1: shaped windows at
+    ``use_shape_set`` pixels, matched over the window's visible set): ``runs[run_start[i]:run_start[i
+    + 1]]`` with ``i = (y * K + k) * 2 + pass``, ``(n, 2)`` int32 ``[lo, hi)`` ascending, each
+    starting and ending at an offering pixel, runs closer than :data:`RUN_GAP` joined. Returns
+    ``(penalty, run_start, runs)``."""
     H, W, K = penalty.shape
-    out = np.empty((K, H, W), np.float32)
+    out = np.empty((H, K, W), np.float32)
     run_start, runs = _window_major_kernel(np.ascontiguousarray(penalty, dtype=np.float32),
                                            np.ascontiguousarray(use_shape_set, dtype=np.bool_),
                                            np.ascontiguousarray(window_shape, dtype=np.int64), out)

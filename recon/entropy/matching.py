@@ -13,8 +13,8 @@ import numba
 import numpy as np
 
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
-                                WindowCost, block_abs_diff, block_abs_diff_reference, cost_ambiguity,
-                                min_window_costs, min_window_costs_reference, set_integrals, set_view_counts,
+                                WindowCost, block_abs_diff, block_abs_diff_reference, block_set_integrals,
+                                cost_ambiguity, min_window_costs, min_window_costs_reference, set_view_counts,
                                 window_sum_bound)
 from recon.entropy.layout import row_order, window_major_penalty
 from recon.entropy.windows import SET_BLOCKS, window_rect
@@ -89,15 +89,15 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
     # one window the four corners of every pixel's window lie on two rows of one integral table,
     # contiguous in x: away from the image's left and right edges the loop over x vectorises (the
     # slices index from 0, so that numba's negative-index wrap does not turn loads into gathers).
-    # penalty (K, H, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
-    # with i = (k * H + y) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
+    # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
+    # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
     # visible set (pass 1: occluded pixels, shaped windows). See window_major_penalty.
     # magic: every window total is below MAGIC_LIMIT (its int64 -> float64 conversion vectorises,
     # recon.entropy.cost.MAGIC_FLOAT).
     # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
     # same value as a strict < (no objective is NaN or -0.0), and a plain store, not a masked one.
-    K, H, W = penalty.shape
+    H, K, W = penalty.shape
     for jr in numba.prange(H):
         y = order[jr]
         c_best = np.full(W, 1e300)
@@ -111,11 +111,11 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
             yb = min(y + rects[k, 1], H - 1) + 1
             ra = rects[k, 2]
             rb = rects[k, 3]
-            pen = penalty[k, y]
-            for r in range(run_start[(k * H + y) * 2], run_start[(k * H + y) * 2 + 2]):
+            pen = penalty[y, k]
+            for r in range(run_start[(y * K + k) * 2], run_start[(y * K + k) * 2 + 2]):
                 x0 = runs[r, 0]
                 x1 = runs[r, 1]
-                pas = 1 if r >= run_start[(k * H + y) * 2 + 1] else 0
+                pas = 1 if r >= run_start[(y * K + k) * 2 + 1] else 0
                 s = window_shape[k] if pas == 1 else 0
                 every = window_shape[k] == 0  # a square: the same set for every pixel
                 want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
@@ -235,7 +235,6 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty, run_start, runs = window_major_penalty(penalty, pixel_set, shapes)  # the caller's (H, W, K)
     # volume is freed here when it passed a temporary
-    buf = np.empty((N_BLOCKS, H, W), np.float32)
     integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)
@@ -243,8 +242,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     order = row_order(H)
     window_index = np.full((H, W), -1, np.int64)
     for i, d in enumerate(candidates):
-        block_abs_diff(gray, float(d), view_mask=view_mask, out=buf)
-        integrals = set_integrals(buf, all_sets, out=integrals)
+        integrals = block_set_integrals(gray, float(d), sets=all_sets, view_mask=view_mask, out=integrals)
         # no window total exceeds its table's whole-image total (the set values are >= 0)
         magic = bool(integrals[:, -1, -1].max() < MAGIC_LIMIT)
         _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty, run_start, runs,
