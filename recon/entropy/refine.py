@@ -36,7 +36,8 @@ MULTIGRID_RTOL = 1e-12
 def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto") -> np.ndarray:
     """``values`` with the ``holes`` pixels replaced by the solution of Laplace's equation whose
     boundary values are the known neighbours (4-neighbourhood, image edges free). Linear functions
-    are reproduced exactly. ``(H, W)`` float32; returned unchanged when nothing is known.
+    are reproduced where the hole keeps off the image's edges (to rounding by the LU, to the
+    tolerance by multigrid). ``(H, W)`` float32; returned unchanged when nothing is known.
 
     ``solver``: ``"lu"`` (scipy's sparse LU, exact to rounding; its memory grows faster than the
     hole), ``"multigrid"`` (conjugate gradients preconditioned with a multigrid V-cycle to a
