@@ -169,3 +169,6 @@ def test_harmonic_fill_takes_the_lu_up_to_its_size(monkeypatch):
                           refine.harmonic_fill(values, hole, solver="multigrid"))
     with pytest.raises(ValueError, match="solver"):
         refine.harmonic_fill(values, hole, solver="cg")
+    ring = hole & ~np.roll(hole, 1, axis=0)  # the hole's top rim: its known neighbours lie above
+    with pytest.raises(ValueError, match="non-finite"):
+        refine.harmonic_fill(np.where(np.roll(ring, -1, axis=0), np.nan, values), hole)

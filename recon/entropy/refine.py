@@ -41,8 +41,9 @@ def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto"
 
     ``solver``: ``"lu"`` (scipy's sparse LU, exact to rounding; its memory grows faster than the
     hole), ``"multigrid"`` (conjugate gradients preconditioned with a multigrid V-cycle to a
-    relative residual of :data:`MULTIGRID_RTOL`; memory in proportion to the hole) or ``"auto"``
-    (the LU up to :data:`LU_MAX_PIXELS` hole pixels, else multigrid)."""
+    relative residual of :data:`MULTIGRID_RTOL`; memory in proportion to the hole; ``ValueError``
+    when a known neighbour is not finite, where the LU gives NaN) or ``"auto"`` (the LU up to
+    :data:`LU_MAX_PIXELS` hole pixels, else multigrid)."""
     if solver not in ("auto", "lu", "multigrid"):
         raise ValueError(f"solver must be 'auto', 'lu' or 'multigrid', got {solver!r}")
     holes = np.asarray(holes, bool)
@@ -53,6 +54,9 @@ def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto"
     A, rhs = _laplace_system(out, holes, ys, xs)
     if solver == "lu" or (solver == "auto" and len(ys) <= LU_MAX_PIXELS):
         out[ys, xs] = scipy.sparse.linalg.spsolve(A.tocsc(), rhs)
+    elif not np.isfinite(rhs).all():
+        raise ValueError(f"harmonic_fill: {np.count_nonzero(~np.isfinite(rhs))} hole pixels have a non-finite known "
+                         "neighbour; pass finite values around the holes (or mark those pixels as holes too)")
     else:
         out[ys, xs] = _multigrid_cg(A, rhs, ys, xs)
     return out.astype(np.float32)
