@@ -26,7 +26,7 @@ import scipy.sparse.linalg
 #: Holes of up to this many pixels (every hole of a 512x512 image) are filled by a sparse LU of their
 #: Laplacian, larger ones by conjugate gradients preconditioned with multigrid (:func:`harmonic_fill`).
 #: The LU's memory grows faster than the hole (a square of 2^18 pixels: 508 MiB, the multigrid's 107;
-#: the 1.24 M pixels of a 2000x1500 capture's wall: 2.8 GB and 360 s, the multigrid's 377 MiB and 4 s).
+#: the 1.24 M pixels of a 2000x1500 capture's wall: 2.8 GB and 19 s CPU, the multigrid's 377 MiB and 4 s).
 LU_MAX_PIXELS = 2 ** 18
 
 #: Relative residual ``|A x - b| / |b|`` at which the multigrid-preconditioned solve stops.
