@@ -14,7 +14,7 @@ from recon.entropy.options import PRESETS
 from recon.entropy.steps import _largest_windows_only, noise_limited_pixels
 from recon.entropy.noise import (filter_flat_views, filter_gain, filter_reach_px, gradient_noise_energy,
                                  soften_reach_px, soften_views, texture_reach_px, texture_to_noise,
-                                 weak_texture_pixels)
+                                 warp_mask_to_views, weak_texture_pixels)
 from recon.lf.lightfield import LightField
 from recon.synthetic import noise_texture
 
@@ -146,6 +146,17 @@ def _faint_wall(n: int, d: float, seed: int, *, texture_levels: float = 0.7) -> 
             views[u, v] = cv2.warpAffine(texture, m, (n, n), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     views += rng.normal(0, 1.5 / 255, views.shape).astype(np.float32)
     return LightField(views=np.clip(views, 0, 1), disparity_range=(d - 0.75, d + 1.25))
+
+
+def test_warp_mask_to_views_by_rows_is_the_whole_grid_s_rows():
+    rng = np.random.default_rng(4)
+    mask = rng.random((30, 40)) < 0.1
+    disparity = rng.uniform(-1.5, 1.5, mask.shape).astype(np.float32)
+    whole = warp_mask_to_views(mask, disparity, (5, 3))
+    assert whole.shape == (5, 3, 30, 40) and whole[2, 1, mask].all()  # the centre view: the mask, grown
+    for u in range(5):
+        assert np.array_equal(warp_mask_to_views(mask, disparity, (5, 3), rows=range(u, u + 1)), whole[u:u + 1])
+    assert np.array_equal(warp_mask_to_views(mask, disparity, (5, 3), rows=range(1, 4)), whole[1:4])
 
 
 def test_soften_views_filters_only_where_asked_and_is_local():

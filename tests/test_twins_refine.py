@@ -108,3 +108,67 @@ def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin()
     crop = centroid_correction(np.ascontiguousarray(d[5:, 7:], dtype=np.float32), rects[5:, 7:], **kwargs)
     # away from the crop's edge (15-px windows reach 7 px) a crop is bit-identical to the whole
     np.testing.assert_array_equal(crop[7:, 7:], fast[12:, 14:])
+
+
+def _fill_scene(H=120, W=160):
+    # a slope, a wave and noise; hole masks of several shapes
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:H, 0:W]
+    values = (0.3 * np.sin(y / 9.0) + 0.01 * x + 0.05 * rng.standard_normal((H, W))).astype(np.float32)
+    holes = {
+        "disc": (y - 60) ** 2 + (x - 80) ** 2 < 50 ** 2,
+        "border": (y < 70) & (x > 50),
+        "disconnected": (((y - 25) ** 2 + (x - 30) ** 2 < 20 ** 2) | ((y > 60) & (y < 110) & (x > 70) & (x < 150))
+                         | ((x - y) % 23 == 0) | (y == 55)),
+        "scattered": rng.random((H, W)) < 0.6,
+    }
+    return values, holes
+
+
+def test_harmonic_fill_multigrid_agrees_with_the_lu():
+    from recon.entropy.refine import MULTIGRID_COARSEST, harmonic_fill
+
+    values, holes = _fill_scene()
+    for name, hole in holes.items():
+        assert hole.sum() > MULTIGRID_COARSEST, name  # the V-cycle has coarse levels
+        lu = harmonic_fill(values, hole, solver="lu")
+        multigrid = harmonic_fill(values, hole, solver="multigrid")
+        assert np.array_equal(multigrid[~hole], values[~hole]), name
+        np.testing.assert_allclose(multigrid, lu, atol=1e-6, err_msg=name)
+
+
+def test_harmonic_fill_solvers_keep_a_plane_and_a_constant():
+    from recon.entropy.refine import harmonic_fill
+
+    _, holes = _fill_scene()
+    y, x = np.mgrid[0:120, 0:160]
+    plane = (0.2 + 0.01 * x - 0.02 * y).astype(np.float32)
+    constant = np.full(plane.shape, 0.7, np.float32)
+    noise = np.random.default_rng(2).uniform(-2, 2, plane.shape).astype(np.float32)
+    inner = np.zeros(plane.shape, bool)  # a plane is kept where the hole has no pixel on the image's edge
+    inner[1:-1, 1:-1] = True
+    for solver in ("lu", "multigrid"):
+        for hole in holes.values():
+            np.testing.assert_allclose(harmonic_fill(np.where(hole, noise, constant), hole, solver=solver),
+                                       constant, atol=1e-5)  # the system's weak tie to 0: 1e-6 here
+            hole = hole & inner
+            np.testing.assert_allclose(harmonic_fill(np.where(hole, noise, plane), hole, solver=solver), plane,
+                                       atol=1e-5)
+
+
+def test_harmonic_fill_takes_the_lu_up_to_its_size(monkeypatch):
+    import pytest
+
+    from recon.entropy import refine
+
+    values, holes = _fill_scene()
+    hole = holes["disc"]
+    assert np.array_equal(refine.harmonic_fill(values, hole), refine.harmonic_fill(values, hole, solver="lu"))
+    monkeypatch.setattr(refine, "LU_MAX_PIXELS", int(hole.sum()) - 1)
+    assert np.array_equal(refine.harmonic_fill(values, hole),
+                          refine.harmonic_fill(values, hole, solver="multigrid"))
+    with pytest.raises(ValueError, match="solver"):
+        refine.harmonic_fill(values, hole, solver="cg")
+    ring = hole & ~np.roll(hole, 1, axis=0)  # the hole's top rim: its known neighbours lie above
+    with pytest.raises(ValueError, match="non-finite"):
+        refine.harmonic_fill(np.where(np.roll(ring, -1, axis=0), np.nan, values), hole)

@@ -71,22 +71,25 @@ def soften_reach_px(sigma_px: float) -> int:
     return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)))
 
 
-def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
-    """``(U, V, H, W)`` bool: where the centre-view pixels of ``mask`` land in each view with
-    ``disparity`` (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel
-    to close the gaps of the forward warp."""
+def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
+                       rows: range | None = None) -> np.ndarray:
+    """``(len(rows), V, H, W)`` bool: where the centre-view pixels of ``mask`` land in the views of
+    the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
+    (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel to close the
+    gaps of the forward warp."""
     U, V = grid_shape
+    rows = range(U) if rows is None else rows
     H, W = mask.shape
     ys, xs = np.nonzero(mask)
     d = np.asarray(disparity, np.float64)[ys, xs]
-    out = np.zeros((U, V, H, W), bool)
-    for u in range(U):
+    out = np.zeros((len(rows), V, H, W), bool)
+    for i, u in enumerate(rows):
         for v in range(V):
             ly = np.floor(ys - (u - U // 2) * d + 0.5).astype(np.int64)
             lx = np.floor(xs - (v - V // 2) * d + 0.5).astype(np.int64)
             ok = (ly >= 0) & (ly < H) & (lx >= 0) & (lx < W)
-            out[u, v, ly[ok], lx[ok]] = True
-            out[u, v] = cv2.dilate(out[u, v].view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+            out[i, v, ly[ok], lx[ok]] = True
+            out[i, v] = cv2.dilate(out[i, v].view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
     return out
 
 

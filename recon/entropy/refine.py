@@ -23,41 +23,145 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 
-def harmonic_fill(values: np.ndarray, holes: np.ndarray) -> np.ndarray:
+#: Holes of up to this many pixels (every hole of a 512x512 image) are filled by a sparse LU of their
+#: Laplacian, larger ones by conjugate gradients preconditioned with multigrid (:func:`harmonic_fill`).
+#: The LU's memory grows faster than the hole (a square of 2^18 pixels: 508 MiB, the multigrid's 107;
+#: the 1.24 M pixels of a 2000x1500 capture's wall: 2.8 GB and 19 s CPU, the multigrid's 377 MiB and 4 s).
+LU_MAX_PIXELS = 2 ** 18
+
+#: Relative residual ``|A x - b| / |b|`` at which the multigrid-preconditioned solve stops.
+MULTIGRID_RTOL = 1e-12
+
+
+def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto") -> np.ndarray:
     """``values`` with the ``holes`` pixels replaced by the solution of Laplace's equation whose
     boundary values are the known neighbours (4-neighbourhood, image edges free). Linear functions
-    are reproduced exactly. ``(H, W)`` float32; returned unchanged when nothing is known."""
+    are reproduced where the hole keeps off the image's edges (to rounding by the LU, to the
+    tolerance by multigrid). ``(H, W)`` float32; returned unchanged when nothing is known.
+
+    ``solver``: ``"lu"`` (scipy's sparse LU, exact to rounding; its memory grows faster than the
+    hole), ``"multigrid"`` (conjugate gradients preconditioned with a multigrid V-cycle to a
+    relative residual of :data:`MULTIGRID_RTOL`; memory in proportion to the hole; ``ValueError``
+    when a known neighbour is not finite, where the LU gives NaN) or ``"auto"`` (the LU up to
+    :data:`LU_MAX_PIXELS` hole pixels, else multigrid)."""
+    if solver not in ("auto", "lu", "multigrid"):
+        raise ValueError(f"solver must be 'auto', 'lu' or 'multigrid', got {solver!r}")
     holes = np.asarray(holes, bool)
-    out = values.astype(np.float64).copy()
+    out = np.array(values, np.float64)
     if not holes.any() or holes.all():
         return out.astype(np.float32)
-    H, W = holes.shape
-    index = np.full((H, W), -1, np.int64)
     ys, xs = np.nonzero(holes)
+    A, rhs = _laplace_system(out, holes, ys, xs)
+    if solver == "lu" or (solver == "auto" and len(ys) <= LU_MAX_PIXELS):
+        out[ys, xs] = scipy.sparse.linalg.spsolve(A.tocsc(), rhs)
+    elif not np.isfinite(rhs).all():
+        raise ValueError(f"harmonic_fill: {np.count_nonzero(~np.isfinite(rhs))} hole pixels have a non-finite known "
+                         "neighbour; pass finite values around the holes (or mark those pixels as holes too)")
+    else:
+        out[ys, xs] = _multigrid_cg(A, rhs, ys, xs)
+    return out.astype(np.float32)
+
+
+def _laplace_system(values: np.ndarray, holes: np.ndarray, ys: np.ndarray, xs: np.ndarray):
+    """``(A, b)``: the 4-neighbour Laplace equations ``A x = b`` of the hole pixels ``(ys, xs)``
+    (``A`` CSR ``(n, n)``, the known neighbours' ``values`` in ``b``). A hole component without a
+    known neighbour has no boundary value: ``1e-9`` on the diagonal ties it weakly to 0 so that the
+    system stays regular (cannot happen unless a component is cut off from every known pixel)."""
+    H, W = holes.shape
     n = len(ys)
+    index = np.full((H, W), -1, np.int32 if n < 2 ** 31 else np.int64)
     index[ys, xs] = np.arange(n)
-    rows, cols, data = [], [], []
     rhs = np.zeros(n)
     diag = np.zeros(n)
-    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+    columns = np.full((n, 5), -1, index.dtype)  # per row: its unknown neighbours (-1: none), itself
+    for j, (dy, dx) in enumerate(((-1, 0), (1, 0), (0, -1), (0, 1))):
         ny, nx = ys + dy, xs + dx
         ok = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
         diag[ok] += 1
         k = np.nonzero(ok)[0]
-        nb = index[ny[k], nx[k]]
-        unknown = nb >= 0
-        rows.append(k[unknown])
-        cols.append(nb[unknown])
-        data.append(-np.ones(unknown.sum()))
-        rhs[k[~unknown]] += out[ny[k[~unknown]], nx[k[~unknown]]]
-    A = scipy.sparse.csr_matrix((np.concatenate(data + [diag]),
-                                 (np.concatenate(rows + [np.arange(n)]),
-                                  np.concatenate(cols + [np.arange(n)]))), shape=(n, n))
-    # A hole component without a known neighbour has no boundary value: tie it weakly to 0 so that
-    # the system stays regular (cannot happen unless a component is cut off from every known pixel).
-    A = A + scipy.sparse.identity(n) * 1e-9
-    out[ys, xs] = scipy.sparse.linalg.spsolve(A.tocsc(), rhs)
-    return out.astype(np.float32)
+        columns[k, j] = nb = index[ny[k], nx[k]]
+        known = k[nb < 0]
+        rhs[known] += values[ny[known], nx[known]]
+    del index
+    columns[:, 4] = np.arange(n)
+    present = columns >= 0
+    data = np.full((n, 5), -1.0)
+    data[:, 4] = diag + 1e-9
+    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
+    return scipy.sparse.csr_matrix((data[present], columns[present], indptr), shape=(n, n)), rhs
+
+
+#: The multigrid's coarsest level: solved by a sparse LU once it has at most this many unknowns.
+MULTIGRID_COARSEST = 4096
+
+
+def _coarser(ys: np.ndarray, xs: np.ndarray):
+    """``(P, cys, cxs)``: the next level's nodes, the points ``(ys, xs)`` (given row by row) on
+    even rows and columns, at ``(cys, cxs) = (ys, xs) // 2``, and the bilinear interpolation ``P``
+    (CSR ``(n, m)``) from them to the points, its weights normalised over the nodes present (a
+    point with none gets none)."""
+    even = (ys % 2 == 0) & (xs % 2 == 0)
+    width = int(xs.max()) // 2 + 2
+    nodes = ys[even] // 2 * width + xs[even] // 2  # sorted, as the points come row by row
+    n = len(ys)
+    columns = np.full((n, 4), -1, np.int32 if len(nodes) < 2 ** 31 else np.int64)
+    weights = np.zeros((n, 4))
+    if len(nodes):
+        for j, (a, b) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+            key = (ys // 2 + a) * width + xs // 2 + b
+            at = np.minimum(np.searchsorted(nodes, key), len(nodes) - 1)
+            w = np.where(ys % 2, 0.5, 1.0 - a) * np.where(xs % 2, 0.5, 1.0 - b)  # odd: two nodes, half each
+            hit = (w > 0) & (nodes[at] == key)
+            columns[hit, j] = at[hit]
+            weights[hit, j] = w[hit]
+    total = weights.sum(axis=1, keepdims=True)
+    np.divide(weights, total, out=weights, where=total > 0)
+    present = columns >= 0
+    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
+    P = scipy.sparse.csr_matrix((weights[present], columns[present], indptr), shape=(n, len(nodes)))
+    return P, nodes // width, nodes % width
+
+
+def _multigrid_cg(A: scipy.sparse.csr_matrix, b: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """Solve ``A x = b`` (:func:`_laplace_system` of the pixels ``(ys, xs)``) by conjugate gradients
+    preconditioned with one V-cycle: Galerkin coarse levels ``P^T A P`` on grids of every other row and
+    column (:func:`_coarser`), two damped-Jacobi sweeps before and after each coarse correction
+    (damping ``4 / 3`` over the Gershgorin bound of ``D^-1 A``), a sparse LU on the coarsest level."""
+    system = A
+    ys, xs = ys.astype(np.int32), xs.astype(np.int32)  # (H * W < 2 ** 31)
+    levels = []  # (A, omega / diagonal, P to the next level)
+    while A.shape[0] > MULTIGRID_COARSEST:
+        P, cys, cxs = _coarser(ys, xs)
+        if P.shape[1] > A.shape[0] // 2:  # too few points to drop: solve this level
+            break
+        ys, xs = cys, cxs
+        diagonal = A.diagonal()
+        omega = 4.0 / 3.0 / np.max(np.add.reduceat(np.abs(A.data), A.indptr[:-1]) / diagonal)
+        levels.append((A, omega / diagonal, P))
+        A = (P.T @ A @ P).tocsr()
+    coarsest = scipy.sparse.linalg.splu(A.tocsc())
+
+    n = len(b)
+    M = scipy.sparse.linalg.LinearOperator((n, n), matvec=lambda r: _vcycle(levels, coarsest, r),
+                                           dtype=np.float64)
+    x, info = scipy.sparse.linalg.cg(system, b, rtol=MULTIGRID_RTOL, atol=0.0,
+                                     M=M, maxiter=500)
+    if info != 0:
+        raise RuntimeError(f"the hole fill's multigrid solve did not converge in {info} iterations")
+    return x
+
+
+def _vcycle(levels: list, coarsest, r: np.ndarray, level: int = 0) -> np.ndarray:
+    """One V-cycle of :func:`_multigrid_cg` from ``level`` on the residual ``r``."""
+    if level == len(levels):
+        return coarsest.solve(r)
+    A, scale, P = levels[level]
+    x = scale * r
+    x += scale * (r - A @ x)
+    x += P @ _vcycle(levels, coarsest, P.T @ (r - A @ x), level + 1)
+    for _ in range(2):
+        x += scale * (r - A @ x)
+    return x
 
 
 def _grad(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

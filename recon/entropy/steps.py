@@ -177,32 +177,32 @@ def layer_origin_step(s: State) -> None:
 def view_filters_step(s: State) -> None:
     """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
     weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
-    place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it);
+    place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it, and
+    the warped masks of where it filters made for that row alone, :func:`warp_mask_to_views`);
     ``s.filtered_views`` lists the views and rows it changed, which :func:`restore_views_step`
     reads anew from the light field after the line search."""
     o, U, V = s.options, *s.raw.shape[:2]
-    noise_where = weak_where = None
-    if o.noise_filter > 0 and s.noise_limited.any():
-        noise_where = warp_mask_to_views(s.noise_limited, s.d0, (U, V))
+    noise = s.noise_limited if o.noise_filter > 0 and s.noise_limited.any() else None
+    weak = None
     if o.weak_texture_filter > 0:  # the rest of the weak texture, mildly
         weak = weak_texture_pixels(_texture_ratio(s.centre, s.noise_sigma, o),
                                    texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
-        if weak.any():
-            weak_where = warp_mask_to_views(weak, s.d0, (U, V))
+        weak = weak if weak.any() else None
     texture = o.noise_gate == "texture"
-    if (noise_where is not None or weak_where is not None) and np.shares_memory(s.raw, s.source.views):
+    if (noise is not None or weak is not None) and np.shares_memory(s.raw, s.source.views):
         s.raw = s.raw.copy()  # float32 grey views as given: the caller's own array, not to be written
     for u in range(U):
         row = s.raw[u:u + 1]
         views = row
-        if noise_where is not None:
+        if noise is not None:
             views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
                                       size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                      where=noise_where[u:u + 1],
+                                      where=warp_mask_to_views(noise, s.d0, (U, V), rows=range(u, u + 1)),
                                       texture_ratio=o.noise_texture_ratio if texture else None,
                                       radius_px=o.windows.largest_radius_px)
-        if weak_where is not None:
-            views = soften_views(views, sigma_px=o.weak_texture_filter, where=weak_where[u:u + 1],
+        if weak is not None:
+            views = soften_views(views, sigma_px=o.weak_texture_filter,
+                                 where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1)),
                                  out=None if views is row else views)
         if views is not row:
             for v in range(V):
