@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 
 def test_search_penalty_is_the_masked_float32_product():
@@ -130,10 +131,11 @@ def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     np.testing.assert_array_equal(got, expected)
 
 
-def test_view_filters_work_in_place_and_the_views_come_back():
+@pytest.mark.parametrize("writable", [False, True])
+def test_view_filters_work_in_place_and_the_views_come_back(writable):
     # On a noisy scene both filters act: the views the line search matches must be those of the
-    # filters over a copy of the light field, made in the light field's own array, and after the
-    # search the array must hold the views as read again.
+    # filters over a copy of the light field, made in one array (the light field's own when it may
+    # be written), and after the search the array must hold the views as read again, bit for bit.
     from recon.entropy import steps
     from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
     from recon.entropy.options import make_options
@@ -145,6 +147,7 @@ def test_view_filters_work_in_place_and_the_views_come_back():
     wall[36:60, 30:60] += 0.02 * noise_texture((24, 30), seed=3)
     lf, _ = render([Layer(wall, 0.4)])
     lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
+    lf.views_writable = writable
     given = lf.views.copy()
     o = make_options()
     s = start(lf, o)
@@ -163,13 +166,14 @@ def test_view_filters_work_in_place_and_the_views_come_back():
     assert s.noise_limited.any() and weak.any()
     steps.view_filters_step(s)
     assert s.views is s.raw and 0 < len(s.filtered_views) <= U * V
+    assert np.shares_memory(s.raw, lf.views) == writable  # a copy of the caller's views unless writable
     np.testing.assert_array_equal(s.views, expected)
     assert not np.array_equal(s.raw, raw)
     np.testing.assert_array_equal(s.centre, raw[U // 2, V // 2])
     steps.restore_views_step(s)
     assert s.views is None
-    np.testing.assert_array_equal(s.raw, raw)
-    np.testing.assert_array_equal(lf.views, given)  # the caller's views untouched
+    np.testing.assert_array_equal(s.raw.view(np.uint32), raw.view(np.uint32))
+    np.testing.assert_array_equal(lf.views, given)  # the caller's views as given
 
 
 def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
