@@ -60,8 +60,19 @@ def _check_bands(monkeypatch, step_function: str, budget: str, rows_per_mib: int
 
 def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
     from recon.entropy import steps
-    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0, whole_mib=0)
+    monkeypatch.setattr(steps, "JOINT_WHOLE_MIB", 0)  # no search runs whole
     _check_bands(monkeypatch, "joint_line_search", "JOINT_BAND_MIB", rows)
+
+
+def test_a_joint_search_within_the_whole_budget_runs_whole_and_others_in_bands():
+    from recon.entropy import steps
+    backgammon = (9, 9, 512, 512)  # 61 candidates, 77 windows: 252 MiB
+    assert steps.joint_band_rows(backgammon, n_candidates=61, n_windows=77) == 512
+    capture = (9, 9, 906, 1198)  # 25 candidates: 1.1 MB a row
+    rows = steps.joint_band_rows(capture, n_candidates=25, n_windows=77)
+    assert rows == int(steps.JOINT_BAND_MIB * 2 ** 20 // (1198 * (4 * 81 + 8 * 77)))
+    assert steps.joint_band_rows(capture, n_candidates=25, n_windows=77, whole_mib=2000) == 906
 
 
 def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
