@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, os, resource, sys, time
+import recon  # before numpy, as in lfrig: its settings for numpy (no huge pages) are read at numpy's import
 import numpy as np
 folder, method, tile = sys.argv[1], sys.argv[2], int(sys.argv[3])
 from recon.evaluate import score
