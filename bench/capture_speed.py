@@ -7,7 +7,8 @@ The capture is the one ``lfrig demo --binning 1`` makes (``rig/demo.py``: the si
 scene, board calibration with mrcal, the 81 views on the simulated stage, undistorted and rectified
 with one map), made once into ``--work`` (default ``runs/capture-speed``, kept between runs; the
 demo's own reconstruction there uses the quick baseline) and reused. Each run is a fresh process,
-as in ``bench/reconstruct.py``: it reads ``rectified/``, estimates the centre view's disparity and
+as in ``bench/reconstruct.py``: it reads ``rectified/`` (as grey, as ``lfrig reconstruct`` does;
+as stored with ``--tile``), estimates the centre view's disparity and
 prints the estimate's wall seconds (median over the runs; one warm-up run first fills numba's
 cache), its CPU seconds (user + sys of the process during the estimate, a proxy that the load
 other users put on the machine inflates less than wall time), the peak RSS of the whole process
@@ -37,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, os, resource, sys, time
+import recon  # before numpy, as in lfrig: its settings for numpy (no huge pages) are read at numpy's import
 import numpy as np
 folder, method, tile = sys.argv[1], sys.argv[2], int(sys.argv[3])
 from recon.evaluate import score
@@ -44,7 +46,7 @@ from recon.lf import read_lightfield
 from recon.lf.pfm import read_pfm
 from recon.methods import run_method
 from recon.camera import Camera
-lf = read_lightfield(folder + "/rectified")
+lf = read_lightfield(folder + "/rectified", grey=not tile)  # as lfrig reconstruct and lfrig batch --tile read it
 if os.path.isfile(folder + "/truth_disparity.pfm"):
     truth = read_pfm(folder + "/truth_disparity.pfm").astype(np.float32)
 else:

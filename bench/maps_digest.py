@@ -5,9 +5,10 @@
 
 Runs the estimator with its defaults and with ``preset="paper"`` on the benchmark scene and the
 rendered dev scenes beside the checkout (``../shared/data``: ``hci/stratified/backgammon``,
-``blender-dev/*``) and on the scene suite (:mod:`recon.entropy.scenes`, rendered at ``--size``), plus
-a tiled run (:func:`recon.scale.tiles.tiled_disparity`, ``--tile`` core pixels) on the scenes named
-by ``--tiled``. For each run it records the SHA-256 of every array of the result (``disparity``,
+``blender-dev/*``, their views read as grey as ``lfrig reconstruct`` reads them) and on the scene
+suite (:mod:`recon.entropy.scenes`, rendered at ``--size``), plus a tiled run
+(:func:`recon.scale.tiles.tiled_disparity`, ``--tile`` core pixels) on the scenes named by
+``--tiled``. For each run it records the SHA-256 of every array of the result (``disparity``,
 ``initial_disparity``, ``matched_disparity``, ``labels``, window maps, ``entropy``, ``cost``,
 ``confidence``) and of every array in its ``info``, and the disparity range searched; a tiled run
 records the same of its stitched result (the confidence among them) and prints the maps in which
@@ -73,10 +74,10 @@ def _scenes(args) -> dict:
         data = args.data
         backgammon = data / "hci" / "stratified" / "backgammon"
         if backgammon.is_dir():
-            loaders["backgammon"] = lambda p=backgammon: read_lightfield(p)
+            loaders["backgammon"] = lambda p=backgammon: read_lightfield(p, grey=True)
         for folder in sorted((data / "blender-dev").glob("*")):
             if (folder / "parameters.cfg").is_file():
-                loaders[folder.name] = lambda p=folder: read_lightfield(p)
+                loaders[folder.name] = lambda p=folder: read_lightfield(p, grey=True)
     for name in SCENES:
         loaders[f"suite/{name}"] = lambda n=name: make_scene(n, size=args.size).lf
     if args.scenes:

@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/memory_steps.py FOLDER [--preset paper]
 
-Reads ``FOLDER`` (any light field ``lfrig`` reads, e.g. ``runs/capture-speed/rectified``), then
+Reads ``FOLDER`` (any light field ``lfrig`` reads, e.g. ``runs/capture-speed/rectified``) as
+``lfrig reconstruct`` does (the views as grey, ``read_lightfield(grey=True)``), then
 runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image as the plan runs
 them (:func:`recon.entropy.plan.run_step`: each followed by the heap's trim) and prints, per
 step, the process's resident memory after it and its peak within it (MiB; Linux: the peak,
@@ -61,7 +62,7 @@ def main() -> int:
     reset_peak()
     t = time.perf_counter()
     try:
-        lf = read_lightfield(args.folder)
+        lf = read_lightfield(args.folder, grey=True)
         options = make_options(None, preset=args.preset)
     except (LfrigError, ValueError) as error:
         parser.exit(2, f"memory_steps.py: error: {error}\n")

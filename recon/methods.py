@@ -3,7 +3,9 @@
 A runner takes the light field, an optional ``progress(fraction, message)`` callback
 (:mod:`recon.progress`) and the method's keyword options, and returns a
 :class:`MethodResult`: the disparity of the centre view and, where the method has them, the maps
-that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_extras`.
+that explain it, written next to ``disparity.pfm`` by :meth:`MethodResult.write_extras`. A runner
+reads the views only as grey (:meth:`recon.lf.lightfield.LightField.gray`), so
+:func:`recon.pipeline.reconstruct_to_folder` reads them as grey (``read_lightfield(grey=True)``).
 """
 
 from __future__ import annotations

@@ -197,7 +197,9 @@ def reconstruct_to_folder(
     command = current_command() if command is None else [str(part) for part in command]
     # numba's start-up runs beside the decoding of the views (which leaves the interpreter free).
     warming = warm_in_background(method) if estimate is None and not isinstance(lf_dir, LightField) else None
-    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify)
+    # An estimate in this process reads only the grey views (recon.methods): they are read as grey, the
+    # centre view kept in its colours for the folder. A tiled one cuts the views as stored into tiles.
+    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify, grey=estimate is None)
     if lf.source is not None:
         check_output_outside(lf.source, out_dir)
     read_s = time.perf_counter() - started

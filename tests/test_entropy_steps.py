@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 
 def test_search_penalty_is_the_masked_float32_product():
@@ -59,8 +60,19 @@ def _check_bands(monkeypatch, step_function: str, budget: str, rows_per_mib: int
 
 def test_joint_search_in_bands_gives_the_whole_image_maps(monkeypatch):
     from recon.entropy import steps
-    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0)
+    rows = steps.joint_band_rows((9, 9, 72, 72), n_candidates=1, n_windows=1, budget_mib=1.0, whole_mib=0)
+    monkeypatch.setattr(steps, "JOINT_WHOLE_MIB", 0)  # no search runs whole
     _check_bands(monkeypatch, "joint_line_search", "JOINT_BAND_MIB", rows)
+
+
+def test_a_joint_search_within_the_whole_budget_runs_whole_and_others_in_bands():
+    from recon.entropy import steps
+    backgammon = (9, 9, 512, 512)  # 61 candidates, 77 windows: 252 MiB
+    assert steps.joint_band_rows(backgammon, n_candidates=61, n_windows=77) == 512
+    capture = (9, 9, 906, 1198)  # 25 candidates: 1.1 MB a row
+    rows = steps.joint_band_rows(capture, n_candidates=25, n_windows=77)
+    assert rows == int(steps.JOINT_BAND_MIB * 2 ** 20 // (1198 * (4 * 81 + 8 * 77)))
+    assert steps.joint_band_rows(capture, n_candidates=25, n_windows=77, whole_mib=2000) == 906
 
 
 def test_initial_search_in_bands_gives_the_whole_image_maps(monkeypatch):
@@ -130,10 +142,11 @@ def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     np.testing.assert_array_equal(got, expected)
 
 
-def test_view_filters_work_in_place_and_the_views_come_back():
+@pytest.mark.parametrize("writable", [False, True])
+def test_view_filters_work_in_place_and_the_views_come_back(writable):
     # On a noisy scene both filters act: the views the line search matches must be those of the
-    # filters over a copy of the light field, made in the light field's own array, and after the
-    # search the array must hold the views as read again.
+    # filters over a copy of the light field, made in one array (the light field's own when it may
+    # be written), and after the search the array must hold the views as read again, bit for bit.
     from recon.entropy import steps
     from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
     from recon.entropy.options import make_options
@@ -145,6 +158,7 @@ def test_view_filters_work_in_place_and_the_views_come_back():
     wall[36:60, 30:60] += 0.02 * noise_texture((24, 30), seed=3)
     lf, _ = render([Layer(wall, 0.4)])
     lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
+    lf.views_writable = writable
     given = lf.views.copy()
     o = make_options()
     s = start(lf, o)
@@ -163,13 +177,14 @@ def test_view_filters_work_in_place_and_the_views_come_back():
     assert s.noise_limited.any() and weak.any()
     steps.view_filters_step(s)
     assert s.views is s.raw and 0 < len(s.filtered_views) <= U * V
+    assert np.shares_memory(s.raw, lf.views) == writable  # a copy of the caller's views unless writable
     np.testing.assert_array_equal(s.views, expected)
     assert not np.array_equal(s.raw, raw)
     np.testing.assert_array_equal(s.centre, raw[U // 2, V // 2])
     steps.restore_views_step(s)
     assert s.views is None
-    np.testing.assert_array_equal(s.raw, raw)
-    np.testing.assert_array_equal(lf.views, given)  # the caller's views untouched
+    np.testing.assert_array_equal(s.raw.view(np.uint32), raw.view(np.uint32))
+    np.testing.assert_array_equal(lf.views, given)  # the caller's views as given
 
 
 def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():

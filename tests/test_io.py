@@ -216,3 +216,56 @@ def test_views_are_decoded_in_place_as_rgb(tmp_path, channels, dtype):
     assert views.dtype == dtype and views.shape == (3,) + expected[0].shape
     for i, path in enumerate(paths):
         assert np.array_equal(read_image(path), expected[i]) and np.array_equal(views[i], expected[i])
+
+
+@pytest.mark.parametrize("channels", [0, 3, 4])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_views_read_as_grey_are_to_gray_of_the_stored_views_bit_for_bit(tmp_path, channels, dtype):
+    """``read_images(grey=True)`` converts each view as it is decoded, by strips of rows: the same
+    float32 bits as ``to_gray`` of the stored views (13 px wide: OpenCV's last ``W % 8`` pixels of a
+    row take another path; more rows than a strip), and ``keep`` gets the view as stored."""
+    from recon.lf.imageio import GREY_STRIP_ROWS, read_images
+    from recon.lf.lightfield import to_gray
+
+    rng = np.random.default_rng(channels + 7)
+    height = 2 * GREY_STRIP_ROWS + 5
+    shape = (height, 13) if channels == 0 else (height, 13, channels)
+    paths = []
+    for i in range(4):
+        paths.append(tmp_path / f"view{i}.png")
+        assert cv2.imwrite(str(paths[-1]), rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True))
+    stored = read_images(paths)
+    keep = {2: None}
+    grey = read_images(paths, grey=True, keep=keep)
+    assert grey.dtype == np.float32 and grey.shape == (4, height, 13)
+    np.testing.assert_array_equal(grey.view(np.uint32), to_gray(stored).view(np.uint32))
+    np.testing.assert_array_equal(keep[2], stored[2])
+
+
+@pytest.mark.parametrize("layout", ["benchmark", "capture"])
+def test_a_light_field_read_as_grey_keeps_its_centre_view_as_stored(tmp_path, layout):
+    from recon.lf.lightfield import to_gray
+
+    views = random_views(rows=3, cols=5, h=6, w=11)
+    if layout == "benchmark":
+        cfg = CFG.replace("num_cams_x = 3", "num_cams_x = 5").replace("resolution_x_px = 8", "resolution_x_px = 11")
+        folder = write_benchmark(tmp_path / "scene", views, cfg=cfg)
+    else:
+        folder = tmp_path / "cap"
+        write_lightfield(folder, LightField(views=views, pitch_mm=0.5))
+    stored, grey = read_lightfield(folder), read_lightfield(folder, grey=True)
+    assert grey.views.shape == (3, 5, 6, 11) and grey.grid_shape == (3, 5) and grey.image_shape == (6, 11)
+    np.testing.assert_array_equal(grey.views.view(np.uint32), to_gray(stored.views).view(np.uint32))
+    assert grey.gray() is grey.views  # no second copy for the estimators
+    np.testing.assert_array_equal(grey.centre_view(), views[1, 2])
+    assert grey.views_writable and not stored.views_writable and stored.stored_centre is None
+    assert grey.metadata.keys() == stored.metadata.keys() and grey.pitch_mm == stored.pitch_mm
+
+
+def test_a_damaged_view_is_refused_when_read_as_grey_too(tmp_path):
+    folder = tmp_path / "cap"
+    write_lightfield(folder, LightField(views=random_views(), pitch_mm=0.5))
+    view = folder / "views" / "u01_v02.png"
+    cv2.imwrite(str(view), random_views(seed=3)[0, 0, :, :, ::-1])
+    with pytest.raises(CaptureLayoutError, match="u01_v02.png"):
+        read_lightfield(folder, grey=True)

@@ -67,9 +67,10 @@ SHARED = ("noise_sigma", "initial_range", "disparity_range", "origin")
 
 def start(lf: LightField, options: EntropyOptions, *, progress: ProgressCallback | None = None,
           shared: dict[str, Any] | None = None) -> State:
-    """The state before the first step: the grey views, the noise sigma and the initial search's
-    range (discovered by a coarse search when none is known), or the numbers of ``shared`` (a
-    tile's, from :func:`shared_numbers` of the whole image)."""
+    """The state before the first step: the grey views (the light field's own array when it holds
+    them, ``read_lightfield(grey=True)``), the noise sigma and the initial search's range
+    (discovered by a coarse search when none is known), or the numbers of ``shared`` (a tile's,
+    from :func:`shared_numbers` of the whole image)."""
     t = time.perf_counter()
     gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
     U, V = gray.shape[:2]

@@ -29,7 +29,7 @@ from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, 
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
-from recon.lf.lightfield import to_gray, view_shift_px
+from recon.lf.lightfield import view_shift_px
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -179,8 +179,10 @@ def view_filters_step(s: State) -> None:
     weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
     place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it, and
     the warped masks of where it filters made for that row alone, :func:`warp_mask_to_views`);
-    ``s.filtered_views`` lists the views and rows it changed, which :func:`restore_views_step`
-    reads anew from the light field after the line search."""
+    ``s.filtered_views`` keeps the pixels of each view it changed as they were (on the 1198x906
+    demo capture 0.1 % of them, under 1 MiB), which :func:`restore_views_step` writes back after
+    the line search. ``s.raw`` is the light field's own array when the light field says it may be
+    written (:attr:`recon.lf.lightfield.LightField.views_writable`), else a copy of it."""
     o, U, V = s.options, *s.raw.shape[:2]
     noise = s.noise_limited if o.noise_filter > 0 and s.noise_limited.any() else None
     weak = None
@@ -189,7 +191,8 @@ def view_filters_step(s: State) -> None:
                                    texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
         weak = weak if weak.any() else None
     texture = o.noise_gate == "texture"
-    if (noise is not None or weak is not None) and np.shares_memory(s.raw, s.source.views):
+    if ((noise is not None or weak is not None) and not s.source.views_writable
+            and np.shares_memory(s.raw, s.source.views)):
         s.raw = s.raw.copy()  # float32 grey views as given: the caller's own array, not to be written
     for u in range(U):
         row = s.raw[u:u + 1]
@@ -206,19 +209,18 @@ def view_filters_step(s: State) -> None:
                                  out=None if views is row else views)
         if views is not row:
             for v in range(V):
-                changed = np.flatnonzero((views[0, v] != row[0, v]).any(axis=1))
-                if changed.size:
-                    s.filtered_views.append((u, v, int(changed[0]), int(changed[-1]) + 1))
+                changed = np.flatnonzero(views[0, v].view(np.uint32) != row[0, v].view(np.uint32))
+                if changed.size:  # the pixels the filters change, kept as they were
+                    s.filtered_views.append((u, v, changed, row[0, v].take(changed)))
             row[...] = views
     s.views = s.raw
 
 
 def restore_views_step(s: State) -> None:
-    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the rows of the views
-    of ``s.filtered_views``, converted to grey from ``s.source`` as :func:`recon.entropy.plan.start`
-    did, pixel by pixel); ``s.views`` let go."""
-    for u, v, y0, y1 in s.filtered_views:
-        s.raw[u, v, y0:y1] = to_gray(s.source.views[u, v, y0:y1])
+    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the pixels it kept in
+    ``s.filtered_views`` written back, bit for bit); ``s.views`` let go."""
+    for u, v, pixels, values in s.filtered_views:
+        np.put(s.raw[u, v], pixels, values)
     s.filtered_views = []
     s.views = None
 
@@ -314,26 +316,33 @@ def line_search_step(s: State) -> None:
 
 #: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
 #: per candidate), the penalty (both layouts while the second is made), the summed-area tables and
-#: a copy of the views' rows. An image whose search needs more is searched in bands of rows, each
-#: with a halo of the rows its
-#: pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends only
-#: on the rows within the halo), so that the search's memory grows with the image, not with the
-#: image times the candidates. 512x512 with 81 views, 77 windows and 61 candidates: 0.5 MB a row,
-#: one band; the 1198x906 demo capture (25 candidates over 3.35..4.29 px/view): 1.1 MB a row,
-#: five bands of 184 rows with halos of 27 (the rows swept: +24 %). The budget does not grow
-#: with the views: at 2000x1500 they alone take 972 MiB.
-JOINT_BAND_MIB = 256
+#: a copy of the views' rows. A search within :data:`JOINT_WHOLE_MIB` runs on the whole image; one
+#: that needs more is searched in bands of rows within this budget, each with a halo of the rows
+#: its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
+#: only on the rows within the halo), so that the search's memory grows with the image, not with
+#: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
+#: px/view): 1.1 MB a row, seven bands of 139 rows with halos of 27 (the rows swept: +36 %;
+#: bands of 256 MiB, five of 184 rows, swept +24 % and took 60 MiB more at 5 % less CPU in the
+#: search). The budget does not grow with the views: at 2000x1500 they alone take 927 MiB.
+JOINT_BAND_MIB = 208
+#: The largest joint search (MiB, as :data:`JOINT_BAND_MIB` counts) that runs whole, without halo
+#: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 0.5 MB
+#: a row, 252 MiB.
+JOINT_WHOLE_MIB = 256
 
 
 def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
-                    budget_mib: float = JOINT_BAND_MIB) -> int:
-    """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes within
-    ``budget_mib`` (at least one). Per pixel of a row: the ``U * V`` float32 view samples, and the
-    larger of the two phases of :func:`recon.entropy.matching.joint_line_search`: the ``n_windows``
-    float32 penalty in both layouts, then one layout beside ``n_candidates`` float32 costs, nine
-    int64 summed-area tables and nine float32 block images."""
-    U, V, _, W = views_shape
+                    budget_mib: float = JOINT_BAND_MIB, whole_mib: float = JOINT_WHOLE_MIB) -> int:
+    """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes: ``H`` when
+    the whole image's search takes at most ``whole_mib``, else as many as ``budget_mib`` holds (at
+    least one). Per pixel of a row: the ``U * V`` float32 view samples, and the larger of the two
+    phases of :func:`recon.entropy.matching.joint_line_search`: the ``n_windows`` float32 penalty
+    in both layouts, then one layout beside ``n_candidates`` float32 costs, nine int64 summed-area
+    tables and nine float32 block images."""
+    U, V, H, W = views_shape
     per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
+    if H * per_row <= whole_mib * 2 ** 20:
+        return H
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
 
 
@@ -341,8 +350,8 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
                           use_shape_set: np.ndarray, budget_mib: float | None = None):
     """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
     ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
-    when the whole image's search would take more than ``budget_mib`` (default
-    :data:`JOINT_BAND_MIB`). Each band is searched with a halo of ``largest_radius_px`` plus the
+    within ``budget_mib`` (default :data:`JOINT_BAND_MIB`) when the whole image's search would take
+    more than :data:`JOINT_WHOLE_MIB`. Each band is searched with a halo of ``largest_radius_px`` plus the
     farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
     whole image's values; the penalty is made band by band, and only one band's cost volume is
     alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
@@ -350,7 +359,8 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     sizes = w["sizes"]
     U, V, H, W = s.views.shape
     rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
-                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib)
+                           budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib,
+                           whole_mib=JOINT_WHOLE_MIB)
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 

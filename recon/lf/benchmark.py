@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import LightFieldFormatError
-from recon.lf.imageio import read_images
+from recon.lf.imageio import read_view_grid
 from recon.lf.lightfield import LightField
 from recon.lf.params import camera_from_parameters, check_camera_fits, read_parameters
 from recon.lf.pfm import read_pfm
@@ -24,8 +24,9 @@ BENCHMARK_VIEW = re.compile(r"^input_Cam(\d{3})\.png$")
 GROUND_TRUTH = "gt_disp_lowres.pfm"
 
 
-def read_benchmark(path: str | os.PathLike) -> LightField:
-    """Read a folder in the 4D Light Field Benchmark layout.
+def read_benchmark(path: str | os.PathLike, *, grey: bool = False) -> LightField:
+    """Read a folder in the 4D Light Field Benchmark layout (``grey``: the views as ``float32``
+    luminance, :func:`recon.lf.read_lightfield`).
 
     The grid size comes from ``parameters.cfg`` (``num_cams_x``, ``num_cams_y``) when present, else
     the number of views must be a square. ``metadata["ground_truth"]`` names ``gt_disp_lowres.pfm``
@@ -65,14 +66,14 @@ def read_benchmark(path: str | os.PathLike) -> LightField:
         names = ", ".join(f"input_Cam{i:03d}.png" for i in missing[:3]) + (" ..." if len(missing) > 3 else "")
         raise LightFieldFormatError(f"{path}: {len(missing)} of {count} views missing ({names})")
     digests: dict[Path, str] = {}
-    images = read_images([numbered[i] for i in range(count)], digests=digests)
-    views = images.reshape((rows, cols) + images.shape[1:])
+    views, centre = read_view_grid([numbered[i] for i in range(count)], (rows, cols), grey=grey, digests=digests)
     if cfg.is_file():
         check_camera_fits(camera, metadata["parameters"], grid=(rows, cols), image_shape=views.shape[2:4], path=cfg)
     if (path / GROUND_TRUTH).is_file():
         metadata["ground_truth"] = str(path / GROUND_TRUTH)
     metadata["views_sha256"] = {p.name: digest for p, digest in digests.items()}  # for the input's identity
-    return LightField(views=views, metadata=metadata, source=path, **camera)
+    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, views_writable=grey,
+                      **camera)
 
 
 def ground_truth_path(lf: LightField) -> Path | None:

@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from recon.lf.imageio import (fault_point, read_bytes, read_images, remove_stale_temporaries, sha256_file,
+from recon.lf.imageio import (fault_point, read_bytes, read_view_grid, remove_stale_temporaries, sha256_file,
                              write_bytes_atomic, write_error, write_png)
 from recon.lf.benchmark import GROUND_TRUTH
 from recon.lf.lock import LOCK_NAME, FolderLock
@@ -446,8 +446,9 @@ class CaptureWriter:
         self.close()
 
 
-def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
-    """Read a complete capture folder into a :class:`LightField`.
+def read_capture(path: str | os.PathLike, *, verify: bool = True, grey: bool = False) -> LightField:
+    """Read a complete capture folder into a :class:`LightField` (``grey``: the views as ``float32``
+    luminance, :func:`recon.lf.read_lightfield`).
 
     Every view must be journalled as ``views/uUU_vVV.png`` of its own grid position, a regular file
     inside the folder (not a symlink out of it). With ``verify`` (the default), each file's SHA-256
@@ -512,8 +513,8 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
             raise CaptureLayoutError(f"{p}: journalled view is missing on disk; resume the capture to take it again")
     journalled = {path / entries[(u, v)]["file"]: entries[(u, v)].get("sha256")
                   for u in range(rows) for v in range(cols)}
-    images = read_images(paths, check=_checksum_check(journalled) if verify else None)
-    views = images.reshape((rows, cols) + images.shape[1:])
+    views, centre = read_view_grid(paths, (rows, cols), grey=grey,
+                                   check=_checksum_check(journalled) if verify else None)
     camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
     metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
                                 "views": [entries[(u, v)] for u in range(rows) for v in range(cols)]}
@@ -525,7 +526,8 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True) -> LightField:
         _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
         camera.update({k: v for k, v in found.items() if v is not None})
         check_camera_fits(camera, parameters, grid=(rows, cols), image_shape=views.shape[2:4], path=path / PARAMETERS)
-    return LightField(views=views, metadata=metadata, source=path, **camera)
+    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, views_writable=grey,
+                      **camera)
 
 
 def _ends_complete(records: list[dict[str, Any]]) -> bool:

@@ -251,14 +251,28 @@ def _to_rgb(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
+#: Rows of a view :func:`read_images` converts to grey at once: its float32 temporaries (the
+#: strip in RGB and in grey, ~0.6 MB for 1198 px) stay small, as many threads convert at once;
+#: temporaries of whole views (17 MiB at 1198x906) stayed resident after the reading, ~110 MiB
+#: of C heap over the decoding threads.
+GREY_STRIP_ROWS = 32
+
+
 def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None,
-                check: Callable[[Path, str], None] | None = None) -> np.ndarray:
-    """Read equally sized images into one ``(N, H, W[, 3])`` array; PNG decoding runs in threads.
+                check: Callable[[Path, str], None] | None = None, grey: bool = False,
+                keep: dict[int, np.ndarray | None] | None = None) -> np.ndarray:
+    """Read equally sized images into one ``(N, H, W[, 3])`` array in their stored dtype, or with
+    ``grey`` into one ``(N, H, W)`` ``float32`` array of their luminance in ``[0, 1]``
+    (:func:`recon.lf.lightfield.to_gray` of the stored images, bit for bit: each image is converted
+    by :func:`recon.lf.lightfield.gray_image` in the thread that decodes it, so the stored images
+    are never held all at once). PNG decoding runs in threads.
 
     ``digests``: a dict that receives ``path -> SHA-256`` (hex) of each file's bytes as they were
     read, so that a record of the input needs no second pass over the files. ``check``: called as
     ``check(path, sha256_hex)`` for each file's bytes as read, before they are decoded (a journal's
-    checksums are verified this way, in the same pass); what it raises ends the reading.
+    checksums are verified this way, in the same pass); what it raises ends the reading. ``keep``:
+    a dict whose keys are indices into ``paths``; each one's value is set to that image as stored,
+    ``(H, W[, 3])`` (with ``grey``: the centre view's colours for the result folder).
 
     Raises
     ------
@@ -266,27 +280,53 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
         Naming the first unreadable file, or the first file whose size, colour or bit depth differs
         from the first image's.
     """
+    from recon.lf.lightfield import gray_image
+
     if not paths:
         raise ValueError("read_images needs at least one path")
     decoded = _decode(paths[0], digests, check)
-    shape = _rgb_shape(decoded)
-    check_total_size(paths[0].parent, len(paths) * math.prod(shape) * decoded.dtype.itemsize)
-    out = np.empty((len(paths),) + shape, dtype=decoded.dtype)
-    first = _to_rgb(decoded, out[0])
+    shape, dtype = _rgb_shape(decoded), decoded.dtype
+    out = (np.empty((len(paths),) + shape[:2], dtype=np.float32) if grey
+           else np.empty((len(paths),) + shape, dtype=dtype))
+    check_total_size(paths[0].parent, out.nbytes)
+
+    def place(i: int, image: np.ndarray) -> None:
+        if grey:  # by strips of rows (OpenCV converts row by row): no temporary of a whole float view
+            for y in range(0, shape[0], GREY_STRIP_ROWS):
+                gray_image(_to_rgb(image[y:y + GREY_STRIP_ROWS]), out=out[i, y:y + GREY_STRIP_ROWS])
+        else:
+            _to_rgb(image, out[i])  # colours swapped on the way into its place
+        if keep is not None and i in keep:
+            keep[i] = _to_rgb(image) if grey else out[i]
 
     def load(i: int) -> None:
-        image = _decode(paths[i], digests, check)  # decoded straight into its place in ``out``, colours swapped on the way
-        if _rgb_shape(image) != first.shape or image.dtype != first.dtype:
+        image = _decode(paths[i], digests, check)  # decoded straight into its place in ``out``
+        if _rgb_shape(image) != shape or image.dtype != dtype:
             raise LightFieldFormatError(
-                f"{paths[i]}: image is {_describe(_to_rgb(image))} but {paths[0].name} is {_describe(first)}; "
-                "all views must have the same size, colour and bit depth"
+                f"{paths[i]}: image is {_describe(_rgb_shape(image), image.dtype)} but {paths[0].name} is "
+                f"{_describe(shape, dtype)}; all views must have the same size, colour and bit depth"
             )
-        _to_rgb(image, out[i])
+        place(i, image)
 
+    place(0, decoded)
     with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
         for _ in pool.map(load, range(1, len(paths))):
             pass
     return out
+
+
+def read_view_grid(paths: Sequence[Path], grid: tuple[int, int], *, grey: bool = False,
+                   digests: dict[Path, str] | None = None, check: Callable[[Path, str], None] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The views of a ``(rows, cols)`` grid from ``paths`` (row-major) by :func:`read_images`:
+    ``(views, stored_centre)``, ``views`` ``(rows, cols, H, W[, 3])`` as stored, or with ``grey``
+    ``(rows, cols, H, W)`` ``float32`` luminance and ``stored_centre`` the centre view as stored
+    (``None`` without ``grey``: it is a view of ``views``)."""
+    rows, cols = grid
+    centre = (rows // 2) * cols + cols // 2
+    keep: dict[int, np.ndarray | None] = {centre: None}
+    images = read_images(paths, digests=digests, check=check, grey=grey, keep=keep if grey else None)
+    return images.reshape((rows, cols) + images.shape[1:]), keep[centre]
 
 
 def memory_bytes() -> int:
@@ -308,10 +348,10 @@ def check_total_size(where: str | os.PathLike, nbytes: int) -> None:
         )
 
 
-def _describe(image: np.ndarray) -> str:
-    h, w = image.shape[:2]
-    colour = "RGB" if image.ndim == 3 else "grey"
-    return f"{w}x{h} {colour} {image.dtype.itemsize * 8}-bit"
+def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
+    h, w = shape[:2]
+    colour = "RGB" if len(shape) == 3 else "grey"
+    return f"{w}x{h} {colour} {dtype.itemsize * 8}-bit"
 
 
 def encode_png(image: np.ndarray) -> bytes:

@@ -20,11 +20,19 @@ from recon.lf.benchmark import BENCHMARK_VIEW, read_benchmark
 from recon.lf.lightfield import LightField
 
 
-def read_lightfield(path: str | os.PathLike, *, verify: bool = True) -> LightField:
+def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool = False) -> LightField:
     """Read a light-field folder in the benchmark layout or lfrig's capture layout.
 
     ``verify``: check each view of a capture against its journalled SHA-256
     (:func:`recon.lf.capture.read_capture`); the benchmark layout has no checksums.
+
+    ``grey``: the views as the estimators read them, ``(U, V, H, W)`` ``float32`` luminance
+    (:func:`recon.lf.lightfield.to_gray` of the stored views, bit for bit, each view converted as
+    it is decoded, so the stored views are never held all at once), with the centre view as stored
+    in :attr:`~recon.lf.lightfield.LightField.stored_centre` and
+    :attr:`~recon.lf.lightfield.LightField.views_writable` set: for one estimate
+    (:func:`recon.pipeline.reconstruct_to_folder`). An 8-bit RGB light field then takes 4 bytes a
+    pixel instead of 3 plus the 4 of its grey views.
 
     Raises
     ------
@@ -38,9 +46,9 @@ def read_lightfield(path: str | os.PathLike, *, verify: bool = True) -> LightFie
     if not path.is_dir():
         raise LightFieldFormatError(f"{path}: not a folder; pass the folder that holds the views")
     if capture.is_capture(path):
-        return capture.read_capture(path, verify=verify)
+        return capture.read_capture(path, verify=verify, grey=grey)
     if any(BENCHMARK_VIEW.match(p.name) for p in path.iterdir()):
-        return read_benchmark(path)
+        return read_benchmark(path, grey=grey)
     raise LightFieldFormatError(
         f"{path}: no light field here (expected input_Cam000.png ... of the benchmark layout, "
         "or manifest.jsonl of an lfrig capture)"

@@ -30,7 +30,9 @@ class LightField:
     ----------
     views
         ``(U, V, H, W)`` or ``(U, V, H, W, 3)`` array in the stored dtype (``uint8``, ``uint16`` or
-        ``float32`` in ``[0, 1]``), colour in RGB order.
+        ``float32`` in ``[0, 1]``), colour in RGB order; or, read with ``grey=True``
+        (:func:`recon.lf.read_lightfield`), the ``(U, V, H, W)`` ``float32`` luminance that
+        :func:`to_gray` makes of the stored views.
     pitch_mm
         Distance between neighbouring grid positions in mm (the benchmark's ``baseline_mm``), or
         ``None`` when unknown.
@@ -48,6 +50,14 @@ class LightField:
         Everything else the source recorded (``parameters.cfg`` sections, capture manifest header).
     source
         Folder the light field was read from, if any.
+    stored_centre
+        The centre view as stored, ``(H, W[, 3])`` in the stored dtype, when :attr:`views` holds the
+        views converted to grey (read with ``grey=True``); ``None``: the centre of :attr:`views`.
+    views_writable
+        ``True`` when nothing but this light field holds :attr:`views` (read with ``grey=True`` for
+        one estimate): the estimator's view filters then work in place on them and write back the
+        rows they changed after the line search (:func:`recon.entropy.steps.view_filters_step`),
+        instead of filtering a copy.
     """
 
     views: np.ndarray
@@ -58,6 +68,8 @@ class LightField:
     principal_point_px: tuple[float, float] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     source: Path | None = None
+    stored_centre: np.ndarray | None = None
+    views_writable: bool = False
 
     def __post_init__(self) -> None:
         if self.views.ndim not in (4, 5) or (self.views.ndim == 5 and self.views.shape[-1] != 3):
@@ -85,7 +97,9 @@ class LightField:
         return self.views.ndim == 5
 
     def centre_view(self) -> np.ndarray:
-        """The centre view in the stored dtype, ``(H, W[, 3])``."""
+        """The centre view in the stored dtype, ``(H, W[, 3])`` (:attr:`stored_centre` when set)."""
+        if self.stored_centre is not None:
+            return self.stored_centre
         u0, v0 = self.centre_index
         return self.views[u0, v0]
 
@@ -112,18 +126,17 @@ def to_gray(images: np.ndarray) -> np.ndarray:
 
     Rec. 601 weights (OpenCV's ``RGB2GRAY``) in floating point, so no precision is lost to rounding.
     Images without a colour axis are only scaled (see :func:`to_float`). Works on any leading shape,
-    e.g. ``(U, V, H, W, 3) -> (U, V, H, W)``.
+    e.g. ``(U, V, H, W, 3) -> (U, V, H, W)``; each image is converted whole by :func:`gray_image`
+    (OpenCV computes the last ``W % 8`` pixels of a row in another order than the rest, so a crop's
+    grey may differ from the grey's crop in its last columns).
     """
     if not (images.ndim >= 3 and images.shape[-1] == 3):
         return to_float(images)
-    scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(images.dtype, 1.0)
-    import cv2
-
     flat = images.reshape((-1,) + images.shape[-3:])
     out = np.empty(flat.shape[:3], dtype=np.float32)
 
     def convert(i: int) -> None:  # per image keeps the float32 temporary small
-        np.multiply(cv2.cvtColor(flat[i].astype(np.float32), cv2.COLOR_RGB2GRAY), np.float32(scale), out=out[i])
+        gray_image(flat[i], out=out[i])
 
     workers = min(len(flat), os.cpu_count() or 1)
     if workers > 1:  # numpy's cast and OpenCV release the interpreter lock: one image per thread
@@ -134,6 +147,21 @@ def to_gray(images: np.ndarray) -> np.ndarray:
         for i in range(len(flat)):
             convert(i)
     return out.reshape(images.shape[:-1])
+
+
+def gray_image(image: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+    """One ``(H, W, 3)`` RGB or ``(H, W)`` grey image in its stored dtype as ``(H, W)`` ``float32``
+    luminance in ``[0, 1]``, into ``out`` when given: what :func:`to_gray` makes of it, bit for bit
+    (``recon.lf.imageio.read_images`` converts each view with it as it is decoded)."""
+    if out is None:
+        out = np.empty(image.shape[:2], dtype=np.float32)
+    if image.ndim == 2:
+        out[...] = to_float(image)
+        return out
+    scale = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535}.get(image.dtype, 1.0)
+    import cv2
+
+    return np.multiply(cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2GRAY), np.float32(scale), out=out)
 
 
 def max_view_offset(grid_shape: tuple[int, int]) -> int:
