@@ -67,7 +67,7 @@ def test_flat_pixels_get_only_the_largest_offered_windows():
     penalty[0, 0, [2, 5, 8, 11]] = np.inf  # largest size barred everywhere for pixel (0, 0)
     penalty[1, 1, 0:n_sizes] = np.inf  # no square for pixel (1, 1) (an occlusion pixel)
     flat = np.array([[True, False], [False, True]])
-    out = _largest_windows_only(penalty, flat, n_sizes)
+    out = _largest_windows_only(penalty.transpose(0, 2, 1), flat, n_sizes).transpose(0, 2, 1)  # (H, K, W)
     assert np.flatnonzero(np.isfinite(out[0, 0])).tolist() == [1]  # the square of the middle size
     assert np.array_equal(out[0, 1], penalty[0, 1]) and np.array_equal(out[1, 0], penalty[1, 0])
     assert np.flatnonzero(np.isfinite(out[1, 1])).tolist() == [5, 8, 11]  # every shape, largest size

@@ -9,15 +9,17 @@ import pytest
 def test_search_penalty_is_the_masked_float32_product():
     from recon.entropy.options import make_options
     from recon.entropy.steps import _search_penalty
+    from recon.entropy.volume import SparseVolume
     rng = np.random.default_rng(9)
     entropy = (rng.random((9, 11, 14)) * 6 - 1).astype(np.float32)
     entropy[rng.random(entropy.shape) < 0.5] = -np.inf
-    nothing_flat = np.zeros((9, 11), bool)
+    nothing_flat = np.zeros((5, 11), bool)
     for lam in (1.0, 0.37, 0.0, 2.5):
         opts = make_options(lambda_entropy=lam, flat_windows="all")
         with np.errstate(invalid="ignore"):
             expected = np.where(np.isfinite(entropy), -lam * entropy, np.inf).astype(np.float32)
-        got = _search_penalty(entropy, nothing_flat, opts, 7)
+        expected = np.ascontiguousarray(expected[2:7].transpose(0, 2, 1))  # rows 2..6, (H, K, W)
+        got = _search_penalty(SparseVolume.pack(entropy), 2, 7, nothing_flat, opts, 7)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
 
@@ -137,9 +139,10 @@ def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     none_left = ~np.isfinite(expected).any(axis=2)
     expected[none_left] = penalty[none_left]
     assert none_left[0, 0] and not none_left.all()
-    got = _bar_strips(penalty, ok, n)
-    assert got is penalty
-    np.testing.assert_array_equal(got, expected)
+    window_major = np.ascontiguousarray(penalty.transpose(0, 2, 1))  # the search's (H, K, W)
+    got = _bar_strips(window_major, ok, n)
+    assert got is window_major
+    np.testing.assert_array_equal(got, expected.transpose(0, 2, 1))
 
 
 @pytest.mark.parametrize("writable", [False, True])

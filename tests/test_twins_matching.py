@@ -48,6 +48,7 @@ def test_joint_line_search_fast_matches_reference():
     penalty[rng.random(penalty.shape) < 0.4] = np.inf
     penalty[..., 0] = 0.0  # every pixel keeps at least the 3x3 square
     occluded = rng.random((9, 10)) < 0.5
+    penalty = np.ascontiguousarray(penalty.transpose(0, 2, 1))  # (H, K, W)
     cands = np.array([-0.6, -0.2, 0.1, 0.5])
     i_ref, obj_ref, k_ref = joint_line_search_reference(
         gray, cands, windows=windows, penalty=penalty, use_shape_set=occluded, intensity_scale=255.0)
@@ -62,11 +63,12 @@ def _joint_kernels(integral_sets, H, W, windows, rects, shapes, penalty, occlude
     """Each kernel's ``(objectives per candidate, least, window)`` over the candidates' summed-area
     tables ``integral_sets``: the pixelwise twin and the window-major kernel with either int64 ->
     float64 conversion."""
-    from recon.entropy.layout import row_order, window_major_penalty
+    from recon.entropy.layout import offer_runs, row_order
     from recon.entropy.legacy_matching import _joint_cost_pixelwise
     from recon.entropy.matching import _joint_cost_kernel
     starts, ks, pens = _compact_penalty(penalty)
-    dense, run_start, runs = window_major_penalty(penalty, occluded, shapes)
+    dense = np.ascontiguousarray(penalty.transpose(0, 2, 1))  # (H, K, W), inf: not offered
+    run_start, runs = offer_runs(dense, occluded, shapes)
     order = row_order(H)
     state = {}
     for name in ("pixelwise", "window-major", "window-major magic"):

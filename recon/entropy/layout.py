@@ -1,5 +1,5 @@
-"""Memory layouts the joint line search reads fast: the penalty volume window by window, the rows
-in the order the threads take them.
+"""What the joint line search reads fast: the runs of pixels that offer each window in its penalty
+laid out window by window, the rows in the order the threads take them.
 
 Twins follow the rule of :mod:`recon.entropy`: ``name`` compiled, ``name_reference`` readable.
 """
@@ -49,25 +49,19 @@ def _put_run(runs, n, p, lo, hi):
 
 
 @numba.njit(cache=True, parallel=True)
-def _window_major_kernel(penalty, pixel_set, window_shape, out):
-    # Row by row: the row's (W, K) penalties written window by window (out[y], (K, W), in cache
-    # while its runs are found), each window's runs of both passes counted in one scan; then laid
-    # out in the order (row, window, pass) and written in a second scan.
-    H, W, K = penalty.shape
+def _offer_runs_kernel(penalty, pixel_set, window_shape):
+    # Each window's runs of both passes in one scan of its row, counted; then laid out in the order
+    # (row, window, pass) and written in a second scan.
+    H, K, W = penalty.shape
     count = np.zeros(H * K * 2 + 1, np.int64)
     none = np.empty((0, 2), np.int32)
     for y in numba.prange(H):
         n = np.empty(2, np.int64)
         lo = np.empty(2, np.int64)
         hi = np.empty(2, np.int64)
-        src = penalty[y]
         for k in range(K):
-            dst = out[y, k]  # written along x: 117 -> 73 ms on backgammon against x outer
-            for x in range(W):
-                v = src[x, k]
-                dst[x] = v if np.isfinite(v) else np.inf
             n[:] = 0
-            _offer_runs(dst, pixel_set[y], window_shape[k] != 0, none, n, lo, hi)
+            _offer_runs(penalty[y, k], pixel_set[y], window_shape[k] != 0, none, n, lo, hi)
             count[(y * K + k) * 2 + 1] = n[0]
             count[(y * K + k) * 2 + 2] = n[1]
     for i in range(H * K * 2):
@@ -80,25 +74,22 @@ def _window_major_kernel(penalty, pixel_set, window_shape, out):
         for k in range(K):
             n[0] = count[(y * K + k) * 2]
             n[1] = count[(y * K + k) * 2 + 1]
-            _offer_runs(out[y, k], pixel_set[y], window_shape[k] != 0, runs, n, lo, hi)
+            _offer_runs(penalty[y, k], pixel_set[y], window_shape[k] != 0, runs, n, lo, hi)
     return count, runs
 
 
-def window_major_penalty(penalty: np.ndarray, use_shape_set: np.ndarray, window_shape: np.ndarray):
-    """The joint search's layout of its ``(H, W, K)`` penalty: ``(H, K, W)`` float32, each row's
-    windows one after another (``inf`` where the entry is not finite: window not offered) and the
-    column runs of the pixels that offer each window, per row ``y``, window ``k`` and pass (0:
-    pixels matched over all views, every pixel for a square window, shape 0; 1: shaped windows at
-    ``use_shape_set`` pixels, matched over the window's visible set): ``runs[run_start[i]:run_start[i
-    + 1]]`` with ``i = (y * K + k) * 2 + pass``, ``(n, 2)`` int32 ``[lo, hi)`` ascending, each
-    starting and ending at an offering pixel, runs closer than :data:`RUN_GAP` joined. Returns
-    ``(penalty, run_start, runs)``."""
-    H, W, K = penalty.shape
-    out = np.empty((H, K, W), np.float32)
-    run_start, runs = _window_major_kernel(np.ascontiguousarray(penalty, dtype=np.float32),
-                                           np.ascontiguousarray(use_shape_set, dtype=np.bool_),
-                                           np.ascontiguousarray(window_shape, dtype=np.int64), out)
-    return out, run_start, runs
+def offer_runs(penalty: np.ndarray, use_shape_set: np.ndarray, window_shape: np.ndarray):
+    """The column runs of the pixels that offer each window in the joint search's penalty,
+    ``(H, K, W)`` float32, each row's windows one after another, ``inf`` where a window is not
+    offered (:meth:`recon.entropy.volume.SparseVolume.window_major`): per row ``y``, window ``k``
+    and pass (0: pixels matched over all views, every pixel for a square window, shape 0; 1: shaped
+    windows at ``use_shape_set`` pixels, matched over the window's visible set):
+    ``runs[run_start[i]:run_start[i + 1]]`` with ``i = (y * K + k) * 2 + pass``, ``(n, 2)`` int32
+    ``[lo, hi)`` ascending, each starting and ending at an offering pixel, runs closer than
+    :data:`RUN_GAP` joined. Returns ``(run_start, runs)``."""
+    return _offer_runs_kernel(np.ascontiguousarray(penalty, dtype=np.float32),
+                              np.ascontiguousarray(use_shape_set, dtype=np.bool_),
+                              np.ascontiguousarray(window_shape, dtype=np.int64))
 
 
 def row_order(H: int) -> np.ndarray:

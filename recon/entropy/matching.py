@@ -16,7 +16,7 @@ from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FL
                                 WindowCost, block_abs_diff, block_abs_diff_reference, block_set_integrals,
                                 cost_ambiguity, min_window_costs, min_window_costs_reference, set_view_counts,
                                 window_sum_bound)
-from recon.entropy.layout import row_order, window_major_penalty
+from recon.entropy.layout import offer_runs, row_order
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
@@ -92,7 +92,7 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
     # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
     # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
-    # visible set (pass 1: occluded pixels, shaped windows). See window_major_penalty.
+    # visible set (pass 1: occluded pixels, shaped windows). See recon.entropy.layout.offer_runs.
     # magic: every window total is below MAGIC_LIMIT (its int64 -> float64 conversion vectorises,
     # recon.entropy.cost.MAGIC_FLOAT).
     # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
@@ -180,14 +180,14 @@ def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
         for y in range(H):
             for x in range(W):
                 for k, (shape, size) in enumerate(windows):
-                    if not np.isfinite(penalty[y, x, k]):
+                    if not np.isfinite(penalty[y, k, x]):
                         continue
                     s = shape if use_shape_set[y, x] else 0
                     img = np.tensordot(SET_BLOCKS[s].astype(np.float64), blocks, axes=1)
                     y0, y1, x0, x1 = window_rect(shape, size)
                     patch = img[max(y + y0, 0):min(y + y1, H - 1) + 1,
                                 max(x + x0, 0):min(x + x1, W - 1) + 1]
-                    c = intensity_scale * patch.sum() / (patch.size * counts[s]) + penalty[y, x, k]
+                    c = intensity_scale * patch.sum() / (patch.size * counts[s]) + penalty[y, k, x]
                     if c < best[y, x]:
                         best[y, x], best_i[y, x], best_k[y, x] = c, i, k
     return best_i, best.astype(np.float32), best_k
@@ -210,8 +210,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     windows
         ``K`` pairs ``(shape, size)``.
     penalty
-        ``(H, W, K)`` float32 (laid out window by window first, :func:`window_major_penalty`; pass
-        a temporary to let the volume go before the search).
+        ``(H, K, W)`` float32, each row's windows one after another (``inf``: not offered;
+        :meth:`recon.entropy.volume.SparseVolume.window_major`).
     use_shape_set
         ``(H, W)`` bool: match over the window shape's visible set (occluded pixels) instead of all
         views.
@@ -233,8 +233,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     shapes = np.array([s for s, _ in windows], np.int64)
     gray = np.ascontiguousarray(gray, dtype=np.float32)
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
-    penalty, run_start, runs = window_major_penalty(penalty, pixel_set, shapes)  # the caller's (H, W, K)
-    # volume is freed here when it passed a temporary
+    penalty = np.ascontiguousarray(penalty, dtype=np.float32)
+    run_start, runs = offer_runs(penalty, pixel_set, shapes)
     integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
     costs = np.empty((len(candidates), H, W), np.float32)

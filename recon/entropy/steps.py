@@ -28,6 +28,7 @@ from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
 from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
 from recon.entropy.state import Reach, State, Step
+from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.lf.lightfield import view_shift_px
 
@@ -315,10 +316,10 @@ def line_search_step(s: State) -> None:
 
 
 #: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
-#: per candidate), the penalty (both layouts while the second is made), the summed-area tables and
-#: a copy of the views' rows. A search within :data:`JOINT_WHOLE_MIB` runs on the whole image; one
-#: that needs more is searched in bands of rows within this budget, each with a halo of the rows
-#: its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
+#: per candidate), the penalty (counted at twice its float32 layout while it is made), the
+#: summed-area tables and a copy of the views' rows. A search within :data:`JOINT_WHOLE_MIB` runs
+#: on the whole image; one that needs more is searched in bands of rows within this budget, each
+#: with a halo of the rows its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
 #: only on the rows within the halo), so that the search's memory grows with the image, not with
 #: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
 #: px/view): 1.1 MB a row, seven bands of 139 rows with halos of 27 (the rows swept: +36 %;
@@ -336,9 +337,10 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
     """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes: ``H`` when
     the whole image's search takes at most ``whole_mib``, else as many as ``budget_mib`` holds (at
     least one). Per pixel of a row: the ``U * V`` float32 view samples, and the larger of the two
-    phases of :func:`recon.entropy.matching.joint_line_search`: the ``n_windows`` float32 penalty
-    in both layouts, then one layout beside ``n_candidates`` float32 costs, nine int64 summed-area
-    tables and nine float32 block images."""
+    phases of :func:`recon.entropy.matching.joint_line_search`: the penalty while it is made, 8
+    bytes a window (its float32 layout and as much again for the gates' masks, a margin), then its
+    ``n_windows`` float32 beside ``n_candidates`` float32 costs, nine int64 summed-area tables and
+    nine float32 block images."""
     U, V, H, W = views_shape
     per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
     if H * per_row <= whole_mib * 2 ** 20:
@@ -365,14 +367,14 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 
     def penalty(a: int, b: int) -> np.ndarray:  # the rows [a, b) of the search's penalty
-        p = _search_penalty(w["all_entropy"].rows(a, b), s.noise_limited[a:b], o, len(sizes))
+        p = _search_penalty(w["all_entropy"], a, b, s.noise_limited[a:b], o, len(sizes))
         return p if gate is None else _bar_strips(p, gate[a:b], len(sizes))
 
     bands = list(row_bands(H, rows=rows, halo=halo))
     maps = (np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
             np.empty((H, W), np.int32))
     for i, (y0, y1, a, b) in enumerate(bands):
-        band = joint_line_search(  # the penalty a temporary, freed in there
+        band = joint_line_search(
             s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
             use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
             ambiguity_delta=s.hole_delta,
@@ -488,15 +490,14 @@ def _snap(gray: np.ndarray, disparity: np.ndarray, noise: float, rng: tuple[floa
                            mix_extrapolate=opts.boundary_mix_extrapolate)[0]
 
 
-def _search_penalty(all_entropy: np.ndarray, noise_limited: np.ndarray, opts: EntropyOptions,
-                    n_sizes: int) -> np.ndarray:
-    """``(H, W, K)`` float32 penalty of the joint search: ``-lambda E`` (``inf``: window not
-    offered), with ``flat_windows="largest"`` applied. The float32 product of ``E`` and ``-lambda``
-    (what numpy makes of ``-lambda * E``) in one pass, without a float temporary of the volume (a
-    float64 one was once the run's largest allocation; a masked ``np.where`` by rows took 0.25 s)."""
-    with np.errstate(invalid="ignore"):  # lambda = 0 times -inf: NaN, set to inf below
-        out = np.multiply(all_entropy, np.float32(-opts.lambda_entropy), dtype=np.float32)
-    out[~np.isfinite(all_entropy)] = np.inf
+def _search_penalty(all_entropy: SparseVolume, a: int, b: int, noise_limited: np.ndarray,
+                    opts: EntropyOptions, n_sizes: int) -> np.ndarray:
+    """The rows ``[a, b)`` of the joint search's penalty, laid out ``(b - a, K, W)`` float32:
+    ``-lambda E`` of the packed entropies ``(H, W, K)`` (the float32 product, what numpy makes of
+    ``-lambda * E``; ``inf``: window not offered), with ``flat_windows="largest"`` applied
+    (``noise_limited``: the rows' ``(b - a, W)``). Made from the packed volume in one pass
+    (:meth:`SparseVolume.window_major`), without a dense ``(H, W, K)`` volume."""
+    out = all_entropy.window_major(a, b, scale=-opts.lambda_entropy)
     if opts.flat_windows == "largest":
         out = _largest_windows_only(out, noise_limited, n_sizes, in_place=True)
     return out
@@ -525,7 +526,7 @@ def unknown_range(gray: np.ndarray, *, options: EntropyOptions, noise_sigma: flo
 
 def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *,
                           in_place: bool = False) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
+    """``penalty`` ``(H, K, W)`` (window ``k`` has shape ``k // n_sizes`` and the ``k % n_sizes``-th
     size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
     size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
     smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
@@ -533,7 +534,7 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *
     ys, xs = np.nonzero(flat)  # only those pixels change (none on most textured scenes)
     if ys.size == 0:
         return penalty
-    sub = penalty[ys, xs]
+    sub = penalty[ys, :, xs]  # (N, K)
     N, K = sub.shape
     by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
     offered = by_size.any(axis=1)
@@ -543,7 +544,7 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *
     has_square = by_size[np.arange(N), 0, largest]
     bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
     out = penalty if in_place else penalty.astype(np.float32, copy=True)
-    out[ys, xs] = np.where(bar, np.inf, sub)
+    out[ys, :, xs] = np.where(bar, np.inf, sub)
     return out
 
 
@@ -569,20 +570,21 @@ def _strip_gate(centre: np.ndarray, *, sizes: tuple[int, ...], noise: float,
 
 
 def _bar_strips(penalty: np.ndarray, ok: np.ndarray, n_sizes: int) -> np.ndarray:
-    """``penalty`` ``(H, W, K)`` float32 (window ``k``: shape ``k // n_sizes``, the ``k %
-    n_sizes``-th size) with the strip windows barred (``inf``) where ``ok`` (:func:`_strip_gate`)
-    says they cannot measure disparity, in place. A pixel offered nothing but uninformative strips
-    keeps them: some window must be matched."""
+    """``penalty`` ``(H, K, W)`` float32 (window ``k``: shape ``k // n_sizes``, the ``k %
+    n_sizes``-th size) with the strip windows barred (``inf``) where ``ok`` (:func:`_strip_gate`,
+    ``(H, W, 2, n_sizes)``) says they cannot measure disparity, in place. A pixel offered nothing
+    but uninformative strips keeps them: some window must be matched."""
     n = n_sizes
-    kept = np.zeros(penalty.shape[:2], bool)  # pixels left some window after the gate
-    for shape in range(penalty.shape[2] // n):
-        block = np.isfinite(penalty[..., shape * n:(shape + 1) * n])
+    ok = ok.transpose(0, 2, 3, 1)  # (H, 2, n_sizes, W), as the penalty
+    kept = np.zeros((penalty.shape[0], penalty.shape[2]), bool)  # pixels left some window after the gate
+    for shape in range(penalty.shape[1] // n):
+        block = np.isfinite(penalty[:, shape * n:(shape + 1) * n])
         if shape in STRIP_SHAPES:
-            block &= ok[..., STRIP_SHAPES.index(shape), :]
-        kept |= block.any(axis=2)
+            block &= ok[:, STRIP_SHAPES.index(shape)]
+        kept |= block.any(axis=1)
     for j, shape in enumerate(STRIP_SHAPES):
-        block = penalty[..., shape * n:(shape + 1) * n]
-        block[~ok[..., j, :] & kept[..., None]] = np.inf
+        block = penalty[:, shape * n:(shape + 1) * n]
+        block[~ok[:, j] & kept[:, None]] = np.inf
     return penalty
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 #: Rows packed or unpacked at a time (keeps the ``(rows, W, K)`` temporaries small).
@@ -60,6 +61,18 @@ class SparseVolume:
         out[keep] = self.values[self.start[a * W]:self.start[b * W]]
         return out
 
+    def window_major(self, a: int, b: int, *, scale: float) -> np.ndarray:
+        """Rows ``[a, b)`` laid out ``(b - a, K, W)`` float32, each row's windows one after another:
+        ``float32(scale) * entry`` where that is finite, ``inf`` elsewhere (the fill and NaN
+        included). The same values as ``np.multiply(self.rows(a, b), np.float32(scale),
+        dtype=np.float32)`` with its non-finite entries set to ``inf``, moved to ``(b - a, K, W)``,
+        in one pass without the dense volume."""
+        H, W, K = self.shape
+        a, b = max(a, 0), min(b, H)
+        out = np.empty((b - a, K, W), np.float32)
+        _window_major_kernel(self.mask, self.start, self.values, a, W, np.float32(scale), out)
+        return out
+
     def take(self, index: np.ndarray) -> np.ndarray:
         """``(H, W)`` float32: each pixel's entry at its ``index`` ``(H, W)`` in ``-K..K-1``
         (negative from the end), as ``np.take_along_axis(dense, index[..., None], 2)[..., 0]``."""
@@ -80,3 +93,23 @@ class SparseVolume:
             first = self.start[y * W:(y + keep.shape[0]) * W].reshape(keep.shape[:2])
             out[y:y + CHUNK_ROWS] = np.where(kept, self.values[np.where(kept, first + rank, 0)], np.float32(self.fill))
         return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _window_major_kernel(mask, start, values, a, W, scale, out):
+    # Twin of SparseVolume.window_major's numpy statement: row by row, the row's (K, W) filled with
+    # inf, then each pixel's entries (ascending k, as packed) scaled into it.
+    n, K, _ = out.shape
+    for r in numba.prange(n):
+        dst = out[r]
+        dst[:] = np.inf
+        y = a + r
+        for x in range(W):
+            i = start[y * W + x]
+            bits = mask[y, x]
+            for k in range(K):
+                if bits[k >> 3] & (128 >> (k & 7)):
+                    v = values[i] * scale
+                    i += 1
+                    if np.isfinite(v):
+                        dst[k, x] = v
