@@ -169,3 +169,6 @@ def test_disparity_bins_from_a_given_origin():
     d = np.array([[0.31, 0.5], [0.77, 1.25]])
     np.testing.assert_array_equal(quantise_disparity(d, 0.1), [[0, 1], [4, 9]])
     np.testing.assert_array_equal(quantise_disparity(d, 0.1, origin=0.0), [[3, 5], [7, 12]])
+    # a tile's halo may hold values below the whole image's origin: they take bin 0, never a
+    # negative bin (the window selection refuses those)
+    np.testing.assert_array_equal(quantise_disparity(d, 0.1, origin=0.5), [[0, 0], [2, 7]])

@@ -44,10 +44,12 @@ def quantise_disparity(d0: np.ndarray, width: float, origin: float | None = None
     """``(H, W)`` int64 bin index ``floor((d0 - origin) / width)``; ``origin`` defaults to
     ``min(d0)`` (bins start at 0). A tile passes the whole map's minimum so its bins are the whole
     image's bins (only differences of indices matter to the entropy, so any origin at or below the
-    minimum gives the same histograms up to relabelling)."""
+    minimum gives the same histograms up to relabelling). Values below ``origin`` take bin 0: a
+    tile's layer map can dip below the whole image's minimum in the outer rows of its halo (its
+    median sees other neighbours there), beyond the reach of the tile's core."""
     origin = float(np.nanmin(d0)) if origin is None else float(origin)
     q = np.floor((d0 - origin) / width).astype(np.int64)
-    return q
+    return np.maximum(q, 0, out=q)
 
 
 def _plogp_sum(counts: np.ndarray, n: int) -> float:
