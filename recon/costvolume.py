@@ -157,7 +157,7 @@ def _sample(row, x, ox, fx):
 
 
 @numba.njit(fastmath=FAST, cache=True)
-def _add_two_shifted_row_diffs(acc, c_row, p, ox_p, fx_p, q, ox_q, fx_q):
+def add_two_shifted_row_diffs(acc, c_row, p, ox_p, fx_p, q, ox_q, fx_q):
     # add_shifted_row_diff(acc, c_row, p, ox_p, fx_p), then the same with q, ox_q, fx_q, in one
     # pass: each acc[x] gets p's difference added, then q's, as the two calls would add them (the
     # same bits), but acc and c_row are read and acc written once for the two views. The middle
@@ -189,7 +189,7 @@ def _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv):
     # float32 rows to work in): each candidate's sum adds the views in the same order, but two
     # views are taken for every candidate before the next two, so their few source rows are read
     # from memory once, not D times, and each candidate's sum is read and written once per two
-    # views (_add_two_shifted_row_diffs; 0.94 -> 0.82 s CPU on backgammon).
+    # views (add_two_shifted_row_diffs; 0.94 -> 0.82 s CPU on backgammon).
     c_row = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
     accs[:] = 0.0
     n = vu.shape[0]
@@ -199,7 +199,7 @@ def _cost_rows(gray, vu, vv, oy, fy, ox, fx, y, accs, rv):
         for j in range(oy.shape[0]):
             p = _view_row(p_img, y, oy[j, k], fy[j, k], rv[0])
             q = _view_row(q_img, y, oy[j, k + 1], fy[j, k + 1], rv[1])
-            _add_two_shifted_row_diffs(accs[j], c_row, p, ox[j, k], fx[j, k], q, ox[j, k + 1], fx[j, k + 1])
+            add_two_shifted_row_diffs(accs[j], c_row, p, ox[j, k], fx[j, k], q, ox[j, k + 1], fx[j, k + 1])
     if n % 2:  # the last view of an odd number
         img = gray[vu[n - 1], vv[n - 1]]
         for j in range(oy.shape[0]):

@@ -94,7 +94,7 @@ def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
 
 @pytest.mark.parametrize("grid", [(3, 4), (1, 2), (5, 5)])  # 11 views, 1 view: the last of an odd number alone
 def test_sweep_adds_the_views_in_pairs_as_one_at_a_time(grid):
-    # The sweep adds two views in one pass (recon.costvolume._add_two_shifted_row_diffs); the cost
+    # The sweep adds two views in one pass (recon.costvolume.add_two_shifted_row_diffs); the cost
     # volume's pixel_cost adds one at a time. Shifts of several pixels beyond both borders occur.
     from recon.costvolume import box_mean, sweep_least_cost
 

@@ -100,12 +100,12 @@ def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
 
 def test_block_set_integrals_is_bit_identical_to_reference_for_any_thread_count():
     import numba
-    from recon.entropy.cost import block_set_integrals, block_set_integrals_reference
+    from recon.entropy.cost import BLOCK_ROWS, block_set_integrals, block_set_integrals_reference
     from recon.entropy.initial import initial_view_mask
     rng = np.random.default_rng(3)
     threads = numba.get_num_threads()
     try:
-        for H, W in ((1, 7), (3, 5), (17, 21)):
+        for H, W in ((1, 7), (3, 5), (17, 21), (2 * BLOCK_ROWS + 5, 6)):  # the last in several runs of rows
             gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties in the sums
             for d, sets, mask in ((-0.7, np.arange(11), None), (0.35, np.array([0, 4, 9]), None),
                                   (1.1, np.arange(11), initial_view_mask((9, 9)))):

@@ -19,10 +19,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from recon.costvolume import add_shifted_row_diff
+from recon.costvolume import add_shifted_row_diff, add_two_shifted_row_diffs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 N_BLOCKS = 9
+#: Image rows whose block rows the joint search's pass makes together, a view at a time.
+BLOCK_ROWS = 24
 
 
 def view_offsets(grid_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -84,59 +86,86 @@ def block_abs_diff_reference(gray: np.ndarray, disparity: float, *,
 
 
 @numba.njit(cache=True, fastmath={"nnan", "ninf", "nsz"})  # IEEE rounding: see recon/costvolume.py
-def _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
-    # Row y of every block image, added into acc (n_blocks, W) float32 (zeroed by the caller): every
-    # view's row is interpolated (bilinear is separable: first between the two source rows, then
-    # along x with one fraction for the whole row, since the shift is the same for every x) and its
-    # absolute difference added to the row of its block. rv: (W,) float32 scratch. Clamping at the
-    # image edges as in the reference. float32 arithmetic throughout (8 SIMD lanes; a float64
-    # weight made the rows float64: 29 -> 22 ms per candidate on 81 views of 512x512); the weights
-    # depend only on the shift, not on where the image starts, so a tile computes the same values.
-    H = gray.shape[2]
-    W = gray.shape[3]
-    centre = gray[gray.shape[0] // 2, gray.shape[1] // 2, y]
-    for k in range(vu.shape[0]):
-        img = gray[vu[k], vv[k]]
-        sy = y - vdu[k] * disparity
-        if sy < 0.0:
-            sy = 0.0
-        elif sy > H - 1.0:
-            sy = H - 1.0
-        y0 = int(np.floor(sy))
-        if y0 > H - 2:
-            y0 = H - 2
-        if y0 < 0:
-            y0 = 0
-        fy = np.float32(sy - y0)  # exact in float64 (whatever the image origin), then rounded
-        gy = np.float32(1.0) - fy
-        y1 = min(y0 + 1, H - 1)
-        for x in range(W):
-            rv[x] = gy * img[y0, x] + fy * img[y1, x]
-        base = -vdv[k] * disparity
-        fl = np.floor(base)
-        add_shifted_row_diff(acc[vblock[k]], centre, rv, int(fl), base - fl)
+def _view_row(img, sy, rv):
+    # The row of one view (img, (H, W)) at sy (float64), blended from its two source rows with one
+    # fraction for the whole row into rv ((W,) float32; bilinear is separable: the caller samples
+    # this row along x with one fraction, since the shift is the same for every x). Clamping at
+    # the image edges as in the reference. float32 arithmetic (8 SIMD lanes; a float64 weight made
+    # the rows float64: 29 -> 22 ms per candidate on 81 views of 512x512); the weights depend only
+    # on the shift, not on where the image starts, so a tile computes the same values.
+    H, W = img.shape
+    if sy < 0.0:
+        sy = 0.0
+    elif sy > H - 1.0:
+        sy = H - 1.0
+    y0 = int(np.floor(sy))
+    if y0 > H - 2:
+        y0 = H - 2
+    if y0 < 0:
+        y0 = 0
+    fy = np.float32(sy - y0)  # exact in float64 (whatever the image origin), then rounded
+    gy = np.float32(1.0) - fy
+    y1 = min(y0 + 1, H - 1)
+    for x in range(W):
+        rv[x] = gy * img[y0, x] + fy * img[y1, x]
+    return rv
+
+
+@numba.njit(cache=True, fastmath={"nnan", "ninf", "nsz"})
+def _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
+    # Rows y, y + 1, ... of every block image, added into acc (rows, n_blocks, W) float32 (zeroed
+    # by the caller): every view's row (_view_row) sampled along x and its absolute difference
+    # added to the row of its block, two views of a block in one pass where the next view is in the
+    # same block (add_two_shifted_row_diffs: each block's sum adds its views in their order, the
+    # same bits as one at a time; _view_lists puts each block's views together). A view gives all
+    # the rows before the next view: its source rows are read in one run, not 81 runs interleaved.
+    # rv: (2, W) float32 scratch.
+    U, V = gray.shape[0], gray.shape[1]
+    n = vu.shape[0]
+    k = 0
+    while k < n:
+        base_p = -vdv[k] * disparity
+        fl_p = np.floor(base_p)
+        two = k + 1 < n and vblock[k + 1] == vblock[k]
+        m = k + 1 if two else k
+        base_q = -vdv[m] * disparity
+        fl_q = np.floor(base_q)
+        for j in range(acc.shape[0]):
+            centre = gray[U // 2, V // 2, y + j]
+            p = _view_row(gray[vu[k], vv[k]], (y + j) - vdu[k] * disparity, rv[0])
+            if two:
+                q = _view_row(gray[vu[m], vv[m]], (y + j) - vdu[m] * disparity, rv[1])
+                add_two_shifted_row_diffs(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p,
+                                          q, int(fl_q), base_q - fl_q)
+            else:
+                add_shifted_row_diff(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p)
+        k = m + 1
 
 
 @numba.njit(cache=True, parallel=True)
 def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
-    # One output row at a time (_block_row), written once.
+    # One output row at a time (_block_rows), written once.
     H = gray.shape[2]
     W = gray.shape[3]
     n_blocks = out.shape[0]
     for y in numba.prange(H):
-        acc = np.zeros((n_blocks, W), np.float32)
-        rv = np.empty(W, np.float32)
-        _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
+        acc = np.zeros((1, n_blocks, W), np.float32)
+        rv = np.empty((2, W), np.float32)
+        _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
         for bb in range(n_blocks):
             for x in range(W):
-                out[bb, y, x] = acc[bb, x]
+                out[bb, y, x] = acc[0, bb, x]
 
 
 def _view_lists(grid_shape, view_mask):
+    # (u, v, du, dv, block) of the included views, block by block, each block's views in grid order
+    # (the order its sum adds them in; _block_rows takes a block's views two at a time).
     du, dv = view_offsets(grid_shape)
     blocks = view_blocks(grid_shape)
     mask = np.ones(grid_shape, bool) if view_mask is None else np.asarray(view_mask, bool)
     uu, vv = np.nonzero(mask)
+    by_block = np.argsort(blocks[uu, vv], kind="stable")
+    uu, vv = uu[by_block], vv[by_block]
     return (uu.astype(np.int64), vv.astype(np.int64), du[uu, vv].astype(np.float32),
             dv[uu, vv].astype(np.float32), blocks[uu, vv])
 
@@ -347,22 +376,24 @@ def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, o
 def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from,
                                 set_order, n_bands, out):
     # _block_abs_diff_kernel and _set_integrals_kernel in one pass: each band makes its rows'
-    # block rows (_block_row) and from them, while they are in cache, its rows of the tables; no
-    # (9, H, W) block images (then _finish_tables).
+    # block rows (_block_rows, BLOCK_ROWS rows at a time) and from them, while they are in cache,
+    # its rows of the tables; no (9, H, W) block images (then _finish_tables).
     S = set_blocks.shape[0]
     H = gray.shape[2]
     W = gray.shape[3]
     for band in numba.prange(n_bands):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
-        acc = np.empty((N_BLOCKS, W), np.float32)
-        rv = np.empty(W, np.float32)
+        acc = np.empty((BLOCK_ROWS, N_BLOCKS, W), np.float32)
+        rv = np.empty((2, W), np.float32)
         sums = np.empty((S, W), np.float64)
         fixed = np.empty(W, np.int64)
-        for y in range(y0, y1):
-            acc[:] = 0.0
-            _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv)
-            _set_table_row(acc, set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
+        for y in range(y0, y1, BLOCK_ROWS):
+            rows = acc[:min(BLOCK_ROWS, y1 - y)]
+            rows[:] = 0.0
+            _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, rows, rv)
+            for j in range(rows.shape[0]):
+                _set_table_row(rows[j], set_blocks, set_from, set_order, y + j, y + j == y0, sums, fixed, out)
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -512,8 +543,8 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
         c0 = chunk * H // n_chunks
         c1 = (chunk + 1) * H // n_chunks
         ring = np.empty((R, S, W), np.float64)
-        acc = np.empty((N_BLOCKS, W), np.float32)
-        rv = np.empty(W, np.float32)
+        acc = np.empty((1, N_BLOCKS, W), np.float32)
+        rv = np.empty((2, W), np.float32)
         sums = np.empty((S, W), np.float64)
         cols = np.empty((K, W), np.float64)
         tot = np.empty(W, np.float64)
@@ -524,11 +555,11 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
         for y in range(c0, c1):
             while nxt <= min(y + down, H - 1):
                 acc[:] = 0.0
-                _block_row(gray, vu, vv, vdu, vdv, vblock, disparity, nxt, acc, rv)
+                _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, nxt, acc, rv)
                 slot = ring[nxt % R]
                 for i in range(S):
                     s = set_order[i]
-                    v = _set_sum(acc, set_blocks, set_from, s, sums)
+                    v = _set_sum(acc[0], set_blocks, set_from, s, sums)
                     fixed = slot[s]
                     for x in range(W):
                         fixed[x] = np.floor(v[x] * FIXED_POINT + 0.5)
