@@ -325,6 +325,7 @@ def line_search_step(s: State) -> None:
                 "all": np.ones(labels.shape, bool)}[o.visible_sets]
     if o.joint:
         windows = [(sh, z) for sh in range(N_SHAPES if o.strip_windows else 9) for z in sizes]
+        del w["shape"], w["size"], w["entropy"]  # the search chooses them anew: not alive beside it
         s.matched, s.cost, k, s.ambiguity = joint_search_in_bands(s, candidates, windows=windows,
                                                                   use_shape_set=occluded)
         w["shape"] = k // len(sizes)
