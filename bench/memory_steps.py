@@ -3,7 +3,8 @@
     .venv/bin/python bench/memory_steps.py FOLDER [--preset paper]
 
 Reads ``FOLDER`` (any light field ``lfrig`` reads, e.g. ``runs/capture-speed/rectified``) as
-``lfrig reconstruct`` does (the views as grey, ``read_lightfield(grey=True)``), then
+``lfrig reconstruct`` does (the views as grey, ``read_lightfield(grey=True)``, let go after the
+boundary step, ``LightField.views_once``), then
 runs the steps of :data:`recon.entropy.plan.PLAN` one by one on the whole image as the plan runs
 them (:func:`recon.entropy.plan.run_step`: each followed by the heap's trim) and prints, per
 step, the process's resident memory after it and its peak within it (MiB; Linux: the peak,
@@ -63,6 +64,7 @@ def main() -> int:
     t = time.perf_counter()
     try:
         lf = read_lightfield(args.folder, grey=True)
+        lf.views_once = True  # as lfrig reconstruct hands them to its one estimate
         options = make_options(None, preset=args.preset)
     except (LfrigError, ValueError) as error:
         parser.exit(2, f"memory_steps.py: error: {error}\n")
@@ -78,7 +80,7 @@ def main() -> int:
             run_step(state, step)
             row(step.name, time.perf_counter() - t)
     name, _, peak, _ = max(rows, key=lambda r: r[2])
-    print(f"{lf.views.shape[3]}x{lf.views.shape[2]}, {lf.grid_shape[0]}x{lf.grid_shape[1]} views: "
+    print(f"{lf.image_shape[1]}x{lf.image_shape[0]}, {lf.grid_shape[0]}x{lf.grid_shape[1]} views: "
           f"peak {peak:.0f} MiB in {name}")
     return 0
 

@@ -199,7 +199,12 @@ def reconstruct_to_folder(
     warming = warm_in_background(method) if estimate is None and not isinstance(lf_dir, LightField) else None
     # An estimate in this process reads only the grey views (recon.methods): they are read as grey, the
     # centre view kept in its colours for the folder. A tiled one cuts the views as stored into tiles.
-    lf = lf_dir if isinstance(lf_dir, LightField) else read_lightfield(lf_dir, verify=verify, grey=estimate is None)
+    if isinstance(lf_dir, LightField):
+        lf = lf_dir
+    else:  # read for this one estimate: the estimator lets the grey views go after the last step that
+        # reads them (what follows here reads the centre view, kept in its colours, and the shapes)
+        lf = read_lightfield(lf_dir, verify=verify, grey=estimate is None)
+        lf.views_once = estimate is None
     if lf.source is not None:
         check_output_outside(lf.source, out_dir)
     read_s = time.perf_counter() - started

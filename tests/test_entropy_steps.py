@@ -190,6 +190,38 @@ def test_view_filters_work_in_place_and_the_views_come_back(writable):
     np.testing.assert_array_equal(lf.views, given)  # the caller's views as given
 
 
+@pytest.mark.parametrize("changes", [5, 2000])
+def test_changed_pixels_put_back_give_the_image_as_it_was(changes):
+    # a few changes kept by index, many by a bit a pixel; either way put back bit for bit
+    from recon.entropy.steps import changed_pixels, put_back
+    rng = np.random.default_rng(changes)
+    before = rng.random((60, 70), dtype=np.float32)
+    after = before.copy()
+    after.flat[rng.choice(before.size, changes, replace=False)] += 1.0
+    where, values = changed_pixels(before, after)
+    assert where.dtype == (np.uint32 if changes == 5 else np.uint8)
+    put_back(after, where, values)
+    np.testing.assert_array_equal(after.view(np.uint32), before.view(np.uint32))
+    assert changed_pixels(before, before.copy()) is None
+
+
+def test_views_read_for_one_estimate_are_let_go_after_the_boundary_step():
+    # A light field read for one estimate (views_once) loses its views after the last step that reads
+    # them, keeps its shapes and centre view, and gives the same maps as one that keeps its views.
+    from recon.entropy import estimate_disparity
+    from recon.synthetic import Layer, noise_texture, render
+    lf, _ = render([Layer(noise_texture((40, 48), seed=4), 0.6)])
+    kept = estimate_disparity(lf)
+    centre = lf.centre_view().copy()
+    lf.stored_centre, lf.views_once = centre, True
+    shapes = lf.grid_shape, lf.image_shape, lf.is_colour
+    once = estimate_disparity(lf)
+    assert lf.views is None and (lf.grid_shape, lf.image_shape, lf.is_colour) == shapes
+    assert lf.centre_view() is centre
+    for name in ("disparity", "matched_disparity", "confidence"):
+        np.testing.assert_array_equal(getattr(once, name), getattr(kept, name))
+
+
 def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
     from recon.entropy import volume
     from recon.entropy.volume import SparseVolume

@@ -111,6 +111,18 @@ def test_sparse_entropies_are_the_packed_dense_ones():
         select_windows(grey, disp, labels, return_all="dense", **kw)
 
 
+def test_sparse_entropies_in_bands_of_rows_are_the_whole_images(monkeypatch):
+    # bands of 2 rows (and one of 1 at the end) give the one band's volume and maps bit for bit
+    grey, disp, labels, kw = _window_inputs(seeded(), H=23, W=29)
+    whole = select_windows(grey, disp, labels, return_all="sparse", **kw)
+    monkeypatch.setattr(entropy, "SELECT_BAND_MIB", 2 * 29 * 77 * 4 / 2 ** 20)
+    banded = select_windows(grey, disp, labels, return_all="sparse", **kw)
+    for a, b in zip(whole[:3], banded[:3]):
+        assert a.tobytes() == b.tobytes()
+    for name in ("mask", "start", "values"):
+        assert getattr(whole[3], name).tobytes() == getattr(banded[3], name).tobytes()
+
+
 def test_select_windows_refuses_negative_bins():
     grey = np.zeros((9, 9), np.int64)
     disp = np.zeros((9, 9), np.int64)

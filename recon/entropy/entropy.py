@@ -147,18 +147,29 @@ def ring_order(rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array(offsets, np.int64).reshape(-1, 2), ends
 
 
+#: Rows of the image whose windows :func:`select_windows` scores at a time, as many as this many MiB
+#: hold at 4 bytes for each of the ``K`` windows of a pixel: their values are written each row from
+#: its own offset of a buffer of that size, so that only the pages they fill are touched. One buffer
+#: for the whole image (924 MB at 2000x1500) stayed small only on small pages: in transparent huge
+#: pages (numpy's madvise when numpy is imported before :mod:`recon`, or a system's THP set to
+#: "always") every row touched its own 2 MB page and the whole buffer became resident, the window
+#: selection's peak at 2000x1500 then 0.8-1.0 GB higher whenever the kernel had huge pages to give.
+SELECT_BAND_MIB = 64
+
+
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
                    n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring, ring_end,
-                   shape_map, size_map, best_e, all_e, dense, row_values, counts, mask):
+                   shape_map, size_map, best_e, all_e, dense, row_values, row_first, counts, mask):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
     # edges try 11 shapes, elsewhere 1). A pixel at least ``margin`` from the border (its largest
     # window not clipped by the image) adds each size's new pixels from ``ring`` (ring_order's, as
     # flat offsets): the same pixels in the same order as the clipped windows' row runs below, so
     # the same sums bit for bit. Each offered window's entropy goes to ``all_e`` if ``dense``, and
     # always to the sparse volume's parts: row y's values one after the other from
-    # ``row_values[y * W * K]``, the count per pixel in ``counts``, the bit of window k in ``mask``
-    # (np.packbits' order). The per-pixel loops index with unsigned values only (uint32 bins and
+    # ``row_values[(y - row_first) * W * K]`` (the rows of ``order`` from ``row_first`` on, a band
+    # of them), the count per pixel in ``counts``, the bit of window k in ``mask`` (np.packbits'
+    # order). The per-pixel loops index with unsigned values only (uint32 bins and
     # counts, the ring's offsets shifted by ring_shift to uint64), so numba adds no wrap-around of
     # negative indices to their loads (a sign test and an add per load, and the registers they
     # took: backgammon 1.37 -> 0.80 s on one thread).
@@ -172,9 +183,9 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
     layers_f = layers.ravel()
     K = n_shapes * n_sizes
     ring_shift = r_max * W + r_max  # ring holds offsets + ring_shift (unsigned)
-    for jr in numba.prange(H):
+    for jr in numba.prange(order.shape[0]):
         y = order[jr]
-        row_n = y * W * K
+        row_n = (y - row_first) * W * K
         hg = np.zeros(n_grey, np.uint32)
         hd = np.zeros(n_disp, np.uint32)
         hm = np.zeros(n_grey, np.uint32)
@@ -375,30 +386,35 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
         raise ValueError(f"return_all must be False, True or 'sparse', got {return_all!r}")
     dense = return_all is True
     all_e = np.full((H, W, K) if dense else (0, 0, 0), -np.inf, np.float32)
-    row_values = np.empty(H * W * K, np.float32)  # only the pages a row's values fill are touched
     counts = np.zeros(H * W, np.int64)
     mask = np.zeros((H, W, (K + 7) // 8), np.uint8)
     if side_radius is None:
         side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
-    _select_kernel(grey_q, disp_q, np.ascontiguousarray(labels, np.uint8), rects,
-                   np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
-                   float(alpha2_other), n_grey, n_disp, xlogx,
-                   np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64),
-                   np.zeros((H, W), np.float32) if layers is None
-                   else np.ascontiguousarray(layers, np.float32),
-                   -1.0 if layer_gap is None or layers is None else float(layer_gap),
-                   np.full((H, W), max(sizes), np.int64) if max_size is None
-                   else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64),
-                   row_order(H), _ring_margin(sizes), ring, ring_end, shape_map, size_map, best_e,
-                   all_e, dense, row_values, counts, mask)
+    maps = (grey_q, disp_q, np.ascontiguousarray(labels, np.uint8), rects,
+            np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
+            float(alpha2_other), n_grey, n_disp, xlogx,
+            np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64),
+            np.zeros((H, W), np.float32) if layers is None else np.ascontiguousarray(layers, np.float32),
+            -1.0 if layer_gap is None or layers is None else float(layer_gap),
+            np.full((H, W), max(sizes), np.int64) if max_size is None
+            else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64))
+    band = max(1, min(H, int(SELECT_BAND_MIB * 2 ** 20 // (W * K * 4))))
+    parts = []  # each band's values, packed
+    for y0 in range(0, H, band):
+        n = min(band, H - y0)
+        row_values = np.empty(n * W * K, np.float32)  # only the pages a row's values fill are touched
+        _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, shape_map, size_map,
+                       best_e, all_e, dense, row_values, y0, counts, mask)
+        per_row = counts[y0 * W:(y0 + n) * W].reshape(n, W).sum(axis=1)
+        parts.append(np.concatenate([row_values[i * W * K:i * W * K + per_row[i]] for i in range(n)]))
+        del row_values
     if dense:
         return shape_map, size_map, best_e.astype(np.float32), all_e
     if return_all == "sparse":
         start = np.zeros(H * W + 1, np.int64)
         np.cumsum(counts, out=start[1:])
-        per_row = start[W::W] - start[:-1:W]
-        values = np.concatenate([row_values[y * W * K:y * W * K + per_row[y]] for y in range(H)])
-        del row_values
+        values = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        del parts
         return (shape_map, size_map, best_e.astype(np.float32),
                 SparseVolume((H, W, K), float(-np.inf), mask, start, values))
     return shape_map, size_map, best_e.astype(np.float32)

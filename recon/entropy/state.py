@@ -65,9 +65,10 @@ class State:
     #: The views the line search matches (``raw``, filtered in place where noise or weak texture
     #: rules; ``None`` once the raw views are restored).
     views: np.ndarray | None = None
-    #: ``(u, v, pixels, values)`` per view the filters changed in :attr:`raw`: the flat indices
-    #: (into ``(H, W)``) of the pixels they changed and those pixels' float32 values as they were,
-    #: to be written back after the line search.
+    #: ``(u, v, where, values)`` per view the filters changed in :attr:`raw`: the pixels they
+    #: changed (``where``: their flat indices into ``(H, W)`` as uint32, or where many changed the
+    #: flat ``(H, W)`` bool mask packed, :func:`numpy.packbits`, uint8) and those pixels' float32
+    #: values as they were (row-major order), to be written back after the line search.
     filtered_views: list = field(default_factory=list)
     disparity_range: tuple[float, float] | None = None
     origin: float | None = None

@@ -180,10 +180,13 @@ def view_filters_step(s: State) -> None:
     weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
     place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it, and
     the warped masks of where it filters made for that row alone, :func:`warp_mask_to_views`);
-    ``s.filtered_views`` keeps the pixels of each view it changed as they were (on the 1198x906
-    demo capture 0.1 % of them, under 1 MiB), which :func:`restore_views_step` writes back after
-    the line search. ``s.raw`` is the light field's own array when the light field says it may be
-    written (:attr:`recon.lf.lightfield.LightField.views_writable`), else a copy of it."""
+    ``s.filtered_views`` keeps the pixels of each view it changed as they were, and where: their
+    flat indices when fewer than one in 32 changed, else a bit per pixel (on the 1198x906 demo
+    capture 0.1 % of them, under 1 MiB; on the 2000x1500 synthetic set, a noisy wall over most of
+    its upper half, ~40 %: 4 bytes and a bit each, where int64 indices took 12 bytes), which
+    :func:`restore_views_step` writes back after the line search. ``s.raw`` is the light field's
+    own array when the light field says it may be written
+    (:attr:`recon.lf.lightfield.LightField.views_writable`), else a copy of it."""
     o, U, V = s.options, *s.raw.shape[:2]
     noise = s.noise_limited if o.noise_filter > 0 and s.noise_limited.any() else None
     weak = None
@@ -210,9 +213,9 @@ def view_filters_step(s: State) -> None:
                                  out=None if views is row else views)
         if views is not row:
             for v in range(V):
-                changed = np.flatnonzero(views[0, v].view(np.uint32) != row[0, v].view(np.uint32))
-                if changed.size:  # the pixels the filters change, kept as they were
-                    s.filtered_views.append((u, v, changed, row[0, v].take(changed)))
+                kept = changed_pixels(row[0, v], views[0, v])
+                if kept is not None:
+                    s.filtered_views.append((u, v, *kept))
             row[...] = views
     s.views = s.raw
 
@@ -220,10 +223,31 @@ def view_filters_step(s: State) -> None:
 def restore_views_step(s: State) -> None:
     """``s.raw`` as read again where :func:`view_filters_step` filtered it (the pixels it kept in
     ``s.filtered_views`` written back, bit for bit); ``s.views`` let go."""
-    for u, v, pixels, values in s.filtered_views:
-        np.put(s.raw[u, v], pixels, values)
+    for u, v, where, values in s.filtered_views:
+        put_back(s.raw[u, v], where, values)
     s.filtered_views = []
     s.views = None
+
+
+def changed_pixels(before: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(where, values)``: the pixels of ``before`` that ``after`` changes (float32 images of one
+    shape, compared bit for bit) and their values in ``before`` (row-major order), for
+    :func:`put_back`; ``None`` when none changed. ``where``: their flat indices as uint32 when fewer
+    than one pixel in 32 changed, else the flat bool mask packed (:func:`numpy.packbits`, uint8),
+    a bit a pixel."""
+    changed = after.view(np.uint32) != before.view(np.uint32)
+    n = np.count_nonzero(changed)
+    if n == 0:
+        return None
+    where = np.flatnonzero(changed).astype(np.uint32) if 32 * n < changed.size else np.packbits(changed)
+    return where, before[changed]
+
+
+def put_back(image: np.ndarray, where: np.ndarray, values: np.ndarray) -> None:
+    """Write ``values`` into ``image`` in place at ``where`` (:func:`changed_pixels`)."""
+    if where.dtype == np.uint8:  # a bit a pixel
+        where = np.flatnonzero(np.unpackbits(where, count=image.size))
+    np.put(image, where, values)
 
 
 def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -301,6 +325,7 @@ def line_search_step(s: State) -> None:
                 "all": np.ones(labels.shape, bool)}[o.visible_sets]
     if o.joint:
         windows = [(sh, z) for sh in range(N_SHAPES if o.strip_windows else 9) for z in sizes]
+        del w["shape"], w["size"], w["entropy"]  # the search chooses them anew: not alive beside it
         s.matched, s.cost, k, s.ambiguity = joint_search_in_bands(s, candidates, windows=windows,
                                                                   use_shape_set=occluded)
         w["shape"] = k // len(sizes)
@@ -412,6 +437,7 @@ def boundary_step(s: State) -> None:
     if s.options.boundary_snap:
         s.matched = _snap(s.raw, s.matched, s.noise_sigma, s.disparity_range, s.options)
     s.raw = None  # the last step that reads the views: the refinement needs only the centre's maps
+    s.source.release_views()  # and the light field's own, when it was read for this one estimate
     s.lap("matching")
 
 

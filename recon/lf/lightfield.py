@@ -58,6 +58,11 @@ class LightField:
         one estimate): the estimator's view filters then work in place on them and write back the
         rows they changed after the line search (:func:`recon.entropy.steps.view_filters_step`),
         instead of filtering a copy.
+    views_once
+        ``True`` when the views are read for one estimate and nothing reads them after it (set by
+        :func:`recon.pipeline.reconstruct_to_folder` on the light field it read itself): the
+        estimator lets them go after the last step that reads them
+        (:func:`recon.entropy.steps.boundary_step`, :meth:`release_views`).
     """
 
     views: np.ndarray
@@ -70,22 +75,33 @@ class LightField:
     source: Path | None = None
     stored_centre: np.ndarray | None = None
     views_writable: bool = False
+    views_once: bool = False
+    #: :attr:`views`' shape, kept when they are let go (:meth:`release_views`).
+    shape: tuple[int, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.views.ndim not in (4, 5) or (self.views.ndim == 5 and self.views.shape[-1] != 3):
             raise ValueError(
                 f"views must be (U, V, H, W) or (U, V, H, W, 3); got shape {self.views.shape}"
             )
+        self.shape = tuple(int(n) for n in self.views.shape)
+
+    def release_views(self) -> None:
+        """Let go of :attr:`views` (``None`` from now on) when :attr:`views_once` says nothing reads
+        them again and the centre view is kept (:attr:`stored_centre`); the shapes, the centre view
+        and the metadata stay. Otherwise nothing changes."""
+        if self.views_once and self.stored_centre is not None:
+            self.views = None
 
     @property
     def grid_shape(self) -> tuple[int, int]:
         """``(U, V)``: number of grid rows and columns."""
-        return int(self.views.shape[0]), int(self.views.shape[1])
+        return self.shape[0], self.shape[1]
 
     @property
     def image_shape(self) -> tuple[int, int]:
         """``(H, W)`` of every view in pixels."""
-        return int(self.views.shape[2]), int(self.views.shape[3])
+        return self.shape[2], self.shape[3]
 
     @property
     def centre_index(self) -> tuple[int, int]:
@@ -94,7 +110,7 @@ class LightField:
 
     @property
     def is_colour(self) -> bool:
-        return self.views.ndim == 5
+        return len(self.shape) == 5
 
     def centre_view(self) -> np.ndarray:
         """The centre view in the stored dtype, ``(H, W[, 3])`` (:attr:`stored_centre` when set)."""
