@@ -311,6 +311,7 @@ def run_capture(
     started = clock.monotonic()
     taken = 0
     failed = False
+    wire_hook = stage.on_line if isinstance(stage, WireLogged) else None
     try:
         retake = retake_all and not writer.created
         done_before = 0 if retake else len(writer.completed)
@@ -428,6 +429,8 @@ def run_capture(
         finally:
             # refused or failed before the first view of a capture this run began: leave no journal
             discarded = failed and writer.discard()
+            if isinstance(stage, WireLogged):  # the stage outlives the log: its later lines are not this capture's
+                stage.on_line = wire_hook
             log.close()
             if discarded and not log_was_there:
                 (path / LOG_NAME).unlink(missing_ok=True)

@@ -440,3 +440,21 @@ def test_the_session_log_takes_a_line_from_a_signal_handler_mid_write(tmp_path):
     log.close()
     lines = (tmp_path / "session.log").read_text().splitlines()
     assert [line.split("  ", 1)[1] for line in lines] == ["a view", "from the handler"]
+
+
+def test_the_stage_stops_writing_to_the_session_log_when_the_capture_ends(rig, tmp_path):
+    # The stage outlives the capture (the command still asks it where it stands when it lets go of
+    # the port): a line it reads then must not go to the capture's closed session.log.
+    clock, controller, url = rig
+    spec = GridSpec(rows=3, cols=3, centre_mm=CENTRE)
+    lines = []
+    with open_stage(url, clock) as stage:
+        stage.on_line = lambda direction, text: lines.append((direction, text))
+        result = run_capture(tmp_path / "cap", stage=stage, camera=PositionCamera(controller), grid=spec,
+                             clock=clock, progress=None)
+        assert result.complete
+        seen = len(lines)
+        stage.on_line("<", "[MSG:a line after the capture]")
+        assert lines[seen:] == [("<", "[MSG:a line after the capture]")]
+    log = (tmp_path / "cap" / "session.log").read_text()
+    assert "capture complete" in log and "after the capture" not in log
