@@ -84,11 +84,17 @@ def _laplace_system(values: np.ndarray, holes: np.ndarray, ys: np.ndarray, xs: n
         rhs[known] += values[ny[known], nx[known]]
     del index
     columns[:, 4] = np.arange(n)
-    present = columns >= 0
     data = np.full((n, 5), -1.0)
     data[:, 4] = diag + 1e-9
+    return _rows_to_csr(columns, data, n), rhs
+
+
+def _rows_to_csr(columns: np.ndarray, data: np.ndarray, n_columns: int) -> scipy.sparse.csr_matrix:
+    """The CSR matrix whose row ``i`` holds ``data[i, j]`` at column ``columns[i, j]`` for every
+    ``j`` with ``columns[i, j] >= 0`` (``(n, k)`` arrays; -1: no entry)."""
+    present = columns >= 0
     indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
-    return scipy.sparse.csr_matrix((data[present], columns[present], indptr), shape=(n, n)), rhs
+    return scipy.sparse.csr_matrix((data[present], columns[present], indptr), shape=(len(columns), n_columns))
 
 
 #: The multigrid's coarsest level: solved by a sparse LU once it has at most this many unknowns.
@@ -116,10 +122,7 @@ def _coarser(ys: np.ndarray, xs: np.ndarray):
             weights[hit, j] = w[hit]
     total = weights.sum(axis=1, keepdims=True)
     np.divide(weights, total, out=weights, where=total > 0)
-    present = columns >= 0
-    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
-    P = scipy.sparse.csr_matrix((weights[present], columns[present], indptr), shape=(n, len(nodes)))
-    return P, nodes // width, nodes % width
+    return _rows_to_csr(columns, weights, len(nodes)), nodes // width, nodes % width
 
 
 def _multigrid_cg(A: scipy.sparse.csr_matrix, b: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:

@@ -344,9 +344,9 @@ def line_search_step(s: State) -> None:
 #: per candidate), the penalty (counted at twice its float32 layout while it is made), the
 #: summed-area tables and a copy of the views' rows. A search within :data:`JOINT_WHOLE_MIB` runs
 #: on the whole image; one that needs more is searched in bands of rows within this budget, each
-#: with a halo of the rows its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
-#: only on the rows within the halo), so that the search's memory grows with the image, not with
-#: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
+#: with a halo of the rows its pixels' windows and views reach (the same maps bit for bit: every
+#: value of a pixel depends only on the rows within the halo), so that the search's memory grows
+#: with the image, not with the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
 #: px/view): 1.1 MB a row, seven bands of 139 rows with halos of 27 (the rows swept: +36 %;
 #: bands of 256 MiB, five of 184 rows, swept +24 % and took 60 MiB more at 5 % less CPU in the
 #: search). The budget does not grow with the views: at 2000x1500 they alone take 927 MiB.
@@ -365,7 +365,7 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
     phases of :func:`recon.entropy.matching.joint_line_search`: the penalty while it is made, 8
     bytes a window (its float32 layout and as much again for the gates' masks, a margin), then its
     ``n_windows`` float32 beside ``n_candidates`` float32 costs, nine int64 summed-area tables and
-    nine float32 block images."""
+    nine float32 images more (a margin: the fused block pass holds only a few rows of its blocks)."""
     U, V, H, W = views_shape
     per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
     if H * per_row <= whole_mib * 2 ** 20:
@@ -387,7 +387,7 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     U, V, H, W = s.views.shape
     rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
                            budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib,
-                           whole_mib=JOINT_WHOLE_MIB)
+                           whole_mib=JOINT_WHOLE_MIB)  # read at the call: tests lower it
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
     gate = _strip_gate(s.centre, sizes=sizes, noise=s.noise_sigma, opts=o)
 
