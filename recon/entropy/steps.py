@@ -336,9 +336,9 @@ def line_search_step(s: State) -> None:
 #: its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
 #: only on the rows within the halo), so that the search's memory grows with the image, not with
 #: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
-#: px/view): 1.0 MB a row, five bands of 202 rows with halos of 27; the 2000x1500 synthetic set
-#: (82 candidates): 2.2 MB a row, 96 rows with halos of 16. The budget does not grow with the
-#: views: at 2000x1500 they alone take 927 MiB.
+#: px/view): 1.0 MB a row, seven bands of 202 rows with halos of 27; the 2000x1500 synthetic set
+#: (82 candidates): 2.2 MB a row, 25 bands of 96 rows with halos of 17. The budget does not grow
+#: with the views: at 2000x1500 they alone take 927 MiB.
 JOINT_BAND_MIB = 208
 #: The largest joint search (MiB, as :data:`JOINT_BAND_MIB` counts) that runs whole, without halo
 #: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 1.0 MB
