@@ -101,6 +101,12 @@ def occlusion_diffs_reference(layers: np.ndarray, offsets: list[tuple[int, int]]
     return neg.astype(np.float32), pos.astype(np.float32)
 
 
+@numba.njit(cache=True)
+def _landing(y, x, m, du, dv):
+    # Where pixel (y, x) of layer value m lands in view (du, dv), rounded to a pixel.
+    return int(np.floor(y - du * m + 0.5)), int(np.floor(x - dv * m + 0.5))
+
+
 @numba.njit(cache=True, parallel=True)
 def _occlusion_kernel(layers, offsets, layer_gap, reach, n_bands, neg, pos):
     # The rows in n_bands bands, one per thread. A pixel lands at most `reach` rows from its own in
@@ -124,8 +130,7 @@ def _occlusion_kernel(layers, offsets, layer_gap, reach, n_bands, neg, pos):
             for y in range(s0, s1):
                 for x in range(W):
                     m = layers[y, x]
-                    ly = int(np.floor(y - du * m + 0.5))
-                    lx = int(np.floor(x - dv * m + 0.5))
+                    ly, lx = _landing(y, x, m, du, dv)
                     if t0 <= ly < t1 and 0 <= lx < W:
                         if m > top[ly - t0, lx]:
                             top[ly - t0, lx] = m
@@ -134,8 +139,7 @@ def _occlusion_kernel(layers, offsets, layer_gap, reach, n_bands, neg, pos):
             for y in range(lo, hi):
                 for x in range(W):
                     m = layers[y, x]
-                    ly = int(np.floor(y - du * m + 0.5))
-                    lx = int(np.floor(x - dv * m + 0.5))
+                    ly, lx = _landing(y, x, m, du, dv)
                     if t0 <= ly < t1 and 0 <= lx < W:
                         t = top[ly - t0, lx]
                         if t - m > layer_gap:
