@@ -133,6 +133,23 @@ def run_once(work: Path, method: str, threads: int, tile: int = 0) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _made(folder: Path) -> bool:
+    """Whether ``folder`` holds a made capture: the demo's (``summary.json``) or a synthetic one."""
+    return (folder / "summary.json").is_file() or (folder / "truth_disparity.pfm").is_file()
+
+
+def make_missing(work: Path, args: argparse.Namespace) -> None:
+    """Make the captures ``args`` asks for that are missing (all of them with ``--remake``)."""
+    if not args.no_demo and (args.remake or not _made(work)):
+        make_capture(work)
+    for width, height in args.sizes:
+        folder = work.parent / f"{work.name}-synthetic-{width}x{height}"
+        if args.remake or not _made(folder):
+            if folder.exists():
+                shutil.rmtree(folder)
+            make_synthetic(folder, width, height)
+
+
 def _size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))
@@ -154,24 +171,22 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", type=_size, default=[], metavar="WxH",
                         help="also synthetic captures of these sizes (e.g. 2000x1500)")
     parser.add_argument("--no-demo", action="store_true", help="leave out the demo capture")
+    parser.add_argument("--make-only", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--tile", type=int, default=0, metavar="SIZE",
                         help="run each estimate tiled with SIZE x SIZE tiles (default: whole)")
     args = parser.parse_args()
     if args.runs < 1:
         raise SystemExit(f"--runs {args.runs}: give at least 1")
     work = args.work.resolve()
-    folders = []
-    if not args.no_demo:
-        if args.remake or not (work / "summary.json").is_file():
-            make_capture(work)
-        folders.append(work)
-    for width, height in args.sizes:
-        folder = work.parent / f"{work.name}-synthetic-{width}x{height}"
-        if args.remake or not (folder / "truth_disparity.pfm").is_file():
-            if folder.exists():
-                shutil.rmtree(folder)
-            make_synthetic(folder, width, height)
-        folders.append(folder)
+    folders = ([] if args.no_demo else [work]) + [work.parent / f"{work.name}-synthetic-{w}x{h}"
+                                                  for w, h in args.sizes]
+    if args.make_only:
+        make_missing(work, args)
+        return
+    if args.remake or any(not _made(folder) for folder in folders):
+        # in a child process: Linux counts each measured child's peak RSS from this process's size
+        # at the fork, and making a capture takes gigabytes
+        subprocess.run([sys.executable, *sys.argv, "--make-only"], check=True)
     load = os.getloadavg()[0]
     print(f"{args.threads} threads; median of {args.runs} runs; {'tiles of ' + str(args.tile) if args.tile else 'whole'}; "
           f"load {load:.1f} at start")

@@ -15,7 +15,7 @@ smaller figure than that cannot show.
 Cases (``--cases``, default all but ``capture``, which needs the demo capture; ``all`` for every one):
 
 - ``help``: ``lfrig --help``, the cost every command pays before it starts;
-- ``info``: ``lfrig info`` on backgammon: imports and reading the 81 views;
+- ``info``: ``lfrig info`` on backgammon: imports, the 81 views' files read and checked (one decoded);
 - ``backgammon``: ``lfrig reconstruct BACKGAMMON -o OUT --quiet`` (matching entropy, the default);
 - ``baseline``: the same with ``--method baseline``;
 - ``export``: ``lfrig export OUT --ply OUT/mesh.ply`` of the backgammon result (a mesh);

@@ -269,3 +269,27 @@ def test_a_damaged_view_is_refused_when_read_as_grey_too(tmp_path):
     cv2.imwrite(str(view), random_views(seed=3)[0, 0, :, :, ::-1])
     with pytest.raises(CaptureLayoutError, match="u01_v02.png"):
         read_lightfield(folder, grey=True)
+
+
+@pytest.mark.parametrize("layout", ["benchmark", "capture"])
+def test_a_light_field_read_without_decoding_is_all_but_the_pixels(tmp_path, layout, monkeypatch):
+    """``decode=False`` (``lfrig info``) decodes the first view only, gives the same shapes, dtype
+    and metadata, and still refuses a view of another size."""
+    import recon.lf.imageio as imageio
+
+    views = random_views()
+    if layout == "benchmark":
+        folder, odd = write_benchmark(tmp_path / "scene", views), "input_Cam005.png"
+    else:
+        folder, odd = tmp_path / "cap", "views/u01_v02.png"
+        write_lightfield(folder, LightField(views=views, pitch_mm=0.5))
+    stored = read_lightfield(folder)
+    decoded = []
+    monkeypatch.setattr(imageio, "decode_quietly", lambda data: decoded.append(1) or cv2.imdecode(data, -1))
+    bare = read_lightfield(folder, decode=False)
+    assert len(decoded) == 1 and bare.views.shape == stored.views.shape and bare.views.dtype == stored.views.dtype
+    assert not bare.views.any() and not bare.views.flags.writeable and set(bare.views.strides) == {0}
+    assert bare.metadata == stored.metadata and bare.pitch_mm == stored.pitch_mm
+    cv2.imwrite(str(folder / odd), np.zeros((7, 8, 3), np.uint8))
+    with pytest.raises(LfrigError, match=odd.split("/")[-1]):
+        read_lightfield(folder, decode=False, verify=False)

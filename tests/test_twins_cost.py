@@ -113,6 +113,10 @@ def test_block_set_integrals_is_bit_identical_to_reference_for_any_thread_count(
                 for n in sorted({1, threads}):
                     numba.set_num_threads(n)
                     np.testing.assert_array_equal(block_set_integrals(gray, d, sets=sets, view_mask=mask), ref)
+            group = np.array([-0.7, 0.35, 1.1])  # three candidates in one pass: each one's tables
+            tables = block_set_integrals(gray, group, sets=np.arange(11))
+            for d, got in zip(group, tables):
+                np.testing.assert_array_equal(got, block_set_integrals_reference(gray, d, sets=np.arange(11)))
     finally:
         numba.set_num_threads(threads)
 

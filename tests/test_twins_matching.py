@@ -62,7 +62,7 @@ def test_joint_line_search_fast_matches_reference():
 def _joint_kernels(integral_sets, H, W, windows, rects, shapes, penalty, occluded, counts):
     """Each kernel's ``(objectives per candidate, least, window)`` over the candidates' summed-area
     tables ``integral_sets``: the pixelwise twin and the window-major kernel with either int64 ->
-    float64 conversion."""
+    float64 conversion, the candidates in groups of one, two and three (the last group short)."""
     from recon.entropy.layout import offer_runs, row_order
     from recon.entropy.legacy_matching import _joint_cost_pixelwise
     from recon.entropy.matching import _joint_cost_kernel
@@ -71,20 +71,19 @@ def _joint_kernels(integral_sets, H, W, windows, rects, shapes, penalty, occlude
     run_start, runs = offer_runs(dense, occluded, shapes)
     order = row_order(H)
     state = {}
-    for name in ("pixelwise", "window-major", "window-major magic"):
+    for name, group in (("pixelwise", 1), ("window-major", 1), ("window-major", 3), ("window-major magic", 2)):
         least = np.full((H, W), np.inf, np.float32)
         best_k = np.full((H, W), -1, np.int64)
-        outs = []
-        for integrals in integral_sets:
-            out = np.empty((H, W), np.float32)
+        outs = np.empty((len(integral_sets), H, W), np.float32)
+        for i in range(0, len(integral_sets), group):
             if name == "pixelwise":
-                _joint_cost_pixelwise(integrals, occluded, rects, shapes, counts, starts, ks, pens,
-                                      255.0, order, out, least, best_k)
+                _joint_cost_pixelwise(integral_sets[i], occluded, rects, shapes, counts, starts, ks, pens,
+                                      255.0, order, outs[i], least, best_k)
             else:
-                _joint_cost_kernel(integrals, occluded, rects, shapes, counts, dense, run_start,
-                                   runs, 255.0, order, name.endswith("magic"), out, least, best_k)
-            outs.append(out)
-        state[name] = (np.stack(outs), least, best_k)
+                tables = np.ascontiguousarray(np.stack(integral_sets[i:i + group]))
+                _joint_cost_kernel(tables, occluded, rects, shapes, counts, dense, run_start, runs, 255.0,
+                                   order, name.endswith("magic"), outs[i:i + group], least, best_k)
+        state[name if name == "pixelwise" else f"{name} {group}"] = (outs, least, best_k)
     return state
 
 
@@ -98,7 +97,7 @@ def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
         inputs = joint_inputs(rng, H, W)
         tables = [set_integrals(block_abs_diff(gray, d), np.arange(11)) for d in (-0.7, 0.0, 0.35, 1.1)]
         state = _joint_kernels(tables, H, W, *inputs)
-        for name in ("window-major", "window-major magic"):
+        for name in ("window-major 1", "window-major 3", "window-major magic 2"):
             for a, b in zip(state["pixelwise"], state[name]):
                 np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
             assert (state[name][2] >= 0).all()
@@ -116,7 +115,7 @@ def test_joint_cost_kernel_converts_large_window_totals_exactly():
     tables = np.zeros((3, 11, H + 1, W + 1), np.int64)
     tables[..., 1:, 1:] = pixels.cumsum(axis=2).cumsum(axis=3)
     state = _joint_kernels(list(tables), H, W, *inputs)
-    for a, b in zip(state["pixelwise"], state["window-major magic"]):
+    for a, b in zip(state["pixelwise"], state["window-major magic 2"]):
         np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
 
 

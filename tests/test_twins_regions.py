@@ -23,6 +23,22 @@ def test_occlusion_diffs_matches_reference_and_marks_the_right_sides():
     assert (neg_r[:, 10:] == 0).all()          # the front is never occluded
 
 
+def test_occlusion_diffs_in_bands_of_rows_are_the_references_bit_for_bit(monkeypatch):
+    # quantised layers (exact ties of the top and bottom layers), signed zeros, every view of a
+    # 5x5 grid; the compiled twin cut into four bands of rows whose warps reach across the cuts
+    import numba
+
+    monkeypatch.setattr(numba, "get_num_threads", lambda: 4)
+    rng = seeded()
+    layers = (np.round(rng.normal(0, 0.6, (96, 23)) * 4) / 4).astype(np.float32)
+    layers[30, 2] = 2.5  # a far-reaching landing
+    layers[80:, :] = -0.0
+    offsets = [(du, dv) for du in range(-2, 3) for dv in range(-2, 3) if (du, dv) != (0, 0)]
+    for reference, fast in zip(occlusion_diffs_reference(layers, offsets, layer_gap=0.25),
+                               occlusion_diffs(layers, offsets, layer_gap=0.25)):
+        assert fast.dtype == np.float32 and fast.tobytes() == reference.tobytes()
+
+
 def test_different_neighbours_counts_with_tolerance():
     img = np.zeros((7, 7), np.float32)
     img[3, 3] = 1.0

@@ -112,34 +112,40 @@ def _view_row(img, sy, rv):
 
 
 @numba.njit(cache=True, fastmath={"nnan", "ninf", "nsz"})
-def _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
-    # Rows y, y + 1, ... of every block image, added into acc (rows, n_blocks, W) float32 (zeroed
-    # by the caller): every view's row (_view_row) sampled along x and its absolute difference
-    # added to the row of its block, two views of a block in one pass where the next view is in the
-    # same block (add_two_shifted_row_diffs: each block's sum adds its views in their order, the
-    # same bits as one at a time; _view_lists puts each block's views together). A view gives all
-    # the rows before the next view: its source rows are read in one run, not 81 runs interleaved.
-    # rv: (2, W) float32 scratch.
+def _block_view_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv, k):
+    # Rows y, y + 1, ... of view k's block, added into acc (rows, n_blocks, W) float32: the view's
+    # row (_view_row) sampled along x and its absolute difference added to the row of its block,
+    # with view k + 1 in the same pass where it is in the same block (add_two_shifted_row_diffs:
+    # each block's sum adds its views in their order, the same bits as one at a time; _view_lists
+    # puts each block's views together). A view gives all the rows before the next view: its
+    # source rows are read in one run. rv: (2, W) float32 scratch. Returns the next view's index.
     U, V = gray.shape[0], gray.shape[1]
     n = vu.shape[0]
+    base_p = -vdv[k] * disparity
+    fl_p = np.floor(base_p)
+    two = k + 1 < n and vblock[k + 1] == vblock[k]
+    m = k + 1 if two else k
+    base_q = -vdv[m] * disparity
+    fl_q = np.floor(base_q)
+    for j in range(acc.shape[0]):
+        centre = gray[U // 2, V // 2, y + j]
+        p = _view_row(gray[vu[k], vv[k]], (y + j) - vdu[k] * disparity, rv[0])
+        if two:
+            q = _view_row(gray[vu[m], vv[m]], (y + j) - vdu[m] * disparity, rv[1])
+            add_two_shifted_row_diffs(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p,
+                                      q, int(fl_q), base_q - fl_q)
+        else:
+            add_shifted_row_diff(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p)
+    return m + 1
+
+
+@numba.njit(cache=True)
+def _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv):
+    # Rows y, y + 1, ... of every block image, added into acc (rows, n_blocks, W) float32 (zeroed
+    # by the caller), view by view (_block_view_rows). rv: (2, W) float32 scratch.
     k = 0
-    while k < n:
-        base_p = -vdv[k] * disparity
-        fl_p = np.floor(base_p)
-        two = k + 1 < n and vblock[k + 1] == vblock[k]
-        m = k + 1 if two else k
-        base_q = -vdv[m] * disparity
-        fl_q = np.floor(base_q)
-        for j in range(acc.shape[0]):
-            centre = gray[U // 2, V // 2, y + j]
-            p = _view_row(gray[vu[k], vv[k]], (y + j) - vdu[k] * disparity, rv[0])
-            if two:
-                q = _view_row(gray[vu[m], vv[m]], (y + j) - vdu[m] * disparity, rv[1])
-                add_two_shifted_row_diffs(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p,
-                                          q, int(fl_q), base_q - fl_q)
-            else:
-                add_shifted_row_diff(acc[j, vblock[k]], centre, p, int(fl_p), base_p - fl_p)
-        k = m + 1
+    while k < vu.shape[0]:
+        k = _block_view_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv, k)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -373,27 +379,38 @@ def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, o
 
 
 @numba.njit(cache=True, parallel=True)
-def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from,
+def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks, set_from,
                                 set_order, n_bands, out):
-    # _block_abs_diff_kernel and _set_integrals_kernel in one pass: each band makes its rows'
-    # block rows (_block_rows, BLOCK_ROWS rows at a time) and from them, while they are in cache,
-    # its rows of the tables; no (9, H, W) block images (then _finish_tables).
+    # _block_abs_diff_kernel and _set_integrals_kernel in one pass for G candidates (disparities
+    # (G,) float32, out (G, S, H + 1, W + 1)): each band makes its rows' block rows BLOCK_ROWS rows
+    # at a time, view by view and within a view candidate by candidate (_block_view_rows; each
+    # candidate's sums add the views in the same order as one candidate alone, the same bits), so
+    # that a view's source rows are read from memory once for the group; from the block rows,
+    # while they are in cache, its rows of the tables; no (9, H, W) block images (then
+    # _finish_tables).
     S = set_blocks.shape[0]
+    G = disparities.shape[0]
     H = gray.shape[2]
     W = gray.shape[3]
     for band in numba.prange(n_bands):
         y0 = band * H // n_bands
         y1 = (band + 1) * H // n_bands
-        acc = np.empty((BLOCK_ROWS, N_BLOCKS, W), np.float32)
+        acc = np.empty((G, BLOCK_ROWS, N_BLOCKS, W), np.float32)
         rv = np.empty((2, W), np.float32)
         sums = np.empty((S, W), np.float64)
         fixed = np.empty(W, np.int64)
         for y in range(y0, y1, BLOCK_ROWS):
-            rows = acc[:min(BLOCK_ROWS, y1 - y)]
-            rows[:] = 0.0
-            _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, rows, rv)
-            for j in range(rows.shape[0]):
-                _set_table_row(rows[j], set_blocks, set_from, set_order, y + j, y + j == y0, sums, fixed, out)
+            n = min(BLOCK_ROWS, y1 - y)
+            acc[:] = 0.0
+            k = 0
+            while k < vu.shape[0]:
+                for g in range(G):
+                    after = _block_view_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], y, acc[g, :n], rv, k)
+                k = after
+            for g in range(G):
+                for j in range(n):
+                    _set_table_row(acc[g, j], set_blocks, set_from, set_order, y + j, y + j == y0, sums,
+                                   fixed, out[g])
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -440,19 +457,23 @@ def block_set_integrals_reference(gray: np.ndarray, disparity: float, *, sets: n
     return set_integrals_reference(block_abs_diff(gray, disparity, view_mask=view_mask), np.asarray(sets))
 
 
-def block_set_integrals(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
+def block_set_integrals(gray: np.ndarray, disparity, *, sets: np.ndarray,
                         view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """Compiled twin of :func:`block_set_integrals_reference` (same arguments and tables, bit for
     bit; ``gray`` contiguous float32), written into ``out`` when given: one pass over the rows,
-    without the ``(9, H, W)`` block images."""
+    without the ``(9, H, W)`` block images. With ``disparity`` a ``(G,)`` array the ``(G, S,
+    H + 1, W + 1)`` tables of G candidates, each view's rows read once for all of them."""
     U, V, H, W = gray.shape
+    group = np.ndim(disparity) == 1
+    disparities = np.asarray(disparity, np.float32).reshape(-1)
     if out is None:
-        out = np.empty((len(sets), H + 1, W + 1), np.int64)
+        out = np.empty((len(disparities), len(sets), H + 1, W + 1), np.int64)
+    tables = out.reshape(len(disparities), len(sets), H + 1, W + 1)
     n_bands = max(1, min(numba.get_num_threads(), H))
-    _block_set_integrals_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity),
-                                *_set_sums_plan(np.asarray(sets)), n_bands, out)
-    _finish_tables(out, n_bands)
-    return out
+    _block_set_integrals_kernel(gray, *_view_lists((U, V), view_mask), disparities,
+                                *_set_sums_plan(np.asarray(sets)), n_bands, tables)
+    _finish_tables(tables.reshape(-1, H + 1, W + 1), n_bands)
+    return tables if group else tables[0]
 
 
 class WindowCost:

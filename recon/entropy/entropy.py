@@ -157,22 +157,194 @@ def ring_order(rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 SELECT_BAND_MIB = 64
 
 
+@numba.njit(cache=True, inline="always")
+def _add_pixel(q, grey_f, disp_f, labels_f, layers_f, hg, hd, hm, sg, sd, sm, m, mixed, occl, opposite,
+               gap, m_centre, xlogx):
+    # Pixel q (flat index) into one window's histograms and sums: the grey and disparity terms;
+    # in an occlusion region the mismatched term (a pixel of the opposite label), elsewhere, with
+    # a layer gap, whether the window reaches another layer.
+    g = grey_f[q]
+    sg = _add(hg, g, sg, xlogx)
+    sd = _add(hd, disp_f[q], sd, xlogx)
+    if occl:
+        if labels_f[q] == opposite:
+            sm = _add(hm, g, sm, xlogx)
+            m += 1
+    elif gap >= 0 and abs(layers_f[q] - m_centre) > gap:
+        mixed = True
+    return sg, sd, sm, m, mixed
+
+
+@numba.njit(cache=True, inline="always")
+def _window_entropy(n, sg, sd, sm, m, alpha1, a2):
+    # Eq. 1 from a window's pixel count and running sums of c log c (module docstring).
+    logn = np.log(n)
+    e = (logn - sg / n) + alpha1 * (sd / n - logn)
+    if m > 0:
+        e += a2 * (sm / n - m / n * logn)
+    return e
+
+
+@numba.njit(cache=True, inline="always")
+def _verdict(occl, s, k, size, cap, side_r, mixed):
+    # Whether a texture or smooth pixel is offered window (s, size k) once its pixels are added:
+    # 2 offered, 1 not at this size (a side window opens with the size), 0 neither at this nor
+    # at any larger size (the cap and the layers only shut more). Occlusion pixels: always.
+    if occl:
+        return 2
+    if s == 0 and k > 0 and (size > cap or mixed):
+        return 0  # the square's mean disparity is off the pixel's (a crease), or it reaches
+        # another layer (the smallest square stays)
+    if s > 0 and mixed:
+        return 0  # the window reaches another layer
+    if s > 0 and (size - 1) // 2 < side_r:
+        return 1  # side window not offered at this size (no layer jump within r)
+    return 2
+
+
+@numba.njit(cache=True, inline="always")
+def _ring_windows(two, s, ring_a, ring_b, ends, base_u, grey_f, disp_f, labels_f, layers_f, hist_a, hist_b,
+                  xlogx, occl, opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, n_bins,
+                  e_k, offered):
+    # The windows of shape s (and, if two, of shape s + 1, whose rings are as long) of a pixel
+    # that no window of which the image clips, size by size along the rings (ring_order's pixels
+    # as flat offsets from base_u): e_k[j, k], offered[j, k] for shape s + j. The two shapes'
+    # sums are independent chains of additions, each in its own shape's order, interleaved so
+    # that the processor overlaps them. Then the histograms are cleared. hist_a, hist_b: each
+    # shape's grey, disparity and mismatched-grey histograms.
+    n_sizes = ends.shape[0]
+    hga, hda, hma = hist_a
+    hgb, hdb, hmb = hist_b
+    sga = sda = sma = 0.0
+    sgb = sdb = smb = 0.0
+    ma = mb = 0
+    mixa = mixb = False
+    act_a = True
+    act_b = two
+    na = nb = 0
+    n = 0
+    for k in range(n_sizes):
+        i0 = np.uint64(n)
+        n = ends[k]
+        i1 = np.uint64(n)
+        if act_a and act_b:
+            for i in range(i0, i1):
+                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], grey_f, disp_f, labels_f, layers_f,
+                                                     hga, hda, hma, sga, sda, sma, ma, mixa, occl,
+                                                     opposite, gap, m_centre, xlogx)
+                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], grey_f, disp_f, labels_f, layers_f,
+                                                     hgb, hdb, hmb, sgb, sdb, smb, mb, mixb, occl,
+                                                     opposite, gap, m_centre, xlogx)
+        elif act_a:
+            for i in range(i0, i1):
+                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], grey_f, disp_f, labels_f, layers_f,
+                                                     hga, hda, hma, sga, sda, sma, ma, mixa, occl,
+                                                     opposite, gap, m_centre, xlogx)
+        elif act_b:
+            for i in range(i0, i1):
+                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], grey_f, disp_f, labels_f, layers_f,
+                                                     hgb, hdb, hmb, sgb, sdb, smb, mb, mixb, occl,
+                                                     opposite, gap, m_centre, xlogx)
+        offered[0, k] = offered[1, k] = False
+        if act_a:
+            na = n
+            v = _verdict(occl, s, k, sizes_n[k], cap, side_r, mixa)
+            act_a = v > 0
+            if v == 2:
+                offered[0, k] = True
+                e_k[0, k] = _window_entropy(n, sga, sda, sma, ma, alpha1, a2)
+        if act_b:
+            nb = n
+            v = _verdict(occl, s + 1, k, sizes_n[k], cap, side_r, mixb)
+            act_b = v > 0
+            if v == 2:
+                offered[1, k] = True
+                e_k[1, k] = _window_entropy(n, sgb, sdb, smb, mb, alpha1, a2)
+    _clear_ring(hist_a, ring_a, na, base_u, grey_f, disp_f, n_bins)
+    if two:
+        _clear_ring(hist_b, ring_b, nb, base_u, grey_f, disp_f, n_bins)
+
+
+@numba.njit(cache=True)
+def _clear_ring(hist, ring, n, base_u, grey_f, disp_f, n_bins):
+    # The histograms of a window of n ring pixels back to 0: whole where that is fewer stores
+    # (contiguous counts), else at the bins of its pixels.
+    hg, hd, hm = hist
+    if n_bins <= 4 * n:
+        hg[:] = 0
+        hd[:] = 0
+        hm[:] = 0
+    else:
+        for i in range(np.uint64(n)):
+            q = base_u + ring[i]
+            hg[grey_f[q]] = 0
+            hd[disp_f[q]] = 0
+            hm[grey_f[q]] = 0
+
+
+@numba.njit(cache=True, inline="always")
+def _clipped_windows(y, x, rects_s, s, grey_f, disp_f, labels_f, layers_f, hist, xlogx, occl,
+                     opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, H, W, e_k, offered):
+    # The windows of shape s of a pixel near the border, clipped to the image: each size's new
+    # pixels row by row left to right (in a row of the previous window, those left of it and
+    # those right of it), the order of ring_order, so the sums of _ring_windows bit for bit.
+    n_sizes = rects_s.shape[0]
+    hg, hd, hm = hist
+    sg = sd = sm = 0.0
+    n = m = 0
+    mixed = False
+    py0 = px0 = 0
+    py1 = px1 = -1
+    for k in range(n_sizes):
+        ya = max(y + rects_s[k, 0], 0)
+        yb = min(y + rects_s[k, 1], H - 1)
+        xa = max(x + rects_s[k, 2], 0)
+        xb = min(x + rects_s[k, 3], W - 1)
+        for yy in range(ya, yb + 1):
+            if py0 <= yy <= py1:
+                runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
+            else:
+                runs = ((xa, xb + 1), (0, 0))
+            for run in runs:
+                for xx in range(run[0], run[1]):
+                    sg, sd, sm, m, mixed = _add_pixel(yy * W + xx, grey_f, disp_f, labels_f, layers_f, hg, hd,
+                                                      hm, sg, sd, sm, m, mixed, occl, opposite, gap,
+                                                      m_centre, xlogx)
+                    n += 1
+        py0, py1, px0, px1 = ya, yb, xa, xb
+        offered[0, k] = False
+        v = _verdict(occl, s, k, sizes_n[k], cap, side_r, mixed)
+        if v == 0:
+            for kk in range(k + 1, n_sizes):
+                offered[0, kk] = False
+            break
+        if v == 2:
+            offered[0, k] = True
+            e_k[0, k] = _window_entropy(n, sg, sd, sm, m, alpha1, a2)
+    for yy in range(py0, py1 + 1):
+        for xx in range(px0, px1 + 1):
+            hg[grey_f[yy * W + xx]] = 0
+            hd[disp_f[yy * W + xx]] = 0
+            hm[grey_f[yy * W + xx]] = 0
+
+
 @numba.njit(cache=True, parallel=True)
 def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
                    n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring, ring_end,
-                   shape_map, size_map, best_e, all_e, dense, row_values, row_first, counts, mask):
+                   paired, shape_map, size_map, best_e, all_e, dense, row_values, row_first, counts, mask):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
     # edges try 11 shapes, elsewhere 1). A pixel at least ``margin`` from the border (its largest
     # window not clipped by the image) adds each size's new pixels from ``ring`` (ring_order's, as
-    # flat offsets): the same pixels in the same order as the clipped windows' row runs below, so
+    # flat offsets), two shapes at a time where ``paired[s]`` (shapes s and s + 1 have rings of
+    # the same lengths): the same pixels in the same order as the clipped windows' row runs, so
     # the same sums bit for bit. Each offered window's entropy goes to ``all_e`` if ``dense``, and
     # always to the sparse volume's parts: row y's values one after the other from
     # ``row_values[(y - row_first) * W * K]`` (the rows of ``order`` from ``row_first`` on, a band
     # of them), the count per pixel in ``counts``, the bit of window k in ``mask`` (np.packbits'
-    # order). The per-pixel loops index with unsigned values only (uint32 bins and
-    # counts, the ring's offsets shifted by ring_shift to uint64), so numba adds no wrap-around of
-    # negative indices to their loads (a sign test and an add per load, and the registers they
-    # took: backgammon 1.37 -> 0.80 s on one thread).
+    # order), in the order of the windows. The per-pixel loops index with unsigned values only
+    # (uint32 bins and counts, the ring's offsets shifted by ring_shift to uint64), so numba adds
+    # no wrap-around of negative indices to their loads (a sign test and an add per load, and the
+    # registers they took: backgammon 1.37 -> 0.80 s on one thread).
     H, W = grey_q.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
@@ -186,124 +358,51 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
     for jr in numba.prange(order.shape[0]):
         y = order[jr]
         row_n = (y - row_first) * W * K
-        hg = np.zeros(n_grey, np.uint32)
-        hd = np.zeros(n_disp, np.uint32)
-        hm = np.zeros(n_grey, np.uint32)
+        hist_a = (np.zeros(n_grey, np.uint32), np.zeros(n_disp, np.uint32), np.zeros(n_grey, np.uint32))
+        hist_b = (np.zeros(n_grey, np.uint32), np.zeros(n_disp, np.uint32), np.zeros(n_grey, np.uint32))
+        e_k = np.empty((2, n_sizes))
+        offered = np.zeros((2, n_sizes), np.bool_)
         for x in range(W):
             lab = labels[y, x]
             occl = lab == 0 or lab == 1
             opposite = 1 if lab == 0 else 0
             a2 = a2_occl if occl else a2_other
-            s_first = 1 if occl else 0
             s_last = n_shapes if (occl or side_radius[y, x] <= r_max) else 1
             inside = margin <= y < H - margin and margin <= x < W - margin
-            base = y * W + x
-            base_u = np.uint64(base - ring_shift)  # >= 0 where inside
+            base_u = np.uint64(y * W + x - ring_shift)  # >= 0 where inside
             m_centre = layers[y, x]
+            cap = max_size[y, x]
+            side_r = side_radius[y, x]
             best = -1e300
             best_shape = 0
             best_size = 0
-            for s in range(s_first, s_last):
-                ring_s = ring[s]
-                sg = 0.0
-                sd = 0.0
-                sm = 0.0
-                n = 0
-                m = 0
-                mixed = False
-                py0 = 0
-                py1 = -1
-                px0 = 0
-                px1 = -1
-                for k in range(n_sizes):
-                    if inside:
-                        i0 = np.uint64(n)
-                        n = ring_end[s, k]
-                        i1 = np.uint64(n)
-                        if occl:
-                            for i in range(i0, i1):
-                                q = base_u + ring_s[i]
-                                g = grey_f[q]
-                                sg = _add(hg, g, sg, xlogx)
-                                sd = _add(hd, disp_f[q], sd, xlogx)
-                                if labels_f[q] == opposite:
-                                    sm = _add(hm, g, sm, xlogx)
-                                    m += 1
-                        elif gap >= 0:
-                            for i in range(i0, i1):
-                                q = base_u + ring_s[i]
-                                sg = _add(hg, grey_f[q], sg, xlogx)
-                                sd = _add(hd, disp_f[q], sd, xlogx)
-                                if abs(layers_f[q] - m_centre) > gap:
-                                    mixed = True
-                        else:
-                            for i in range(i0, i1):
-                                q = base_u + ring_s[i]
-                                sg = _add(hg, grey_f[q], sg, xlogx)
-                                sd = _add(hd, disp_f[q], sd, xlogx)
-                    else:
-                        ya = max(y + rects[s, k, 0], 0)
-                        yb = min(y + rects[s, k, 1], H - 1)
-                        xa = max(x + rects[s, k, 2], 0)
-                        xb = min(x + rects[s, k, 3], W - 1)
-                        for yy in range(ya, yb + 1):
-                            # the pixels new to this size, row by row left to right: in a row of
-                            # the previous window, those left of it and those right of it
-                            if py0 <= yy <= py1:
-                                runs = ((xa, min(px0, xb + 1)), (max(px1 + 1, xa), xb + 1))
-                            else:
-                                runs = ((xa, xb + 1), (0, 0))
-                            for run in runs:
-                                for xx in range(run[0], run[1]):
-                                    g = grey_q[yy, xx]
-                                    sg = _add(hg, g, sg, xlogx)
-                                    sd = _add(hd, disp_q[yy, xx], sd, xlogx)
-                                    n += 1
-                                    if occl and labels[yy, xx] == opposite:
-                                        sm = _add(hm, g, sm, xlogx)
-                                        m += 1
-                                    if gap >= 0 and abs(layers[yy, xx] - m_centre) > gap:
-                                        mixed = True
-                        py0, py1, px0, px1 = ya, yb, xa, xb
-                    if not occl:
-                        # a window not offered here is not offered at any larger size either
-                        # (the cap and the layers only shut more), except the smaller side
-                        # windows, which open with the size
-                        if s == 0 and k > 0 and (sizes_n[k] > max_size[y, x] or mixed):
-                            break  # the square's mean disparity is off the pixel's (a crease),
-                            # or it reaches another layer (the smallest square stays)
-                        if s > 0 and mixed:
-                            break  # the window reaches another layer
-                        if s > 0 and (sizes_n[k] - 1) // 2 < side_radius[y, x]:
-                            continue  # side window not offered at this size (no layer jump within r)
-                    logn = np.log(n)
-                    e = (logn - sg / n) + alpha1 * (sd / n - logn)
-                    if m > 0:
-                        e += a2 * (sm / n - m / n * logn)
-                    kk = s * n_sizes + k
-                    if dense:
-                        all_e[y, x, kk] = e
-                    row_values[row_n] = e
-                    row_n += 1
-                    counts[y * W + x] += 1
-                    mask[y, x, kk >> 3] |= np.uint8(0x80 >> (kk & 7))
-                    if e > best + 1e-9 or (abs(e - best) <= 1e-9 and sizes_n[k] > best_size):
-                        best = e
-                        best_shape = s
-                        best_size = sizes_n[k]
-                # reset the histograms over the pixels added
+            s = 1 if occl else 0
+            while s < s_last:
+                two = inside and paired[s] and s + 1 < s_last
                 if inside:
-                    for i in range(np.uint64(n)):
-                        q = base_u + ring_s[i]
-                        hg[grey_f[q]] = 0
-                        hd[disp_f[q]] = 0
-                        hm[grey_f[q]] = 0
+                    _ring_windows(two, s, ring[s], ring[s + 1] if two else ring[s], ring_end[s], base_u, grey_f,
+                                  disp_f, labels_f, layers_f, hist_a, hist_b, xlogx, occl, opposite, gap,
+                                  m_centre, sizes_n, cap, side_r, alpha1, a2, n_grey + n_disp, e_k, offered)
                 else:
-                    for yy in range(py0, py1 + 1):
-                        for xx in range(px0, px1 + 1):
-                            hg[grey_q[yy, xx]] = 0
-                            hd[disp_q[yy, xx]] = 0
-                            hm[grey_q[yy, xx]] = 0
+                    _clipped_windows(y, x, rects[s], s, grey_f, disp_f, labels_f, layers_f, hist_a, xlogx, occl, opposite, gap, m_centre, sizes_n, cap, side_r,
+                                     alpha1, a2, H, W, e_k, offered)
+                for j in range(2 if two else 1):
+                    for k in range(n_sizes):
+                        if not offered[j, k]:
+                            continue
+                        e = e_k[j, k]
+                        kk = (s + j) * n_sizes + k
+                        if dense:
+                            all_e[y, x, kk] = e
+                        row_values[row_n] = e
+                        row_n += 1
+                        counts[y * W + x] += 1
+                        mask[y, x, kk >> 3] |= np.uint8(0x80 >> (kk & 7))
+                        if e > best + 1e-9 or (abs(e - best) <= 1e-9 and sizes_n[k] > best_size):
+                            best = e
+                            best_shape = s + j
+                            best_size = sizes_n[k]
+                s += 2 if two else 1
             shape_map[y, x] = best_shape
             size_map[y, x] = best_size
             best_e[y, x] = best
@@ -369,6 +468,9 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     for s, (offsets, _) in enumerate(rings):  # flat offsets, shifted to be >= 0
         ring[s, :len(offsets)] = offsets[:, 0] * W + offsets[:, 1] + shift
     ring_end = np.array([ends for _, ends in rings], np.int64)
+    # shapes 1 and 2, 3 and 4, ...: the two half windows or quadrants of a side, rings alike long
+    paired = np.array([s % 2 == 1 and s + 1 < n_shapes and np.array_equal(ring_end[s], ring_end[s + 1])
+                       for s in range(n_shapes)], np.bool_)
     if grey_q.min(initial=0) < 0 or disp_q.min(initial=0) < 0:
         raise ValueError("grey_q and disp_q must be bin indices >= 0 (quantise_grey, quantise_disparity "
                          "with an origin at or below the map's minimum)")
@@ -403,8 +505,8 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     for y0 in range(0, H, band):
         n = min(band, H - y0)
         row_values = np.empty(n * W * K, np.float32)  # only the pages a row's values fill are touched
-        _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, shape_map, size_map,
-                       best_e, all_e, dense, row_values, y0, counts, mask)
+        _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, paired, shape_map,
+                       size_map, best_e, all_e, dense, row_values, y0, counts, mask)
         per_row = counts[y0 * W:(y0 + n) * W].reshape(n, W).sum(axis=1)
         parts.append(np.concatenate([row_values[i * W * K:i * W * K + per_row[i]] for i in range(n)]))
         del row_values

@@ -84,11 +84,15 @@ def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
 @numba.njit(cache=True, parallel=True)
 def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, run_start,
                        runs, scale, order, magic, out, best, best_k):
-    # Window-major twin of _joint_cost_pixelwise (the same float64 arithmetic for every pixel and
-    # window, windows in ascending order, strict <: the same maps bit for bit). For one row and
-    # one window the four corners of every pixel's window lie on two rows of one integral table,
-    # contiguous in x: away from the image's left and right edges the loop over x vectorises (the
-    # slices index from 0, so that numba's negative-index wrap does not turn loads into gathers).
+    # Window-major twin of _joint_cost_pixelwise for a group of G candidates: integrals
+    # (G, S, H + 1, W + 1), out (G, H, W); the same float64 arithmetic for every pixel, window and
+    # candidate, windows in ascending order, strict <, each candidate's objective folded into
+    # best / best_k after the one before it: the same maps bit for bit as one candidate a call.
+    # A run's penalty and occlusion flags are read once from memory for the whole group (the
+    # penalty, H x K x W float32, is the kernel's largest read). For one row and one window the
+    # four corners of every pixel's window lie on two rows of one integral table, contiguous in x:
+    # away from the image's left and right edges the loop over x vectorises (the slices index from
+    # 0, so that numba's negative-index wrap does not turn loads into gathers).
     # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
     # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
@@ -97,11 +101,12 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
     # recon.entropy.cost.MAGIC_FLOAT).
     # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
     # same value as a strict < (no objective is NaN or -0.0), and a plain store, not a masked one.
+    G = integrals.shape[0]
     H, K, W = penalty.shape
     for jr in numba.prange(H):
         y = order[jr]
-        c_best = np.full(W, 1e300)
-        k_best = np.full(W, -1, np.int64)
+        c_all = np.full((G, W), 1e300)
+        k_all = np.full((G, W), -1, np.int64)
         tb = np.empty(W, np.int64)
         fb = tb.view(np.float64)
         tf = np.empty(W, np.float64)
@@ -124,45 +129,53 @@ def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalt
                 hi = max(min(x1, W - 1 - rb), lo)
                 n = hi - lo
                 denom = (yb - ya) * (rb - ra + 1) * cnt
-                iya = integrals[s, ya]
-                iyb = integrals[s, yb]
-                for x in range(x0, lo):  # left edge: the window clipped
-                    _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
-                                      want, occluded, c_best, k_best)
-                if n > 0:
-                    b1 = iyb[lo + rb + 1:hi + rb + 1]
-                    a1 = iya[lo + rb + 1:hi + rb + 1]
-                    b0 = iyb[lo + ra:hi + ra]
-                    a0 = iya[lo + ra:hi + ra]
-                    if magic:
+                pn = pen[lo:hi]
+                oc = occluded[lo:hi]
+                for g in range(G):
+                    iya = integrals[g, s, ya]
+                    iyb = integrals[g, s, yb]
+                    c_best = c_all[g]
+                    k_best = k_all[g]
+                    for x in range(x0, lo):  # left edge: the window clipped
+                        _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
+                                          want, occluded, c_best, k_best)
+                    if n > 0:
+                        b1 = iyb[lo + rb + 1:hi + rb + 1]
+                        a1 = iya[lo + rb + 1:hi + rb + 1]
+                        b0 = iyb[lo + ra:hi + ra]
+                        a0 = iya[lo + ra:hi + ra]
+                        if magic:
+                            for i in range(n):
+                                tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
+                            for i in range(n):
+                                tf[i] = fb[i] - MAGIC_FLOAT
+                        else:
+                            for i in range(n):
+                                tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
+                        cb = c_best[lo:hi]
+                        kb = k_best[lo:hi]
                         for i in range(n):
-                            tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
-                        for i in range(n):
-                            tf[i] = fb[i] - MAGIC_FLOAT
-                    else:
-                        for i in range(n):
-                            tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
-                    pn = pen[lo:hi]
-                    oc = occluded[lo:hi]
-                    cb = c_best[lo:hi]
-                    kb = k_best[lo:hi]
-                    for i in range(n):
-                        c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
-                        c = c if (every | (oc[i] == want)) else np.inf
-                        old = cb[i]
-                        kb[i] = k if c < old else kb[i]
-                        cb[i] = min(old, c)
-                for x in range(hi, x1):  # right edge
-                    _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
-                                      want, occluded, c_best, k_best)
-        for x in range(W):
-            c32 = np.float32(c_best[x])
-            out[y, x] = c32
-            if c32 < best[y, x]:
-                best[y, x] = c32
-                best_k[y, x] = k_best[x]
+                            c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
+                            c = c if (every | (oc[i] == want)) else np.inf
+                            old = cb[i]
+                            kb[i] = k if c < old else kb[i]
+                            cb[i] = min(old, c)
+                    for x in range(hi, x1):  # right edge
+                        _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
+                                          want, occluded, c_best, k_best)
+        for g in range(G):
+            for x in range(W):
+                c32 = np.float32(c_all[g, x])
+                out[g, y, x] = c32
+                if c32 < best[y, x]:
+                    best[y, x] = c32
+                    best_k[y, x] = k_all[g, x]
 
 
+#: Candidates whose objectives the joint search's kernel makes in one pass, each run of the
+#: penalty read from memory once for all of them; their summed-area tables are held together
+#: (nine int64 tables of ``(H + 1) x (W + 1)`` each, 19 MB a candidate at 512x512).
+JOINT_GROUP = 2
 
 
 def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
@@ -220,7 +233,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     ambiguity_delta
         Tolerance of :func:`cost_ambiguity` (objective units).
     progress
-        Called as ``progress(fraction)`` after each candidate.
+        Called as ``progress(fraction)`` after each group of :data:`JOINT_GROUP` candidates.
 
     Returns
     -------
@@ -235,20 +248,22 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty = np.ascontiguousarray(penalty, dtype=np.float32)
     run_start, runs = offer_runs(penalty, pixel_set, shapes)
-    integrals = None
     all_sets = np.arange(SET_BLOCKS.shape[0])
-    costs = np.empty((len(candidates), H, W), np.float32)
+    D = len(candidates)
+    integrals = np.empty((min(JOINT_GROUP, D), len(all_sets), H + 1, W + 1), np.int64)
+    costs = np.empty((D, H, W), np.float32)
     least = np.full((H, W), np.inf, np.float32)
     order = row_order(H)
     window_index = np.full((H, W), -1, np.int64)
-    for i, d in enumerate(candidates):
-        integrals = block_set_integrals(gray, float(d), sets=all_sets, view_mask=view_mask, out=integrals)
+    for i in range(0, D, JOINT_GROUP):
+        group = integrals[:min(JOINT_GROUP, D - i)]
+        block_set_integrals(gray, candidates[i:i + len(group)], sets=all_sets, view_mask=view_mask, out=group)
         # no window total exceeds its table's whole-image total (the set values are >= 0)
-        magic = bool(integrals[:, -1, -1].max() < MAGIC_LIMIT)
-        _joint_cost_kernel(integrals, pixel_set, rects, shapes, counts, penalty, run_start, runs,
-                           float(intensity_scale), order, magic, costs[i], least, window_index)
+        magic = bool(group[:, :, -1, -1].max() < MAGIC_LIMIT)
+        _joint_cost_kernel(group, pixel_set, rects, shapes, counts, penalty, run_start, runs,
+                           float(intensity_scale), order, magic, costs[i:i + len(group)], least, window_index)
         if progress is not None:
-            progress((i + 1) / len(candidates))
+            progress((i + len(group)) / D)
     disparity, best = subpixel_argmin(costs, candidates)
     return disparity, best, window_index, cost_ambiguity(costs, ambiguity_delta)
 

@@ -344,12 +344,19 @@ def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
 
 @numba.njit(cache=True, inline="always")
 def _tv_dual(py_row, px_row, x, gy, gx, sigma, gamma):
-    # _tv_kernel's dual step at one pixel, given its forward differences.
+    # _tv_kernel's dual step at one pixel, given its forward differences. Inside the ball (most
+    # pixels) the norm is 1 and the division leaves the value as it is: below gamma^2 by a margin
+    # far beyond rounding, the square root and the three divisions are not needed for that.
     qy = py_row[x] + sigma * gy
     qx = px_row[x] + sigma * gx
-    norm = max(1.0, np.sqrt(qy ** 2 + qx ** 2) / gamma)
-    py_row[x] = qy / norm
-    px_row[x] = qx / norm
+    q2 = qy ** 2 + qx ** 2
+    if q2 < gamma * gamma * (1.0 - 1e-9):
+        py_row[x] = qy
+        px_row[x] = qx
+    else:
+        norm = max(1.0, np.sqrt(q2) / gamma)
+        py_row[x] = qy / norm
+        px_row[x] = qx / norm
 
 
 @numba.njit(cache=True, inline="always")

@@ -102,49 +102,66 @@ def occlusion_diffs_reference(layers: np.ndarray, offsets: list[tuple[int, int]]
 
 
 @numba.njit(cache=True)
-def _occlusion_kernel(layers, offsets, layer_gap, neg, pos):
+def _landing(y, x, m, du, dv):
+    # Where pixel (y, x) of layer value m lands in view (du, dv), rounded to a pixel.
+    return int(np.floor(y - du * m + 0.5)), int(np.floor(x - dv * m + 0.5))
+
+
+@numba.njit(cache=True, parallel=True)
+def _occlusion_kernel(layers, offsets, layer_gap, reach, n_bands, neg, pos):
+    # The rows in n_bands bands, one per thread. A pixel lands at most `reach` rows from its own in
+    # any view, so a band's pixels read the top and bottom layers of the rows within `reach` of the
+    # band, and only pixels within 2 * reach rows land there: each band forward-warps those into
+    # its own copy of that stretch of rows. A maximum and a minimum do not depend on the order of
+    # their values, and each pixel sums its views in their order: the serial kernel's maps.
     H, W = layers.shape
-    top = np.empty((H, W), np.float32)
-    bottom = np.empty((H, W), np.float32)
-    land_y = np.empty((H, W), np.int64)
-    land_x = np.empty((H, W), np.int64)
-    for k in range(offsets.shape[0]):
-        du = offsets[k, 0]
-        dv = offsets[k, 1]
-        top[:] = -np.inf
-        bottom[:] = np.inf
-        for y in range(H):
-            for x in range(W):
-                m = layers[y, x]
-                ly = int(np.floor(y - du * m + 0.5))
-                lx = int(np.floor(x - dv * m + 0.5))
-                land_y[y, x] = ly
-                land_x[y, x] = lx
-                if 0 <= ly < H and 0 <= lx < W:
-                    if m > top[ly, lx]:
-                        top[ly, lx] = m
-                    if m < bottom[ly, lx]:
-                        bottom[ly, lx] = m
-        for y in range(H):
-            for x in range(W):
-                ly = land_y[y, x]
-                lx = land_x[y, x]
-                if 0 <= ly < H and 0 <= lx < W:
+    edges = np.linspace(0, H, n_bands + 1).astype(np.int64)
+    for b in numba.prange(n_bands):
+        lo, hi = edges[b], edges[b + 1]
+        t0, t1 = max(lo - reach, 0), min(hi + reach, H)  # the rows the band reads
+        s0, s1 = max(lo - 2 * reach, 0), min(hi + 2 * reach, H)  # the rows that land there
+        top = np.empty((t1 - t0, W), np.float32)
+        bottom = np.empty((t1 - t0, W), np.float32)
+        for k in range(offsets.shape[0]):
+            du = offsets[k, 0]
+            dv = offsets[k, 1]
+            top[:] = -np.inf
+            bottom[:] = np.inf
+            for y in range(s0, s1):
+                for x in range(W):
                     m = layers[y, x]
-                    if top[ly, lx] - m > layer_gap:
-                        neg[y, x] += m - top[ly, lx]
-                    if m - bottom[ly, lx] > layer_gap:
-                        pos[y, x] += m - bottom[ly, lx]
+                    ly, lx = _landing(y, x, m, du, dv)
+                    if t0 <= ly < t1 and 0 <= lx < W:
+                        if m > top[ly - t0, lx]:
+                            top[ly - t0, lx] = m
+                        if m < bottom[ly - t0, lx]:
+                            bottom[ly - t0, lx] = m
+            for y in range(lo, hi):
+                for x in range(W):
+                    m = layers[y, x]
+                    ly, lx = _landing(y, x, m, du, dv)
+                    if t0 <= ly < t1 and 0 <= lx < W:
+                        t = top[ly - t0, lx]
+                        if t - m > layer_gap:
+                            neg[y, x] += m - t
+                        d = bottom[ly - t0, lx]
+                        if m - d > layer_gap:
+                            pos[y, x] += m - d
 
 
 def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
-                         layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
-    """Compiled twin of :func:`occlusion_diffs_reference`."""
+                    layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel."""
+    layers = np.ascontiguousarray(layers, np.float32)
+    offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
     H, W = layers.shape
     neg = np.zeros((H, W), np.float32)
     pos = np.zeros((H, W), np.float32)
-    _occlusion_kernel(np.ascontiguousarray(layers, np.float32),
-                      np.asarray(offsets, np.float64).reshape(-1, 2), np.float32(layer_gap), neg, pos)
+    finite = np.abs(layers[np.isfinite(layers)])
+    shift = float(np.abs(offsets[:, 0]).max(initial=0)) * float(finite.max(initial=0))
+    reach = min(int(np.ceil(shift)) + 1, H)  # rows between a pixel and where it lands, at most
+    n_bands = max(1, min(numba.get_num_threads(), H // (4 * reach)))
+    _occlusion_kernel(layers, offsets, np.float32(layer_gap), reach, n_bands, neg, pos)
     return neg, pos
 
 

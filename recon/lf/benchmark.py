@@ -24,9 +24,9 @@ BENCHMARK_VIEW = re.compile(r"^input_Cam(\d{3})\.png$")
 GROUND_TRUTH = "gt_disp_lowres.pfm"
 
 
-def read_benchmark(path: str | os.PathLike, *, grey: bool = False) -> LightField:
+def read_benchmark(path: str | os.PathLike, *, grey: bool = False, decode: bool = True) -> LightField:
     """Read a folder in the 4D Light Field Benchmark layout (``grey``: the views as ``float32``
-    luminance, :func:`recon.lf.read_lightfield`).
+    luminance; ``decode=False``: no pixels, :func:`recon.lf.read_lightfield`).
 
     The grid size comes from ``parameters.cfg`` (``num_cams_x``, ``num_cams_y``) when present, else
     the number of views must be a square. ``metadata["ground_truth"]`` names ``gt_disp_lowres.pfm``
@@ -66,7 +66,8 @@ def read_benchmark(path: str | os.PathLike, *, grey: bool = False) -> LightField
         names = ", ".join(f"input_Cam{i:03d}.png" for i in missing[:3]) + (" ..." if len(missing) > 3 else "")
         raise LightFieldFormatError(f"{path}: {len(missing)} of {count} views missing ({names})")
     digests: dict[Path, str] = {}
-    views, centre = read_view_grid([numbered[i] for i in range(count)], (rows, cols), grey=grey, digests=digests)
+    views, centre = read_view_grid([numbered[i] for i in range(count)], (rows, cols), grey=grey, digests=digests,
+                                   decode=decode)
     if cfg.is_file():
         check_camera_fits(camera, metadata["parameters"], grid=(rows, cols), image_shape=views.shape[2:4], path=cfg)
     if (path / GROUND_TRUTH).is_file():

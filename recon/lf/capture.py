@@ -446,9 +446,10 @@ class CaptureWriter:
         self.close()
 
 
-def read_capture(path: str | os.PathLike, *, verify: bool = True, grey: bool = False) -> LightField:
+def read_capture(path: str | os.PathLike, *, verify: bool = True, grey: bool = False,
+                 decode: bool = True) -> LightField:
     """Read a complete capture folder into a :class:`LightField` (``grey``: the views as ``float32``
-    luminance, :func:`recon.lf.read_lightfield`).
+    luminance; ``decode=False``: no pixels, :func:`recon.lf.read_lightfield`).
 
     Every view must be journalled as ``views/uUU_vVV.png`` of its own grid position, a regular file
     inside the folder (not a symlink out of it). With ``verify`` (the default), each file's SHA-256
@@ -514,7 +515,7 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, grey: bool = F
     journalled = {path / entries[(u, v)]["file"]: entries[(u, v)].get("sha256")
                   for u in range(rows) for v in range(cols)}
     views, centre = read_view_grid(paths, (rows, cols), grey=grey,
-                                   check=_checksum_check(journalled) if verify else None)
+                                   check=_checksum_check(journalled) if verify else None, decode=decode)
     camera: dict[str, Any] = {"pitch_mm": header["grid"].get("pitch_mm")}
     metadata: dict[str, Any] = {"layout": "lfrig-capture", "header": header,
                                 "views": [entries[(u, v)] for u in range(rows) for v in range(cols)]}

@@ -207,9 +207,16 @@ def read_image(path: Path) -> np.ndarray:
 def _decode(path: Path, digests: dict[Path, str] | None = None,
             check: Callable[[Path, str], None] | None = None) -> np.ndarray:
     """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s
-    checks; with ``digests``, the SHA-256 of the file's bytes as read goes into ``digests[path]``;
-    with ``check``, ``check(path, sha256_hex)`` is called before decoding (it raises for a file that
-    must not be used)."""
+    checks (:func:`_read_checked`)."""
+    return _decode_bytes(path, _read_checked(path, digests, check)[0])
+
+
+def _read_checked(path: Path, digests: dict[Path, str] | None = None,
+                  check: Callable[[Path, str], None] | None = None) -> tuple[bytes, tuple[int, int, int, int] | None]:
+    """The bytes of one image file after every check of :func:`read_image` but the decoding, and its
+    PNG header (:func:`png_header`; ``None`` for a file that is not a PNG); with ``digests``, the
+    SHA-256 of the bytes as read goes into ``digests[path]``; with ``check``, ``check(path,
+    sha256_hex)`` is called first (it raises for a file that must not be used)."""
     raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
     if digests is not None or check is not None:
         digest = hashlib.sha256(raw).hexdigest()
@@ -217,15 +224,21 @@ def _decode(path: Path, digests: dict[Path, str] | None = None,
             digests[path] = digest
         if check is not None:
             check(path, digest)
+    if not raw.startswith(PNG_SIGNATURE):
+        return raw, None
+    problem = png_problem(raw)
+    if problem:
+        raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
+    header = png_header(raw)
+    if header is None:
+        raise LightFieldFormatError(f"{path}: damaged PNG header (IHDR); replace or re-capture it")
+    check_image_size(path, header[0], header[1])
+    return raw, header
+
+
+def _decode_bytes(path: Path, raw: bytes) -> np.ndarray:
+    """The checked bytes of ``path`` (:func:`_read_checked`) decoded by OpenCV."""
     data = np.frombuffer(raw, dtype=np.uint8)
-    if raw.startswith(PNG_SIGNATURE):
-        problem = png_problem(raw)
-        if problem:
-            raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
-        header = png_header(raw)
-        if header is None:
-            raise LightFieldFormatError(f"{path}: damaged PNG header (IHDR); replace or re-capture it")
-        check_image_size(path, header[0], header[1])
     image = decode_quietly(data) if data.size else None
     if image is None:
         raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
@@ -260,7 +273,7 @@ GREY_STRIP_ROWS = 32
 
 def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None,
                 check: Callable[[Path, str], None] | None = None, grey: bool = False,
-                keep: dict[int, np.ndarray | None] | None = None) -> np.ndarray:
+                keep: dict[int, np.ndarray | None] | None = None, decode: bool = True) -> np.ndarray:
     """Read equally sized images into one ``(N, H, W[, 3])`` array in their stored dtype, or with
     ``grey`` into one ``(N, H, W)`` ``float32`` array of their luminance in ``[0, 1]``
     (:func:`recon.lf.lightfield.to_gray` of the stored images, bit for bit: each image is converted
@@ -274,6 +287,12 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
     a dict whose keys are indices into ``paths``; each one's value is set to that image as stored,
     ``(H, W[, 3])`` (with ``grey``: the centre view's colours for the result folder).
 
+    ``decode=False``: for a caller that needs only the shape and dtype (``lfrig info``). Every
+    image's bytes are read and checked as for decoding (``digests``, ``check``, the PNG's chunks
+    and header), but only the first image is decoded, and any other whose PNG header (size, bit
+    depth, colour type) differs from the first's. The array returned then holds no pixels: every
+    element is 0, read-only, in no memory (``np.broadcast_to``).
+
     Raises
     ------
     LightFieldFormatError
@@ -284,11 +303,15 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
 
     if not paths:
         raise ValueError("read_images needs at least one path")
-    decoded = _decode(paths[0], digests, check)
+    raw, first_header = _read_checked(paths[0], digests, check)
+    decoded = _decode_bytes(paths[0], raw)
     shape, dtype = _rgb_shape(decoded), decoded.dtype
-    out = (np.empty((len(paths),) + shape[:2], dtype=np.float32) if grey
-           else np.empty((len(paths),) + shape, dtype=dtype))
-    check_total_size(paths[0].parent, out.nbytes)
+    out_shape, out_dtype = ((len(paths),) + shape[:2], np.dtype(np.float32)) if grey else ((len(paths),) + shape, dtype)
+    if not decode:
+        out = np.broadcast_to(np.zeros((), out_dtype), out_shape)
+    else:
+        check_total_size(paths[0].parent, math.prod(out_shape) * out_dtype.itemsize)
+        out = np.empty(out_shape, dtype=out_dtype)
 
     def place(i: int, image: np.ndarray) -> None:
         if grey:  # by strips of rows (OpenCV converts row by row): no temporary of a whole float view
@@ -300,15 +323,20 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
             keep[i] = _to_rgb(image) if grey else out[i]
 
     def load(i: int) -> None:
-        image = _decode(paths[i], digests, check)  # decoded straight into its place in ``out``
+        raw, header = _read_checked(paths[i], digests, check)
+        if not decode and header is not None and header == first_header:
+            return  # decoded, it would be of the first image's size, colour and bit depth
+        image = _decode_bytes(paths[i], raw)  # then converted straight into its place in ``out``
         if _rgb_shape(image) != shape or image.dtype != dtype:
             raise LightFieldFormatError(
                 f"{paths[i]}: image is {_describe(_rgb_shape(image), image.dtype)} but {paths[0].name} is "
                 f"{_describe(shape, dtype)}; all views must have the same size, colour and bit depth"
             )
-        place(i, image)
+        if decode:
+            place(i, image)
 
-    place(0, decoded)
+    if decode:
+        place(0, decoded)
     with ThreadPoolExecutor(max_workers=min(8, (os.cpu_count() or 1) * 2)) as pool:
         for _ in pool.map(load, range(1, len(paths))):
             pass
@@ -316,16 +344,17 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
 
 
 def read_view_grid(paths: Sequence[Path], grid: tuple[int, int], *, grey: bool = False,
-                   digests: dict[Path, str] | None = None, check: Callable[[Path, str], None] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray | None]:
+                   digests: dict[Path, str] | None = None, check: Callable[[Path, str], None] | None = None,
+                   decode: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """The views of a ``(rows, cols)`` grid from ``paths`` (row-major) by :func:`read_images`:
     ``(views, stored_centre)``, ``views`` ``(rows, cols, H, W[, 3])`` as stored, or with ``grey``
     ``(rows, cols, H, W)`` ``float32`` luminance and ``stored_centre`` the centre view as stored
-    (``None`` without ``grey``: it is a view of ``views``)."""
+    (``None`` without ``grey``: it is a view of ``views``; and with ``decode=False``, where ``views``
+    holds no pixels)."""
     rows, cols = grid
     centre = (rows // 2) * cols + cols // 2
     keep: dict[int, np.ndarray | None] = {centre: None}
-    images = read_images(paths, digests=digests, check=check, grey=grey, keep=keep if grey else None)
+    images = read_images(paths, digests=digests, check=check, grey=grey, keep=keep if grey else None, decode=decode)
     return images.reshape((rows, cols) + images.shape[1:]), keep[centre]
 
 

@@ -20,7 +20,8 @@ from recon.lf.benchmark import BENCHMARK_VIEW, read_benchmark
 from recon.lf.lightfield import LightField
 
 
-def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool = False) -> LightField:
+def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool = False,
+                    decode: bool = True) -> LightField:
     """Read a light-field folder in the benchmark layout or lfrig's capture layout.
 
     ``verify``: check each view of a capture against its journalled SHA-256
@@ -32,6 +33,12 @@ def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool 
     in :attr:`~recon.lf.lightfield.LightField.stored_centre`: for one estimate
     (:func:`recon.pipeline.reconstruct_to_folder`). An 8-bit RGB light field then takes 4 bytes a
     pixel instead of 3 plus the 4 of its grey views.
+
+    ``decode=False``: everything but the pixels, for what needs only the shapes, dtype and metadata
+    (``lfrig info``): the files are read and checked as for decoding (a capture's checksums with
+    ``verify``, each PNG's chunks and header), but only the first view is decoded, and any other
+    whose PNG header says another size, colour or bit depth; :attr:`~recon.lf.lightfield.LightField.views`
+    then holds no pixels (zeros, read-only, :func:`recon.lf.imageio.read_images`).
 
     Raises
     ------
@@ -45,9 +52,9 @@ def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool 
     if not path.is_dir():
         raise LightFieldFormatError(f"{path}: not a folder; pass the folder that holds the views")
     if capture.is_capture(path):
-        return capture.read_capture(path, verify=verify, grey=grey)
+        return capture.read_capture(path, verify=verify, grey=grey, decode=decode)
     if any(BENCHMARK_VIEW.match(p.name) for p in path.iterdir()):
-        return read_benchmark(path, grey=grey)
+        return read_benchmark(path, grey=grey, decode=decode)
     raise LightFieldFormatError(
         f"{path}: no light field here (expected input_Cam000.png ... of the benchmark layout, "
         "or manifest.jsonl of an lfrig capture)"
