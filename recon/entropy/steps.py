@@ -20,7 +20,7 @@ from recon.entropy.entropy import quantise_disparity, quantise_grey, select_wind
 from recon.entropy.initial import (discover_range, initial_disparity, initial_view_mask, range_from_initial,
                                   sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
-from recon.entropy.matching import cost_ambiguity, disparity_candidates, joint_line_search, line_search
+from recon.entropy.matching import JOINT_GROUP, cost_ambiguity, disparity_candidates, joint_line_search, line_search
 from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
                                  soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
                                  weak_texture_pixels)
@@ -336,18 +336,18 @@ def line_search_step(s: State) -> None:
 #: its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
 #: only on the rows within the halo), so that the search's memory grows with the image, not with
 #: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
-#: px/view): 1.0 MB a row, seven bands of 202 rows with halos of 27; the 2000x1500 synthetic set
-#: (82 candidates): 2.2 MB a row, 25 bands of 96 rows with halos of 17. The budget does not grow
+#: px/view): 1.2 MB a row, seven bands of 187 rows with halos of 27; the 2000x1500 synthetic set
+#: (82 candidates): 2.4 MB a row, 27 bands of 90 rows with halos of 17. The budget does not grow
 #: with the views: at 2000x1500 they alone take 927 MiB.
 JOINT_BAND_MIB = 208
 #: The largest joint search (MiB, as :data:`JOINT_BAND_MIB` counts) that runs whole, without halo
-#: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 1.0 MB
-#: a row, 261 MiB.
-JOINT_WHOLE_MIB = 272
+#: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 1.1 MB
+#: a row, 279 MiB.
+JOINT_WHOLE_MIB = 288
 #: Bytes a pixel of a band of the joint search holds besides its views, penalty, costs and tables:
 #: the running least cost and window, the pixels' view sets, the three maps it returns and the
-#: window lists' runs (measured: 1,125-1,135 bytes a pixel in all at 2000x1500 with 82 candidates,
-#: 810-890 on the demo capture with 25).
+#: window lists' runs (measured with one candidate a pass: 1,114-1,136 bytes a pixel in all at
+#: 2000x1500 with 82 candidates, 806-894 on the demo capture with 25).
 JOINT_PIXEL_BYTES = 96
 
 
@@ -358,11 +358,12 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
     least one). Per pixel of a row, what is alive at the search's peak, its sweep over the
     candidates in :func:`recon.entropy.matching.joint_line_search`: the band's ``U * V`` float32
     view samples (:func:`filtered_views`), its ``n_windows`` float32 penalty, ``n_candidates``
-    float32 costs, nine int64 summed-area tables and :data:`JOINT_PIXEL_BYTES`. The penalty while
+    float32 costs, nine int64 summed-area tables for each of the
+    :data:`~recon.entropy.matching.JOINT_GROUP` candidates a pass takes and :data:`JOINT_PIXEL_BYTES`. The penalty while
     it is made, a row of its flat pixels at a time, and the filters' temporaries, a row of views at
     a time, take less."""
     U, V, H, W = views_shape
-    per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 + JOINT_PIXEL_BYTES)
+    per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 * JOINT_GROUP + JOINT_PIXEL_BYTES)
     if H * per_row <= whole_mib * 2 ** 20:
         return H
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
