@@ -72,24 +72,36 @@ def soften_reach_px(sigma_px: float) -> int:
 
 
 def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
-                       rows: range | None = None) -> np.ndarray:
-    """``(len(rows), V, H, W)`` bool: where the centre-view pixels of ``mask`` land in the views of
-    the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
+                       rows: range | None = None, image_rows: range | None = None) -> np.ndarray:
+    """``(len(rows), V, len(image_rows), W)`` bool: where the centre-view pixels of ``mask`` land in
+    the views of the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
     (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel to close the
-    gaps of the forward warp."""
+    gaps of the forward warp; the image rows ``image_rows`` of each view (default all ``H``: the
+    same bits as those rows of the whole view's mask), from the mask's pixels that can land within
+    a row of them."""
     U, V = grid_shape
     rows = range(U) if rows is None else rows
     H, W = mask.shape
-    ys, xs = np.nonzero(mask)
+    top, bottom = (0, H) if image_rows is None else (image_rows.start, image_rows.stop)
+    a, b = max(top - 1, 0), min(bottom + 1, H)  # the rows the one-pixel growth reads
+    lo, hi = 0, H  # the centre rows whose pixels can land there
+    if (a, b) != (0, H):
+        reach = np.ceil(max(abs(u - U // 2) for u in rows) * float(np.nanmax(np.abs(disparity)))) + 1
+        lo, hi = int(max(a - reach, 0)), int(min(b + reach, H))
+    ys, xs = np.nonzero(mask[lo:hi])
+    ys += lo
     d = np.asarray(disparity, np.float64)[ys, xs]
-    out = np.zeros((len(rows), V, H, W), bool)
+    out = np.zeros((len(rows), V, bottom - top, W), bool)
+    landed = np.empty((b - a, W), bool)
     for i, u in enumerate(rows):
         for v in range(V):
             ly = np.floor(ys - (u - U // 2) * d + 0.5).astype(np.int64)
             lx = np.floor(xs - (v - V // 2) * d + 0.5).astype(np.int64)
-            ok = (ly >= 0) & (ly < H) & (lx >= 0) & (lx < W)
-            out[i, v, ly[ok], lx[ok]] = True
-            out[i, v] = cv2.dilate(out[i, v].view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+            ok = (ly >= a) & (ly < b) & (lx >= 0) & (lx < W)
+            landed[...] = False
+            landed[ly[ok] - a, lx[ok]] = True
+            grown = cv2.dilate(landed.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+            out[i, v] = grown[top - a:bottom - a]
     return out
 
 

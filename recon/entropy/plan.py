@@ -53,7 +53,7 @@ PLAN: tuple[Phase, ...] = (
     Phase("layers", (steps.FILL_INITIAL, steps.SNAP_INITIAL, steps.NOISE_LIMITED, steps.SEARCH_RANGE,
                      steps.LAYER_ORIGIN), tile_local=False),
     Phase("matching", (steps.REGIONS, steps.WINDOWS, steps.VIEW_FILTERS, steps.LINE_SEARCH,
-                       steps.RESTORE_VIEWS, steps.CENTROID, steps.BOUNDARY), tile_local=True,
+                       steps.CENTROID, steps.BOUNDARY), tile_local=True,
           reads=("d0", "ambiguity0", "flat", "noise_limited"),
           writes={"matched": np.float32, "labels": np.uint8, "ambiguity": np.int32, "cost": np.float32,
                   "windows.size": np.int64, "windows.shape": np.int64, "windows.set": np.int64,
@@ -90,7 +90,7 @@ def start(lf: LightField, options: EntropyOptions, *, progress: ProgressCallback
     guess = known if known is not None else initial_rng
     reporter = Reporter(progress, n_initial, len(disparity_candidates(guess[0], guess[1], options.step)))
     state = State(options=options, source=lf, raw=gray, raw_centre=gray[U // 2, V // 2].copy(),
-                  views=gray, known=known, noise_sigma=noise,
+                  known=known, noise_sigma=noise,
                   hole_delta=steps.hole_tolerance(options, noise), initial_range=initial_rng,
                   reporter=reporter, _clock=t)
     for name, value in shared.items():

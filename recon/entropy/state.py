@@ -46,9 +46,9 @@ class State:
     options: EntropyOptions
     #: The light field the grey views were read from.
     source: Any
-    #: ``(U, V, H, W)`` float32 grey views in ``[0, 1]`` as read (from the view filters to the
-    #: end of the line search: filtered in place, :attr:`views`); ``None`` after the boundary
-    #: step, the last that reads them.
+    #: ``(U, V, H, W)`` float32 grey views in ``[0, 1]`` as read (never written: the line search
+    #: filters copies of their rows, :func:`recon.entropy.steps.filtered_views`); ``None`` after
+    #: the boundary step, the last that reads them.
     raw: np.ndarray | None
     #: ``(H, W)`` float32 centre view of :attr:`raw` as read (:attr:`centre`).
     raw_centre: np.ndarray
@@ -62,14 +62,10 @@ class State:
     initial_range: tuple[float, float]
     reporter: Any
     timings: dict[str, float] = field(default_factory=dict)
-    #: The views the line search matches (``raw``, filtered in place where noise or weak texture
-    #: rules; ``None`` once the raw views are restored).
-    views: np.ndarray | None = None
-    #: ``(u, v, where, values)`` per view the filters changed in :attr:`raw`: the pixels they
-    #: changed (``where``: their flat indices into ``(H, W)`` as uint32, or where many changed the
-    #: flat ``(H, W)`` bool mask packed, :func:`numpy.packbits`, uint8) and those pixels' float32
-    #: values as they were (row-major order), to be written back after the line search.
-    filtered_views: list = field(default_factory=list)
+    #: ``(noise, weak)``: the ``(H, W)`` bool centre-view pixels where the line search's views are
+    #: filtered with ``noise_filter`` and with ``weak_texture_filter`` (``None``: not filtered;
+    #: :func:`recon.entropy.steps.view_filters_step`).
+    view_filters: tuple = (None, None)
     disparity_range: tuple[float, float] | None = None
     origin: float | None = None
     flat: np.ndarray | None = None

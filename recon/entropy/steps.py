@@ -20,7 +20,7 @@ from recon.entropy.entropy import quantise_disparity, quantise_grey, select_wind
 from recon.entropy.initial import (discover_range, initial_disparity, initial_view_mask, range_from_initial,
                                   sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
-from recon.entropy.matching import cost_ambiguity, disparity_candidates, joint_line_search, line_search
+from recon.entropy.matching import JOINT_GROUP, cost_ambiguity, disparity_candidates, joint_line_search, line_search
 from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
                                  soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
                                  weak_texture_pixels)
@@ -176,78 +176,64 @@ def layer_origin_step(s: State) -> None:
 
 
 def view_filters_step(s: State) -> None:
-    """``s.views``: the views filtered where noise-limited pixels (``noise_filter``) and pixels of
-    weak texture (``weak_texture_filter``) land (``docs/entropy-method.md``). The filter works in
-    place on ``s.raw``, a row of views at a time (no filtered copy of the light field beside it, and
-    the warped masks of where it filters made for that row alone, :func:`warp_mask_to_views`);
-    ``s.filtered_views`` keeps the pixels of each view it changed as they were, and where: their
-    flat indices when fewer than one in 32 changed, else a bit per pixel (on the 1198x906 demo
-    capture 0.1 % of them, under 1 MiB; on the 2000x1500 synthetic set, a noisy wall over most of
-    its upper half, ~40 %: 4 bytes and a bit each, where int64 indices took 12 bytes), which
-    :func:`restore_views_step` writes back after the line search. ``s.raw`` is the light field's
-    own array when the light field says it may be written
-    (:attr:`recon.lf.lightfield.LightField.views_writable`), else a copy of it."""
-    o, U, V = s.options, *s.raw.shape[:2]
+    """``s.view_filters``: the centre-view pixels where the views are filtered, where noise-limited
+    pixels land (``noise_filter``) and where pixels of weak texture land (``weak_texture_filter``;
+    ``docs/entropy-method.md``), ``None`` for a filter that is off or has nothing to filter. The
+    views themselves are filtered where the line search reads them, a band of rows at a time
+    (:func:`filtered_views`): ``s.raw`` stays as read, for the boundary step after the search."""
+    o = s.options
     noise = s.noise_limited if o.noise_filter > 0 and s.noise_limited.any() else None
     weak = None
     if o.weak_texture_filter > 0:  # the rest of the weak texture, mildly
         weak = weak_texture_pixels(_texture_ratio(s.centre, s.noise_sigma, o),
                                    texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
         weak = weak if weak.any() else None
-    texture = o.noise_gate == "texture"
-    if ((noise is not None or weak is not None) and not s.source.views_writable
-            and np.shares_memory(s.raw, s.source.views)):
-        s.raw = s.raw.copy()  # float32 grey views as given: the caller's own array, not to be written
+    s.view_filters = (noise, weak)
+
+
+def filtered_views(s: State, a: int, b: int) -> np.ndarray:
+    """``(U, V, b - a, W)`` float32: the image rows ``[a, b)`` of the views ``s.raw`` filtered where
+    ``s.view_filters`` lands in each view (:func:`recon.entropy.noise.warp_mask_to_views` with
+    ``s.d0``): the Gaussian of ``noise_filter`` where the view is noise-limited too
+    (:func:`recon.entropy.noise.filter_flat_views`, ``noise_gate="texture"``: the window-scale test,
+    else Eq. 12's), then the mild one of ``weak_texture_filter``
+    (:func:`recon.entropy.noise.soften_views`). Each row of views is filtered over the rows ``[a,
+    b)`` and as many around them as the two filters reach (:func:`view_filter_rows`), so that the
+    rows are those of the whole views filtered, bit for bit; the rows of ``s.raw`` themselves (not
+    a copy) when no filter has anything to filter."""
+    o, (noise, weak) = s.options, s.view_filters
+    if noise is None and weak is None:
+        return s.raw[:, :, a:b]
+    U, V, H, W = s.raw.shape
+    reach = view_filter_rows(o)
+    top, bottom = max(a - reach, 0), min(b + reach, H)
+    rows = range(top, bottom)
+    out = np.empty((U, V, b - a, W), np.float32)
     for u in range(U):
-        row = s.raw[u:u + 1]
-        views = row
+        views = row = s.raw[u:u + 1, :, top:bottom]
         if noise is not None:
             views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
                                       size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                      where=warp_mask_to_views(noise, s.d0, (U, V), rows=range(u, u + 1)),
-                                      texture_ratio=o.noise_texture_ratio if texture else None,
+                                      where=warp_mask_to_views(noise, s.d0, (U, V), rows=range(u, u + 1),
+                                                               image_rows=rows),
+                                      texture_ratio=o.noise_texture_ratio if o.noise_gate == "texture" else None,
                                       radius_px=o.windows.largest_radius_px)
         if weak is not None:
             views = soften_views(views, sigma_px=o.weak_texture_filter,
-                                 where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1)),
+                                 where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1),
+                                                          image_rows=rows),
                                  out=None if views is row else views)
-        if views is not row:
-            for v in range(V):
-                kept = changed_pixels(row[0, v], views[0, v])
-                if kept is not None:
-                    s.filtered_views.append((u, v, *kept))
-            row[...] = views
-    s.views = s.raw
+        out[u] = views[0, :, a - top:b - top]
+    return out
 
 
-def restore_views_step(s: State) -> None:
-    """``s.raw`` as read again where :func:`view_filters_step` filtered it (the pixels it kept in
-    ``s.filtered_views`` written back, bit for bit); ``s.views`` let go."""
-    for u, v, where, values in s.filtered_views:
-        put_back(s.raw[u, v], where, values)
-    s.filtered_views = []
-    s.views = None
-
-
-def changed_pixels(before: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(where, values)``: the pixels of ``before`` that ``after`` changes (float32 images of one
-    shape, compared bit for bit) and their values in ``before`` (row-major order), for
-    :func:`put_back`; ``None`` when none changed. ``where``: their flat indices as uint32 when fewer
-    than one pixel in 32 changed, else the flat bool mask packed (:func:`numpy.packbits`, uint8),
-    a bit a pixel."""
-    changed = after.view(np.uint32) != before.view(np.uint32)
-    n = np.count_nonzero(changed)
-    if n == 0:
-        return None
-    where = np.flatnonzero(changed).astype(np.uint32) if 32 * n < changed.size else np.packbits(changed)
-    return where, before[changed]
-
-
-def put_back(image: np.ndarray, where: np.ndarray, values: np.ndarray) -> None:
-    """Write ``values`` into ``image`` in place at ``where`` (:func:`changed_pixels`)."""
-    if where.dtype == np.uint8:  # a bit a pixel
-        where = np.flatnonzero(np.unpackbits(where, count=image.size))
-    np.put(image, where, values)
+def view_filter_rows(options: EntropyOptions) -> int:
+    """How far (pixels) a value of :func:`filtered_views` depends on the view it filters and on
+    the filters' masks in that view: the noise filter's reach, then the mild filter's over it."""
+    o = options
+    return (filter_reach_px(o.noise_filter, size=o.smooth_neighbourhood,
+                            radius_px=o.windows.largest_radius_px if o.noise_gate == "texture" else None)
+            + soften_reach_px(o.weak_texture_filter))
 
 
 def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -264,14 +250,17 @@ def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
 
 
 def regions_step(s: State) -> None:
-    """``s.labels`` (Eqs. 8-11) and ``s.region_info`` (the layer map, noise figures)."""
+    """``s.labels`` (Eqs. 8-11) and ``s.region_info``: the layer map (for the window selection) and
+    the noise figures; the rest of :func:`recon.entropy.regions.region_labels`' info (Eq. 12's
+    ``psi``, the occlusion differences: 46 MiB at 2000x1500) has no reader and is let go."""
     o = s.options
     s.lap("initial")
     s.reporter.step("regions", "region types")
-    s.labels, s.region_info = region_labels(
+    s.labels, info = region_labels(
         s.raw, s.d0, layer_gap=o.layer_gap, layer_median=o.layer_median,
         smooth_neighbourhood=o.smooth_neighbourhood, smooth_tolerance=o.smooth_tolerance,
         occlusion_views=o.occlusion_views, noise=s.noise_sigma, keep=_layer_keep(s.ambiguity0, s.flat, o))
+    s.region_info = {key: info[key] for key in ("layers", "noise_sigma", "smooth_tolerance_abs")}
     s.lap("regions")
 
 
@@ -283,7 +272,7 @@ def windows_step(s: State) -> None:
     """The windows each pixel is offered and their matching entropy (Eq. 1), in ``s.windows``."""
     o = s.options
     s.reporter.step("windows", "window selection (matching entropy)")
-    layers = s.region_info["layers"]
+    layers = s.region_info.pop("layers")  # read by no later step
     H, W = layers.shape
     grey_q = quantise_grey(s.centre, o.grey_bins)
     disp_q = quantise_disparity(layers, o.disparity_bin, origin=s.origin)
@@ -334,40 +323,47 @@ def line_search_step(s: State) -> None:
     del w["all_entropy"]
     w["set"] = np.where(occluded, w["shape"], 0)
     if not o.joint:
-        s.matched, s.cost, costs = line_search(s.views, candidates, shape_map=w["shape"], size_map=w["size"],
-                                               set_map=w["set"], return_costs=True,
-                                               progress=s.reporter.within)
+        s.matched, s.cost, costs = line_search(filtered_views(s, 0, labels.shape[0]), candidates,
+                                               shape_map=w["shape"], size_map=w["size"], set_map=w["set"],
+                                               return_costs=True, progress=s.reporter.within)
         s.ambiguity = cost_ambiguity(costs, s.hole_delta / o.intensity_scale)
 
 
-#: Working memory (MiB) the joint line search may take at once: its cost volume (one float32 map
-#: per candidate), the penalty (counted at twice its float32 layout while it is made), the
-#: summed-area tables and a copy of the views' rows. A search within :data:`JOINT_WHOLE_MIB` runs
-#: on the whole image; one that needs more is searched in bands of rows within this budget, each
-#: with a halo of the rows its pixels' windows and views reach (the same maps bit for bit: every
-#: value of a pixel depends only on the rows within the halo), so that the search's memory grows
-#: with the image, not with the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
-#: px/view): 1.1 MB a row, seven bands of 139 rows with halos of 27 (the rows swept: +36 %;
-#: bands of 256 MiB, five of 184 rows, swept +24 % and took 60 MiB more at 5 % less CPU in the
-#: search). The budget does not grow with the views: at 2000x1500 they alone take 927 MiB.
+#: Working memory (MiB) the joint line search may take at once, as :func:`joint_band_rows` counts
+#: it: the band's filtered views, its penalty, its cost volume (one float32 map per candidate) and
+#: the summed-area tables. A search within :data:`JOINT_WHOLE_MIB` runs on the whole image; one
+#: that needs more is searched in bands of rows within this budget, each with a halo of the rows
+#: its pixels' windows and views reach (the same maps bit for bit: every value of a pixel depends
+#: only on the rows within the halo), so that the search's memory grows with the image, not with
+#: the image times the candidates. The 1198x906 demo capture (25 candidates over 3.35..4.29
+#: px/view): 1.2 MB a row, seven bands of 187 rows with halos of 27; the 2000x1500 synthetic set
+#: (82 candidates): 2.4 MB a row, 27 bands of 90 rows with halos of 17. The budget does not grow
+#: with the views: at 2000x1500 they alone take 927 MiB.
 JOINT_BAND_MIB = 208
 #: The largest joint search (MiB, as :data:`JOINT_BAND_MIB` counts) that runs whole, without halo
-#: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 0.5 MB
-#: a row, 252 MiB.
-JOINT_WHOLE_MIB = 256
+#: rows swept twice: 512x512 with 81 views, 77 windows and 61 candidates (backgammon) takes 1.1 MB
+#: a row, 279 MiB.
+JOINT_WHOLE_MIB = 288
+#: Bytes a pixel of a band of the joint search holds besides its views, penalty, costs and tables:
+#: the running least cost and window, the pixels' view sets, the three maps it returns and the
+#: window lists' runs (measured with one candidate a pass: 1,114-1,136 bytes a pixel in all at
+#: 2000x1500 with 82 candidates, 806-894 on the demo capture with 25).
+JOINT_PIXEL_BYTES = 96
 
 
 def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int, n_windows: int,
                     budget_mib: float = JOINT_BAND_MIB, whole_mib: float = JOINT_WHOLE_MIB) -> int:
     """How many rows of a ``(U, V, H, W)`` view set one band of the joint search takes: ``H`` when
     the whole image's search takes at most ``whole_mib``, else as many as ``budget_mib`` holds (at
-    least one). Per pixel of a row: the ``U * V`` float32 view samples, and the larger of the two
-    phases of :func:`recon.entropy.matching.joint_line_search`: the penalty while it is made, 8
-    bytes a window (its float32 layout and as much again for the gates' masks, a margin), then its
-    ``n_windows`` float32 beside ``n_candidates`` float32 costs, nine int64 summed-area tables and
-    nine float32 images more (a margin: the fused block pass holds only a few rows of its blocks)."""
+    least one). Per pixel of a row, what is alive at the search's peak, its sweep over the
+    candidates in :func:`recon.entropy.matching.joint_line_search`: the band's ``U * V`` float32
+    view samples (:func:`filtered_views`), its ``n_windows`` float32 penalty, ``n_candidates``
+    float32 costs, nine int64 summed-area tables for each of the
+    :data:`~recon.entropy.matching.JOINT_GROUP` candidates a pass takes and :data:`JOINT_PIXEL_BYTES`. The penalty while
+    it is made, a row of its flat pixels at a time, and the filters' temporaries, a row of views at
+    a time, take less."""
     U, V, H, W = views_shape
-    per_row = W * (4 * U * V + max(8 * n_windows, 4 * n_windows + 4 * n_candidates + 8 * 9 + 4 * 9))
+    per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 * JOINT_GROUP + JOINT_PIXEL_BYTES)
     if H * per_row <= whole_mib * 2 ** 20:
         return H
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
@@ -375,17 +371,17 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
 
 def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tuple[int, int]],
                           use_shape_set: np.ndarray, budget_mib: float | None = None):
-    """:func:`recon.entropy.matching.joint_line_search` over ``s.views`` with the penalty of
-    ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in bands of rows
-    within ``budget_mib`` (default :data:`JOINT_BAND_MIB`) when the whole image's search would take
-    more than :data:`JOINT_WHOLE_MIB`. Each band is searched with a halo of ``largest_radius_px`` plus the
-    farthest view shift of the candidates plus two rows, so that every pixel of its core gets the
-    whole image's values; the penalty is made band by band, and only one band's cost volume is
-    alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
+    """:func:`recon.entropy.matching.joint_line_search` over the filtered views (:func:`filtered_views`)
+    with the penalty of ``s.windows["all_entropy"]`` (:func:`_search_penalty`, the strips gated), in
+    bands of rows within ``budget_mib`` (default :data:`JOINT_BAND_MIB`) when the whole image's
+    search would take more than :data:`JOINT_WHOLE_MIB`. Each band is searched with a halo of
+    ``largest_radius_px`` plus the farthest view shift of the candidates plus two rows, so that
+    every pixel of its core gets the whole image's values; the band's views are filtered, and its
+    penalty made, band by band, and only one band's cost volume is alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
     o, w = s.options, s.windows
     sizes = w["sizes"]
-    U, V, H, W = s.views.shape
-    rows = joint_band_rows(s.views.shape, n_candidates=len(candidates), n_windows=len(windows),
+    U, V, H, W = s.raw.shape
+    rows = joint_band_rows(s.raw.shape, n_candidates=len(candidates), n_windows=len(windows),
                            budget_mib=JOINT_BAND_MIB if budget_mib is None else budget_mib,
                            whole_mib=JOINT_WHOLE_MIB)  # read at the call: tests lower it
     halo = o.windows.largest_radius_px + view_shift_px((candidates[0], candidates[-1]), (U, V)) + 2
@@ -400,7 +396,7 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
             np.empty((H, W), np.int32))
     for i, (y0, y1, a, b) in enumerate(bands):
         band = joint_line_search(
-            s.views[:, :, a:b], candidates, windows=windows, penalty=penalty(a, b),
+            filtered_views(s, a, b), candidates, windows=windows, penalty=penalty(a, b),
             use_shape_set=use_shape_set[a:b], intensity_scale=o.intensity_scale,
             ambiguity_delta=s.hole_delta,
             progress=lambda f, i=i: s.reporter.within((i + f) / len(bands)))
@@ -492,7 +488,6 @@ NOISE_LIMITED = _step("noise_limited", noise_limited_step)
 SEARCH_RANGE = _step("search_range", search_range_step)
 LAYER_ORIGIN = _step("layer_origin", layer_origin_step)
 VIEW_FILTERS = _step("view_filters", view_filters_step, view_filters_reach)
-RESTORE_VIEWS = _step("restore_views", restore_views_step)
 REGIONS = _step("regions", regions_step, regions_reach)
 WINDOWS = _step("windows", windows_step, windows_reach)
 LINE_SEARCH = _step("line_search", line_search_step, line_search_reach)
@@ -556,21 +551,25 @@ def _largest_windows_only(penalty: np.ndarray, flat: np.ndarray, n_sizes: int, *
     size, smallest first; ``inf`` = not offered) with every window but those of the largest offered
     size barred at the ``flat`` pixels (the square alone where it is offered, as Eq. 12 gives the
     smooth region). A flat window's cost curve is noise: offered several windows, the joint minimum
-    picks whichever window's noise dips lowest, most often the smallest and noisiest."""
-    ys, xs = np.nonzero(flat)  # only those pixels change (none on most textured scenes)
-    if ys.size == 0:
-        return penalty
-    sub = penalty[ys, :, xs]  # (N, K)
-    N, K = sub.shape
-    by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
-    offered = by_size.any(axis=1)
-    largest = n_sizes - 1 - np.argmax(offered[:, ::-1], axis=1)
-    size_of = np.arange(K) % n_sizes
-    bar = size_of[None, :] != largest[:, None]
-    has_square = by_size[np.arange(N), 0, largest]
-    bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
+    picks whichever window's noise dips lowest, most often the smallest and noisiest. A row at a
+    time: the temporaries hold one row's flat pixels (on a noisy wall nearly every pixel of a
+    band, 4 bytes a window each, several times over)."""
     out = penalty if in_place else penalty.astype(np.float32, copy=True)
-    out[ys, :, xs] = np.where(bar, np.inf, sub)
+    K = penalty.shape[1]
+    size_of = np.arange(K) % n_sizes
+    for y, row in enumerate(out):
+        xs = np.flatnonzero(flat[y])  # only those pixels change (none on most textured scenes)
+        if xs.size == 0:
+            continue
+        sub = row[:, xs].T  # (N, K)
+        N = sub.shape[0]
+        by_size = np.isfinite(sub).reshape(N, K // n_sizes, n_sizes)
+        offered = by_size.any(axis=1)
+        largest = n_sizes - 1 - np.argmax(offered[:, ::-1], axis=1)
+        bar = size_of[None, :] != largest[:, None]
+        has_square = by_size[np.arange(N), 0, largest]
+        bar |= has_square[:, None] & (np.arange(K) >= n_sizes)[None, :]
+        row[:, xs] = np.where(bar, np.inf, sub).T
     return out
 
 

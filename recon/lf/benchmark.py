@@ -73,8 +73,7 @@ def read_benchmark(path: str | os.PathLike, *, grey: bool = False, decode: bool 
     if (path / GROUND_TRUTH).is_file():
         metadata["ground_truth"] = str(path / GROUND_TRUTH)
     metadata["views_sha256"] = {p.name: digest for p, digest in digests.items()}  # for the input's identity
-    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, views_writable=grey,
-                      **camera)
+    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, **camera)
 
 
 def ground_truth_path(lf: LightField) -> Path | None:

@@ -527,8 +527,7 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, grey: bool = F
         _, found = camera_from_parameters(parameters, path=path / PARAMETERS)
         camera.update({k: v for k, v in found.items() if v is not None})
         check_camera_fits(camera, parameters, grid=(rows, cols), image_shape=views.shape[2:4], path=path / PARAMETERS)
-    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, views_writable=grey,
-                      **camera)
+    return LightField(views=views, metadata=metadata, source=path, stored_centre=centre, **camera)
 
 
 def _ends_complete(records: list[dict[str, Any]]) -> bool:

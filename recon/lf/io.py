@@ -30,8 +30,7 @@ def read_lightfield(path: str | os.PathLike, *, verify: bool = True, grey: bool 
     ``grey``: the views as the estimators read them, ``(U, V, H, W)`` ``float32`` luminance
     (:func:`recon.lf.lightfield.to_gray` of the stored views, bit for bit, each view converted as
     it is decoded, so the stored views are never held all at once), with the centre view as stored
-    in :attr:`~recon.lf.lightfield.LightField.stored_centre` and
-    :attr:`~recon.lf.lightfield.LightField.views_writable` set: for one estimate
+    in :attr:`~recon.lf.lightfield.LightField.stored_centre`: for one estimate
     (:func:`recon.pipeline.reconstruct_to_folder`). An 8-bit RGB light field then takes 4 bytes a
     pixel instead of 3 plus the 4 of its grey views.
 

@@ -53,11 +53,6 @@ class LightField:
     stored_centre
         The centre view as stored, ``(H, W[, 3])`` in the stored dtype, when :attr:`views` holds the
         views converted to grey (read with ``grey=True``); ``None``: the centre of :attr:`views`.
-    views_writable
-        ``True`` when nothing but this light field holds :attr:`views` (read with ``grey=True`` for
-        one estimate): the estimator's view filters then work in place on them and write back the
-        rows they changed after the line search (:func:`recon.entropy.steps.view_filters_step`),
-        instead of filtering a copy.
     views_once
         ``True`` when the views are read for one estimate and nothing reads them after it (set by
         :func:`recon.pipeline.reconstruct_to_folder` on the light field it read itself): the
@@ -74,7 +69,6 @@ class LightField:
     metadata: dict[str, Any] = field(default_factory=dict)
     source: Path | None = None
     stored_centre: np.ndarray | None = None
-    views_writable: bool = False
     views_once: bool = False
     #: :attr:`views`' shape, kept when they are let go (:meth:`release_views`).
     shape: tuple[int, ...] = field(init=False, repr=False, compare=False)
