@@ -366,21 +366,11 @@ def read_depth(path) -> np.ndarray:
                                    f"{getattr(depth, 'shape', '?')} {getattr(depth, 'dtype', type(depth).__name__)}")
         return depth
     if suffix == ".png":
-        from recon.lf.imageio import decode_quietly, png_problem
+        from recon.lf.imageio import MAX_IMAGE_BYTES, checked_png_header, decode_quietly, read_bytes
         from recon.lf.params import is_finite
 
-        from recon.lf.imageio import MAX_IMAGE_BYTES, read_bytes
-
         data = read_bytes(path, error=DepthFormatError, max_bytes=MAX_IMAGE_BYTES)
-        problem = png_problem(data)
-        if problem:
-            raise DepthFormatError(f"{path}: {problem}")
-        from recon.lf.imageio import check_image_size, png_header
-
-        header = png_header(data)
-        if header is None:
-            raise DepthFormatError(f"{path}: damaged PNG header (IHDR)")
-        check_image_size(path, header[0], header[1])
+        checked_png_header(path, data, error=DepthFormatError)
         texts = _read_text_chunks(data)
         try:
             if PNG_SCALE_KEY in texts:

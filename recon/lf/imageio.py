@@ -181,6 +181,20 @@ def png_header(data: bytes) -> tuple[int, int, int, int] | None:
     return (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), data[24], data[25])
 
 
+def checked_png_header(path: str | os.PathLike, data: bytes, *, error: type[LfrigError] = LightFieldFormatError,
+                       advice: str = "") -> tuple[int, int, int, int]:
+    """:func:`png_header` of a PNG's bytes once they pass :func:`png_problem` and
+    :func:`check_image_size`; ``error`` (naming ``path``, ending in ``advice``) otherwise."""
+    problem = png_problem(data)
+    if problem:
+        raise error(f"{path}: {problem}{advice}")
+    header = png_header(data)
+    if header is None:
+        raise error(f"{path}: damaged PNG header (IHDR){advice}")
+    check_image_size(path, header[0], header[1])
+    return header
+
+
 def check_image_size(path: str | os.PathLike, width: int, height: int) -> None:
     """Refuse an image larger than :data:`MAX_IMAGE_SIDE` / :data:`MAX_IMAGE_PIXELS` (before decoding)."""
     if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
@@ -226,14 +240,7 @@ def _read_checked(path: Path, digests: dict[Path, str] | None = None,
             check(path, digest)
     if not raw.startswith(PNG_SIGNATURE):
         return raw, None
-    problem = png_problem(raw)
-    if problem:
-        raise LightFieldFormatError(f"{path}: {problem}; replace or re-capture it")
-    header = png_header(raw)
-    if header is None:
-        raise LightFieldFormatError(f"{path}: damaged PNG header (IHDR); replace or re-capture it")
-    check_image_size(path, header[0], header[1])
-    return raw, header
+    return raw, checked_png_header(path, raw, advice="; replace or re-capture it")
 
 
 def _decode_bytes(path: Path, raw: bytes) -> np.ndarray:
