@@ -34,8 +34,9 @@ def _register_reconstruct(subparsers: argparse._SubParsersAction) -> None:
     info = subparsers.add_parser(
         "info",
         help="describe a light field (folder) or a disparity map (.pfm)",
-        description="Print what a light-field folder (benchmark or capture layout) or a PFM file holds. The views' "
-                    "files are checked (a capture's checksums, each PNG's chunks and header); only the first is decoded.",
+        description="Print what a light-field folder (benchmark or capture layout) or a PFM file holds. The "
+                    "views' files are checked (a capture's checksums, each PNG's chunks and header); only the "
+                    "first is decoded.",
     )
     info.add_argument("path", type=Path, help="light-field folder or .pfm file")
     add_json_argument(info)

@@ -384,8 +384,8 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
                                   disp_f, labels_f, layers_f, hist_a, hist_b, xlogx, occl, opposite, gap,
                                   m_centre, sizes_n, cap, side_r, alpha1, a2, n_grey + n_disp, e_k, offered)
                 else:
-                    _clipped_windows(y, x, rects[s], s, grey_f, disp_f, labels_f, layers_f, hist_a, xlogx, occl, opposite, gap, m_centre, sizes_n, cap, side_r,
-                                     alpha1, a2, H, W, e_k, offered)
+                    _clipped_windows(y, x, rects[s], s, grey_f, disp_f, labels_f, layers_f, hist_a, xlogx, occl,
+                                     opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, H, W, e_k, offered)
                 for j in range(2 if two else 1):
                     for k in range(n_sizes):
                         if not offered[j, k]:

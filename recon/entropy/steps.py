@@ -359,9 +359,9 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
     candidates in :func:`recon.entropy.matching.joint_line_search`: the band's ``U * V`` float32
     view samples (:func:`filtered_views`), its ``n_windows`` float32 penalty, ``n_candidates``
     float32 costs, nine int64 summed-area tables for each of the
-    :data:`~recon.entropy.matching.JOINT_GROUP` candidates a pass takes and :data:`JOINT_PIXEL_BYTES`. The penalty while
-    it is made, a row of its flat pixels at a time, and the filters' temporaries, a row of views at
-    a time, take less."""
+    :data:`~recon.entropy.matching.JOINT_GROUP` candidates a pass takes and
+    :data:`JOINT_PIXEL_BYTES`. The penalty while it is made, a row of its flat pixels at a time,
+    and the filters' temporaries, a row of views at a time, take less."""
     U, V, H, W = views_shape
     per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 * JOINT_GROUP + JOINT_PIXEL_BYTES)
     if H * per_row <= whole_mib * 2 ** 20:
@@ -377,7 +377,8 @@ def joint_search_in_bands(s: State, candidates: np.ndarray, *, windows: list[tup
     search would take more than :data:`JOINT_WHOLE_MIB`. Each band is searched with a halo of
     ``largest_radius_px`` plus the farthest view shift of the candidates plus two rows, so that
     every pixel of its core gets the whole image's values; the band's views are filtered, and its
-    penalty made, band by band, and only one band's cost volume is alive at a time. Returns ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
+    penalty made, band by band, and only one band's cost volume is alive at a time. Returns
+    ``(disparity, objective, window_index, ambiguity)``, ``(H, W)`` each."""
     o, w = s.options, s.windows
     sizes = w["sizes"]
     U, V, H, W = s.raw.shape
