@@ -14,6 +14,13 @@ from pathlib import Path
 
 import pytest
 
+# The tests of Ctrl-C and hang-up handling expect the signals as a terminal delivers them. A suite
+# started in the background of a script (where SIGINT comes ignored) or under nohup (SIGHUP) would
+# hand those ignored dispositions to every process it starts, and lfrig rightly leaves an ignored
+# signal ignored: reset them here, for the suite and its children.
+signal.signal(signal.SIGINT, signal.default_int_handler)
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 HCI_BACKGAMMON = SHARED / "data" / "hci" / "stratified" / "backgammon"
 

@@ -444,9 +444,6 @@ import os, signal, sys
 import recon.lf.capture as capture
 from rig.main import main
 
-signal.signal(getattr(signal, sys.argv[1]), signal.SIG_DFL)  # as a terminal starts it: under nohup
-# SIGHUP comes ignored, and lfrig leaves an ignored signal ignored
-
 write_view = capture.CaptureWriter.write_view
 def stop_after_two(self, u, v, *args, **kwargs):
     entry = write_view(self, u, v, *args, **kwargs)
