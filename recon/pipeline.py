@@ -249,7 +249,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     from recon.lf.imageio import write_png
     from recon.lf import read_ground_truth
     from recon.lf.pfm import write_pfm
-    from recon.provenance import input_identity, provenance
+    from recon.provenance import input_identity, lfrig_version, provenance
 
     gt = read_ground_truth(lf)  # before the work: a broken truth file fails now, not after the estimate
     if gt is not None and gt.shape != lf.image_shape:
@@ -264,11 +264,13 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     # an interrupted run leaves a folder without result.json (clearly unfinished) and never old maps
     # beside new ones. The new result.json is renamed in last.
     clear_result(out)
-    # Two writers: the centre view's PNG (the input's own) is written while the estimate runs, the
-    # disparity's PFM and PNG while this thread writes the method's maps and scores the disparity.
-    # OpenCV encodes and the disk syncs without the interpreter lock.
+    # Two threads beside this one: while the estimate runs they write the centre view's PNG (the
+    # input's own) and ask git for the version result.json records (a child process, 20-40 ms of
+    # waiting); after it, the disparity's PFM and PNG while this thread writes the method's maps and
+    # scores the disparity. OpenCV encodes, the disk syncs and the child runs without the interpreter lock.
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="lfrig-write") as writers:
         centre = writers.submit(write_png, out / CENTRE_VIEW_PNG, lf.centre_view())
+        version = writers.submit(lfrig_version)  # cached: provenance() below takes it from there
         started = time.perf_counter()
         if warming is not None:
             warming.join()
@@ -283,8 +285,10 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
             files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
         scores = score(disparity, gt) if gt is not None else None
         identity = input_identity(lf.source, known_sha256=lf.metadata.get("views_sha256"))
-        pfm.result(), centre.result()
-        shown = picture.result()
+        shown = picture.result()  # each write's error (a full disk) is raised here
+        pfm.result()
+        centre.result()
+        version.result()
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
     files.append(RESULT_JSON)
