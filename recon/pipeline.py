@@ -232,19 +232,10 @@ def reconstruct_to_folder(
                                    warming=warming)
 
 
-def _write_colourised(path: Path, disparity: np.ndarray, value_range: tuple[float, float] | None) -> tuple[float, float]:
-    """Write ``disparity`` colour-mapped (:func:`recon.colour.colourise`) as a PNG; returns the range mapped."""
-    from recon.colour import colourise
-    from recon.lf.imageio import write_png
-
-    picture, shown = colourise(disparity, value_range=value_range)
-    write_png(path, picture)
-    return shown
-
-
 def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[str, Any], ply, ply_kind,
                         progress, estimate, source, extra, made: dict[str, Any],
                         warming: threading.Thread | None = None) -> FolderResult:
+    from recon.colour import colourise
     from recon.evaluate import score
     from recon.lf.imageio import write_png
     from recon.lf import read_ground_truth
@@ -264,31 +255,27 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
     # an interrupted run leaves a folder without result.json (clearly unfinished) and never old maps
     # beside new ones. The new result.json is renamed in last.
     clear_result(out)
-    # Two threads beside this one: while the estimate runs they write the centre view's PNG (the
-    # input's own) and ask git for the version result.json records (a child process, 20-40 ms of
-    # waiting); after it, the disparity's PFM and PNG while this thread writes the method's maps and
-    # scores the disparity. OpenCV encodes, the disk syncs and the child runs without the interpreter lock.
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="lfrig-write") as writers:
-        centre = writers.submit(write_png, out / CENTRE_VIEW_PNG, lf.centre_view())
-        version = writers.submit(lfrig_version)  # cached: provenance() below takes it from there
+    # While the estimate runs, two threads write the centre view's PNG (the input's own; OpenCV
+    # encodes and the disk syncs without the interpreter lock) and ask git for the version that
+    # result.json records (a child process: 20-40 ms of waiting, more under load).
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="lfrig-beside") as beside:
+        centre = beside.submit(write_png, out / CENTRE_VIEW_PNG, lf.centre_view())
+        version = beside.submit(lfrig_version)  # cached: provenance() below takes it from there
         started = time.perf_counter()
         if warming is not None:
             warming.join()
         method_result = (estimate or run_in_process)(lf, method, opts, progress)
-        disparity = method_result.disparity
         seconds = time.perf_counter() - started
-        written = time.perf_counter()
-        pfm = writers.submit(write_pfm, out / DISPARITY_PFM, disparity)
-        picture = writers.submit(_write_colourised, out / DISPARITY_PNG, disparity, lf.disparity_range)
-        files = [DISPARITY_PFM, DISPARITY_PNG, CENTRE_VIEW_PNG]
-        if method_result.write_extras is not None:
-            files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
-        scores = score(disparity, gt) if gt is not None else None
-        identity = input_identity(lf.source, known_sha256=lf.metadata.get("views_sha256"))
-        shown = picture.result()  # each write's error (a full disk) is raised here
-        pfm.result()
-        centre.result()
-        version.result()
+    centre.result()  # its error (a full disk) is raised here
+    version.result()
+    disparity = method_result.disparity
+    written = time.perf_counter()
+    write_pfm(out / DISPARITY_PFM, disparity)
+    picture, shown = colourise(disparity, value_range=lf.disparity_range)
+    write_png(out / DISPARITY_PNG, picture)
+    files = [DISPARITY_PFM, DISPARITY_PNG, CENTRE_VIEW_PNG]
+    if method_result.write_extras is not None:
+        files += [Path(p).resolve().relative_to(out.resolve()).as_posix() for p in method_result.write_extras(out)]
     if source is None:
         source = str(lf.source.resolve()) if lf.source else None
     files.append(RESULT_JSON)
@@ -298,6 +285,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
             listed.append(Path(ply).resolve().relative_to(out.resolve()).as_posix())
         except ValueError:
             pass
+    identity = input_identity(lf.source, known_sha256=lf.metadata.get("views_sha256"))
     if source is not None:  # the folder the views came from, not a worker's copy of it
         identity["path"] = source
     timings = {"read": made["read"], "estimate": seconds, "write": time.perf_counter() - written}
@@ -309,7 +297,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
         focal_px=lf.focal_px, pitch_mm=lf.pitch_mm, disparity_offset=lf.disparity_offset,
         principal_point_px=list(lf.principal_point_px) if lf.principal_point_px else None,
         disparity_png_range=list(shown), seconds=round(seconds, 3),
-        scores=scores, files=listed, extra=dict(extra or {}),
+        scores=score(disparity, gt) if gt is not None else None, files=listed, extra=dict(extra or {}),
     )
     write_record(out, record)
     folder = FolderResult(out_dir=out, record=record, files=files)
