@@ -128,3 +128,21 @@ def test_lower_floors_import_without_the_upper_ones(name):
             "print(bad); sys.exit(1 if bad else 0)\n")
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_the_command_table_names_what_each_module_registers():
+    """``rig.main`` builds a command's parser from the one module that adds it (``COMMAND_MODULES``):
+    the table names every command each module registers, in its order."""
+    import argparse
+    import importlib
+
+    from rig.main import COMMAND_MODULES, build_parser
+
+    for name, commands in COMMAND_MODULES.items():
+        subparsers = argparse.ArgumentParser().add_subparsers()
+        importlib.import_module(name).register(subparsers)
+        assert tuple(subparsers.choices) == commands, name
+        for command in commands:
+            assert command in build_parser([command, "--help"])._subparsers._group_actions[0].choices
+    everything = build_parser([])._subparsers._group_actions[0].choices
+    assert list(everything) == [c for commands in COMMAND_MODULES.values() for c in commands]

@@ -188,3 +188,22 @@ def test_the_warm_up_does_not_import_scipy_linalg():
             "print(len(_sweep_kernel.signatures), 'scipy.linalg' in sys.modules, L.ensure_blas is check)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "False", "True"]
+
+
+def test_the_baseline_command_loads_none_of_the_entropy_estimator(tmp_path):
+    # `lfrig reconstruct --method baseline` in a fresh process: the entropy method's options build
+    # its flags, but neither its estimator (numba kernels, scipy.ndimage, scipy.sparse) nor the
+    # parsers of the other commands' modules load.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    fixture = Path(__file__).resolve().parents[1] / "fixtures" / "tiny_capture"
+    code = ("import sys\nfrom rig.main import main\n"
+            f"status = main(['reconstruct', {str(fixture)!r}, '-o', {str(tmp_path / 'out')!r}, '--method', "
+            "'baseline', '--window', '3', '--quiet'])\n"
+            "loaded = [m for m in sys.modules if m.startswith(('recon.entropy.', 'scipy.ndimage', 'scipy.sparse', "
+            "'rig.demo', 'rig.cli', 'calib'))]\n"
+            "print(status, sorted(loaded))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines()[-1] == "0 ['recon.entropy.options']"

@@ -4,7 +4,8 @@ are :mod:`recon.result`'s)."""
 from __future__ import annotations
 
 import io
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +24,8 @@ SHAPE_COLOURS = np.array([
     (128, 128, 128), (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200),
     (245, 130, 48), (145, 30, 180), (70, 240, 240), (240, 50, 230), (255, 255, 255), (0, 0, 0),
 ], np.uint8)
-
-
-def _write_png(path: Path, encoded: Future[bytes]) -> None:
-    try:
-        write_bytes_atomic(path, encoded.result())
-    except OSError as error:
-        raise ReconError(f"{path}: cannot write the image ({error.strerror}); check that the folder is writable") from None
+#: Threads that make and write the maps of :func:`write_outputs` at once.
+WRITERS = 4
 
 
 def region_image(labels: np.ndarray) -> np.ndarray:
@@ -47,59 +43,52 @@ def write_outputs(result: EntropyResult, out_dir: str | Path) -> list[Path]:
     ``view_set.npy``; ``initial_disparity.pfm``, ``matched_disparity.pfm`` (before TV) and
     ``refined_disparity.pfm``; ``holes.png`` (white: black holes, filled from their surroundings
     by the TV refinement); ``confidence.pfm`` and ``confidence.png`` (0..1, white = sure; see
-    :mod:`recon.entropy.confidence`). Returns the paths written, in the order written.
+    :mod:`recon.entropy.confidence`). Returns the paths, in the order above.
 
-    The PNGs are encoded in two threads while the other files are written (OpenCV's encoder runs
-    without the GIL); the files are written one by one in the order above.
+    The files are made and written by :data:`WRITERS` threads at once: OpenCV's PNG encoder and the
+    disk's syncs (each file is synced, :func:`recon.lf.imageio.write_bytes_atomic`) run without the
+    GIL. The first failure is raised once every write has ended.
     """
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise ReconError(f"{out}: cannot create the output folder ({error.strerror})") from None
-    written: list[Path] = []
 
-    def npy(name: str, array: np.ndarray) -> None:
-        buffer = io.BytesIO()
-        np.save(buffer, array)
-        write_bytes_atomic(out / name, buffer.getvalue())
-        written.append(out / name)
+    def npy(array: np.ndarray) -> Callable[[Path], object]:
+        def write(path: Path) -> None:
+            buffer = io.BytesIO()
+            np.save(buffer, array)
+            write_bytes_atomic(path, buffer.getvalue())
+        return write
 
-    def png(name: str) -> None:
-        _write_png(out / name, encoded[name])
-        written.append(out / name)
+    def png(draw: Callable[[], np.ndarray]) -> Callable[[Path], object]:
+        return lambda path: write_bytes_atomic(path, encode_png(np.ascontiguousarray(draw())))
 
-    def pfm(name: str, array: np.ndarray) -> None:
-        write_pfm(out / name, array.astype(np.float32))
-        written.append(out / name)
+    def pfm(array: np.ndarray) -> Callable[[Path], object]:
+        return lambda path: write_pfm(path, array.astype(np.float32))
 
     biggest = max(int(result.window_size.max()), 1)
-    figures = {
-        REGIONS_PNG: lambda: region_image(result.labels),
-        WINDOW_SIZE_PNG: lambda: (result.window_size.astype(np.float32) / biggest * 255).astype(np.uint8),
-        WINDOW_SHAPE_PNG: lambda: SHAPE_COLOURS[np.clip(result.window_shape, 0, N_SHAPES - 1)],
+    holes = result.info.get("holes") if result.info else None
+    files = {
+        REGIONS_PNG: png(lambda: region_image(result.labels)),
+        REGIONS_NPY: npy(result.labels.astype(np.uint8)),
+        WINDOW_SIZE_PNG: png(lambda: (result.window_size.astype(np.float32) / biggest * 255).astype(np.uint8)),
+        WINDOW_SIZE_NPY: npy(result.window_size.astype(np.uint8)),
+        WINDOW_SHAPE_PNG: png(lambda: SHAPE_COLOURS[np.clip(result.window_shape, 0, N_SHAPES - 1)]),
+        WINDOW_SHAPE_NPY: npy(result.window_shape.astype(np.uint8)),
+        VIEW_SET_NPY: npy(result.view_set.astype(np.uint8)),
+        INITIAL_DISPARITY_PFM: pfm(result.initial_disparity),
+        MATCHED_DISPARITY_PFM: pfm(result.matched_disparity),
+        REFINED_DISPARITY_PFM: pfm(result.disparity),
     }
     if result.confidence is not None:  # 0..1, white = sure (recon.entropy.confidence)
-        figures[CONFIDENCE_PNG] = lambda: (np.clip(result.confidence, 0, 1) * 255).astype(np.uint8)
-    holes = result.info.get("holes") if result.info else None
+        files[CONFIDENCE_PFM] = pfm(result.confidence)
+        files[CONFIDENCE_PNG] = png(lambda: (np.clip(result.confidence, 0, 1) * 255).astype(np.uint8))
     if holes is not None:  # black holes: filled by the TV refinement without a data term
-        figures[HOLES_PNG] = lambda: (np.asarray(holes, bool) * 255).astype(np.uint8)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        encoded = {name: pool.submit(lambda draw: encode_png(np.ascontiguousarray(draw())), draw)
-                   for name, draw in figures.items()}
-        png(REGIONS_PNG)
-        npy(REGIONS_NPY, result.labels.astype(np.uint8))
-        png(WINDOW_SIZE_PNG)
-        npy(WINDOW_SIZE_NPY, result.window_size.astype(np.uint8))
-        png(WINDOW_SHAPE_PNG)
-        npy(WINDOW_SHAPE_NPY, result.window_shape.astype(np.uint8))
-        npy(VIEW_SET_NPY, result.view_set.astype(np.uint8))
-        pfm(INITIAL_DISPARITY_PFM, result.initial_disparity)
-        pfm(MATCHED_DISPARITY_PFM, result.matched_disparity)
-        pfm(REFINED_DISPARITY_PFM, result.disparity)
-        if result.confidence is not None:
-            pfm(CONFIDENCE_PFM, result.confidence)
-            png(CONFIDENCE_PNG)
-        if holes is not None:
-            png(HOLES_PNG)
-    return written
+        files[HOLES_PNG] = png(lambda: (np.asarray(holes, bool) * 255).astype(np.uint8))
+    with ThreadPoolExecutor(max_workers=WRITERS, thread_name_prefix="lfrig-maps") as pool:
+        writes = [pool.submit(write, out / name) for name, write in files.items()]
+    for write in writes:
+        write.result()
+    return [out / name for name in files]

@@ -409,6 +409,7 @@ def encode_png(image: np.ndarray) -> bytes:
 FAULT_ENV = "LFRIG_FAULT"
 FAULT_LOG_ENV = "LFRIG_FAULT_LOG"
 _writes = 0
+_WRITES_LOCK = threading.Lock()  # writers in several threads (a result folder's maps) count one by one
 
 
 def fault_point(path: Path) -> None:
@@ -418,13 +419,15 @@ def fault_point(path: Path) -> None:
     log = os.environ.get(FAULT_LOG_ENV)
     if not fault and not log:
         return
-    _writes += 1
-    if log:
-        with open(log, "a", encoding="utf-8") as f:
-            f.write(f"{_writes}\t{path}\n")
+    with _WRITES_LOCK:
+        _writes += 1
+        count = _writes
+        if log:
+            with open(log, "a", encoding="utf-8") as f:
+                f.write(f"{count}\t{path}\n")
     if fault:
         mode, _, number = fault.partition(":")
-        if number.isdigit() and int(number) == _writes:
+        if number.isdigit() and int(number) == count:
             if mode == "kill":
                 os.kill(os.getpid(), signal.SIGKILL)
             if mode == "enospc":
