@@ -42,3 +42,39 @@ def test_a_hole_filled_as_a_steep_ramp_is_unsure():
     assert confidence_map(**gentle)[5, 5] == pytest.approx(0.5 * np.exp(-0.2), rel=0.02)  # a plane: kept at 0.4
     assert confidence_map(**steep)[5, 5] < 0.05
     assert confidence_map(**steep, hole_ramp=0.0)[5, 5] > 0.4
+
+
+def test_the_bands_give_the_whole_map_factors():
+    # Holes across the bands' edges, non-finite values among them and around them: the map made band
+    # by band (each band's factors once, the holes' own after the support's fill) is, bit for bit,
+    # the factors of the module docstring taken over the whole map at once.
+    from recon.entropy.confidence import BAND_ROWS
+    from recon.entropy.median import median_filter_nearest
+    from recon.entropy.refine import harmonic_fill
+
+    rng = np.random.default_rng(8)
+    H, W = 2 * BAND_ROWS + 9, 23
+    refined = (0.8 + 0.2 * rng.standard_normal((H, W))).astype(np.float32)
+    refined[rng.random((H, W)) < 0.02] = np.nan
+    matched = refined + np.float32(0.05) * rng.standard_normal((H, W)).astype(np.float32)
+    ambiguity = rng.integers(1, 30, (H, W))
+    holes = rng.random((H, W)) < 0.1
+    holes[BAND_ROWS - 5:BAND_ROWS + 5, 3:12] = True
+    kwargs = dict(refined=refined, matched=matched, ambiguity=ambiguity, step=0.02, disparity_range=(0.2, 1.4))
+    with np.errstate(invalid="ignore"):
+        r, m = refined.astype(np.float64), matched.astype(np.float64)
+        finite = np.isfinite(r)
+        median = median_filter_nearest(np.where(finite, r, np.nanmedian(r)), size=5)
+        neighbours = np.exp(-np.abs(r - median) / 0.1)
+        on_end = (np.abs(m - 0.2) < 0.01) | (np.abs(m - 1.4) < 0.01)
+        valley = np.exp(-np.maximum(ambiguity - 1.0, 0) * 0.02 / 0.3)
+        conf = valley * np.exp(-np.abs(r - m) / 0.1) * neighbours * ~on_end
+        support = harmonic_fill(np.where(holes | ~finite, 0.0, np.nan_to_num(conf)).astype(np.float32), holes)
+        filled = np.where(finite, r, 0.0)
+        ramp = np.exp(-np.hypot(*np.gradient(filled)) / 0.1)
+        factor = 0.5 * neighbours * np.clip(support.astype(np.float64) / 0.25, 0.0, 1.0) * ramp
+        inside = finite & (r >= 0.2 - 1e-6) & (r <= 1.4 + 1e-6)
+    expected = np.where(inside, np.nan_to_num(np.where(holes, factor, conf)), 0.0).astype(np.float32)
+    np.testing.assert_array_equal(confidence_map(**kwargs, holes=holes), expected)
+    without_holes = np.where(inside, np.nan_to_num(conf), 0.0).astype(np.float32)
+    np.testing.assert_array_equal(confidence_map(**kwargs), without_holes)

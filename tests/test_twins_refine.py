@@ -88,6 +88,50 @@ def test_tv_wavefront_gives_the_two_sweep_values():
         assert np.abs(plain[0] - f).max() > 0.001
 
 
+def test_tv_wavefront_vectorised_rows_give_the_kernel_values():
+    # The row loops run several pixels at once (sqrt and division packed, no test of the ball):
+    # bit for bit the plain kernel's values at widths around the vector length (a partial last
+    # vector, a row shorter than one), with masks on the image's edges only or everywhere, and with
+    # dual values on the ball, just inside it (closer than the 1e-9 margin a shortcut could take)
+    # and just outside, where the norm is 1 or just above.
+    from recon.entropy.refine import _tv_kernel, _tv_wavefront
+
+    rng = np.random.default_rng(13)
+    gamma = 0.2
+    for W in (2, 3, 7, 8, 9, 15, 16, 17, 33):
+        n = 11
+        f = 0.5 + 0.1 * rng.standard_normal((n, W))
+        edges = np.zeros((n, W), bool)
+        edges[[0, -1]] = True
+        edges[:, [0, -1]] = True
+        for mask in (edges, ~edges, np.ones((n, W), bool)):
+            weight = np.where(rng.random(f.shape) < 0.3, rng.uniform(0.0, 1.0, f.shape), 1.0)
+            angle = rng.uniform(0, 2 * np.pi, f.shape)
+            radius = gamma * rng.choice([1.0, 1 - 1e-12, 1 - 5e-10, 1 - 1e-9, 1 - 2e-9, 1 + 1e-12, 1 + 1e-9, 0.5], f.shape)
+            plain = [f.copy(), f.copy(), radius * np.sin(angle), radius * np.cos(angle)]
+            plain[0][3:6] = plain[1][3:6] = 0.25  # flat rows: the dual values stay where they start at first
+            wave = [a.copy() for a in plain]
+            _tv_kernel(f, mask, weight, gamma, 5, *plain, 0, n)
+            _tv_wavefront(f, mask, weight, gamma, 5, *wave, 0, n, 3)
+            for a, b in zip(wave, plain):
+                np.testing.assert_array_equal(a, b, err_msg=f"W={W}")
+
+
+def test_tv_refine_agrees_with_reference_at_odd_widths():
+    from recon.entropy.refine import tv_refine_reference
+
+    rng = np.random.default_rng(14)
+    for W in (3, 9, 17, 130):
+        f = (0.5 + 0.1 * rng.standard_normal((70, W))).astype(np.float32)
+        mask = rng.random(f.shape) < 0.7
+        mask[:, 0] = mask[:, -1] = True  # the smooth region on the image's left and right edges
+        holes = np.zeros(f.shape, bool)
+        holes[20:30, W // 3:W // 3 + 2] = True
+        fast = tv_refine(f, mask, gamma=0.2, iterations=40, holes=holes)
+        reference = tv_refine_reference(f, mask, gamma=0.2, iterations=40, holes=holes)
+        np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-7, err_msg=f"W={W}")
+
+
 def test_centroid_correction_fast_agrees_with_reference_and_ignores_the_origin():
     from recon.entropy.refine import centroid_correction, centroid_correction_reference
     from recon.entropy.windows import N_SHAPES, window_rect

@@ -303,7 +303,10 @@ def load_coefficients() -> tuple[float, tuple[float, ...]]:
 
 def logistic(features: np.ndarray, bias: float, coefficients) -> np.ndarray:
     """``(..., F)`` features -> ``(...)`` float64 probability ``1 / (1 + exp(-(b + f . c)))``."""
-    z = bias + np.asarray(features, np.float64) @ np.asarray(coefficients, np.float64)
+    return _squash(bias + np.asarray(features, np.float64) @ np.asarray(coefficients, np.float64))
+
+
+def _squash(z: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(z, -40, 40)))
 
 
@@ -352,13 +355,15 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
 
 
 def logistic_in_chunks(features: np.ndarray, bias: float, coefficients) -> np.ndarray:
-    """:func:`logistic` of ``(..., F)`` features, :data:`LOGISTIC_CHUNK` pixels at a time (float64
-    copies of a chunk only; each pixel's sum taken by the same BLAS kernel whatever the band)."""
+    """:func:`logistic` of ``(..., F)`` features, the sums ``f . c`` taken :data:`LOGISTIC_CHUNK`
+    pixels at a time (float64 copies of a chunk only; each pixel's sum taken by the same BLAS kernel
+    whatever the band), the rest over all pixels at once."""
     flat = features.reshape(-1, features.shape[-1])
-    out = np.empty(flat.shape[0])
+    c = np.asarray(coefficients, np.float64)
+    z = np.empty(flat.shape[0])
     for i in range(0, flat.shape[0], LOGISTIC_CHUNK):
-        out[i:i + LOGISTIC_CHUNK] = logistic(flat[i:i + LOGISTIC_CHUNK], bias, coefficients)
-    return out.reshape(features.shape[:-1])
+        z[i:i + LOGISTIC_CHUNK] = np.asarray(flat[i:i + LOGISTIC_CHUNK], np.float64) @ c
+    return _squash(bias + z).reshape(features.shape[:-1])
 
 
 def calibration_scores(confidence: np.ndarray, right: np.ndarray, *, bins: int = 10,

@@ -63,8 +63,9 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
         See the module docstring; ``hole_support`` 0 and ``hole_ramp`` 0 give every hole
         ``hole_confidence`` times the neighbour factor, whatever its rim and slope.
 
-    Computed in bands of :data:`BAND_ROWS` rows (float64 temporaries of a band, not of the map);
-    the holes' support is filled over the whole map.
+    Computed in bands of :data:`BAND_ROWS` rows (float64 temporaries of a band, not of the map,
+    but for the neighbour factor at the holes, kept for their own factor); the holes' support is
+    filled over the whole map.
     """
     if valley_px <= 0 or change_px <= 0 or step <= 0:
         raise ValueError(f"valley_px, change_px and step must be > 0, got {valley_px}, {change_px}, {step}")
@@ -80,33 +81,41 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
                  fill=fill, valley_px=valley_px, change_px=change_px)
     out = np.empty(refined.shape, np.float32)
     holes = None if holes is None or not np.any(holes) else np.asarray(holes, bool)
-    support = None
-    if holes is not None and hole_support > 0:
-        measured = np.empty(refined.shape, np.float32)
-        for y0, y1 in bands:
-            conf, _, finite = _band_factors(y0, y1, **parts)
-            measured[y0:y1] = np.where(holes[y0:y1] | ~finite, 0.0, np.nan_to_num(conf))
-        support = harmonic_fill(measured, holes)
-        del measured
-    lo, hi = disparity_range
+    measured = None if holes is None or hole_support <= 0 else np.empty(refined.shape, np.float32)
+    hole_neighbours = []  # per band: the neighbour factor at its holes, for their own factor below
     for y0, y1 in bands:
         conf, neighbours, finite = _band_factors(y0, y1, **parts)
-        r = np.asarray(refined[y0:y1], np.float64)
+        out[y0:y1] = np.where(_inside(refined[y0:y1], finite, disparity_range), np.nan_to_num(conf), 0.0)
         if holes is not None:
-            factor = hole_confidence * neighbours
-            if support is not None:
-                factor = factor * np.clip(support[y0:y1].astype(np.float64) / hole_support, 0.0, 1.0)
-            if hole_ramp > 0:
-                a, b = max(y0 - 1, 0), min(y1 + 1, H)
-                halo = np.asarray(refined[a:b], np.float64)
-                filled = np.where(np.isfinite(halo), halo, 0.0)
-                gy, gx = (np.gradient(filled, axis=k) if filled.shape[k] > 1 else np.zeros_like(filled)
-                          for k in (0, 1))
-                factor = factor * np.exp(-np.hypot(gy, gx)[y0 - a:y1 - a] / hole_ramp)
-            conf = np.where(holes[y0:y1], factor, conf)
-        inside = finite & (r >= lo - 1e-6) & (r <= hi + 1e-6)
-        out[y0:y1] = np.where(inside, np.nan_to_num(conf), 0.0)
+            hole_neighbours.append(neighbours[holes[y0:y1]])
+        if measured is not None:
+            measured[y0:y1] = np.where(holes[y0:y1] | ~finite, 0.0, np.nan_to_num(conf))
+    if holes is None:
+        return out
+    support = None if measured is None else harmonic_fill(measured, holes)
+    del measured
+    for (y0, y1), factor in zip(bands, hole_neighbours):
+        h = holes[y0:y1]
+        factor = hole_confidence * factor
+        if support is not None:
+            factor = factor * np.clip(support[y0:y1][h].astype(np.float64) / hole_support, 0.0, 1.0)
+        if hole_ramp > 0:
+            a, b = max(y0 - 1, 0), min(y1 + 1, H)
+            halo = np.asarray(refined[a:b], np.float64)
+            filled = np.where(np.isfinite(halo), halo, 0.0)
+            gy, gx = (np.gradient(filled, axis=k) if filled.shape[k] > 1 else np.zeros_like(filled)
+                      for k in (0, 1))
+            factor = factor * np.exp(-np.hypot(gy, gx)[y0 - a:y1 - a][h] / hole_ramp)
+        r = refined[y0:y1][h]
+        out[y0:y1][h] = np.where(_inside(r, np.isfinite(r), disparity_range), np.nan_to_num(factor), 0.0)
     return out
+
+
+def _inside(refined: np.ndarray, finite: np.ndarray, disparity_range: tuple[float, float]) -> np.ndarray:
+    """Where ``refined`` is finite (``finite``) and within ``disparity_range`` (to 1e-6)."""
+    r = np.asarray(refined, np.float64)
+    lo, hi = disparity_range
+    return finite & (r >= lo - 1e-6) & (r <= hi + 1e-6)
 
 
 #: Rows of the map computed at once (each with the rows the 5x5 median and the slope read around it).

@@ -343,70 +343,81 @@ def _tv_kernel(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H):
 
 
 @numba.njit(cache=True, inline="always")
-def _tv_dual(py_row, px_row, x, gy, gx, sigma, gamma):
-    # _tv_kernel's dual step at one pixel, given its forward differences. Inside the ball (most
-    # pixels) the norm is 1 and the division leaves the value as it is: below gamma^2 by a margin
-    # far beyond rounding, the square root and the three divisions are not needed for that.
-    qy = py_row[x] + sigma * gy
-    qx = px_row[x] + sigma * gx
-    q2 = qy ** 2 + qx ** 2
-    if q2 < gamma * gamma * (1.0 - 1e-9):
-        py_row[x] = qy
-        px_row[x] = qx
+def _tv_dual(py, px, gy, gx, sigma, gamma):
+    # _tv_kernel's dual step at one pixel, given its forward differences: the new (py, px), without
+    # a branch (inside the ball the norm is 1 and the divisions leave the values as they are).
+    qy = py + sigma * gy
+    qx = px + sigma * gx
+    norm = max(1.0, np.sqrt(qy ** 2 + qx ** 2) / gamma)
+    return qy / norm, qx / norm
+
+
+@numba.njit(cache=True, inline="always")
+def _tv_primal(f, mask, weight, mu, div, tau):
+    # _tv_kernel's primal step at one pixel, given its divergence (dy + dx, in that order): the new
+    # mu; the masked value is computed everywhere and chosen (no branch).
+    v = mu + tau * div
+    w = 2 * tau * weight
+    return (v + w * f) / (1 + w) if mask else f
+
+
+# A row's three loops over x (_tv_row), each a function of its own: LLVM vectorises them so (sqrt
+# and division packed, which round exactly as the scalar ones: the same values), not inlined into
+# the sweep. The numpy error model leaves out the test for a zero divisor, which would keep the
+# loops scalar (there is none: the norm is at least 1, and so is 1 + w).
+
+@numba.njit(cache=True, error_model="numpy")
+def _tv_dual_row(qy, qx, b0, b1, below, sigma, gamma):
+    # The dual step along a row, in place on its dual values qy, qx, from its primal values b0 and,
+    # if ``below``, the next row's b1 (else the y difference is 0).
+    m = b0.shape[0] - 1
+    for x in range(m):
+        qy[x], qx[x] = _tv_dual(qy[x], qx[x], b1[x] - b0[x] if below else 0.0, b0[x + 1] - b0[x], sigma, gamma)
+    qy[m], qx[m] = _tv_dual(qy[m], qx[m], b1[m] - b0[m] if below else 0.0, 0.0, sigma, gamma)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _tv_divergence_row(div, qy, qx, above, edge):
+    # The divergence along a row into div from its dual values qy, qx and the row above's y part
+    # ``above``: ``edge`` 0 on the first row (no row above), 1 inside, 2 on the last row.
+    W = qy.shape[0]
+    m = W - 1
+    if edge == 0:
+        for x in range(W):
+            div[x] = qy[x]
+    elif edge == 1:
+        for x in range(W):
+            div[x] = qy[x] - above[x]
     else:
-        norm = max(1.0, np.sqrt(q2) / gamma)
-        py_row[x] = qy / norm
-        px_row[x] = qx / norm
+        for x in range(W):
+            div[x] = -above[x]
+    div[0] += qx[0]
+    for x in range(1, m):
+        div[x] += qx[x] - qx[x - 1]
+    div[m] += -qx[m - 1]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _tv_primal_row(f, mask, weight, mu, bar, div, tau):
+    # The primal step along a row, in place on its mu and bar, given its divergence.
+    for x in range(f.shape[0]):
+        new = _tv_primal(f[x], mask[x], weight[x], mu[x], div[x], tau)
+        bar[x] = 2 * new - mu[x]
+        mu[x] = new
 
 
 @numba.njit(cache=True, inline="always")
-def _tv_primal(f, mask, weight, mu, bar, x, div, tau):
-    # _tv_kernel's primal step at one pixel of a row, given its divergence (dy + dx, in that
-    # order); the masked value is computed everywhere and chosen (no branch in the loop).
-    v = mu[x] + tau * div
-    w = 2 * tau * weight[x]
-    new = (v + w * f[x]) / (1 + w) if mask[x] else f[x]
-    bar[x] = 2 * new - mu[x]
-    mu[x] = new
-
-
-@numba.njit(cache=True, inline="always")
-def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, dy):
+def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div):
     # One iteration of _tv_kernel at row i: its dual step (reads bar's rows i and i + 1), then its
     # primal step (reads py's rows i - 1 and i, writes bar's and mu's row i), with the tests of
-    # the image's edges taken out of the loops over x (the loops themselves have no branch on x).
-    # ``dy``: (W,) scratch for the divergence's y part.
-    n, W = f.shape
+    # the image's edges taken out of the loops over x. ``div``: (W,) scratch for the divergence.
+    n = f.shape[0]
     y = top + i
-    m = W - 1
-    b0 = bar[i]
-    qy = py[i]
-    qx = px[i]
-    if y < H - 1 and i < n - 1:
-        b1 = bar[i + 1]
-        for x in range(m):
-            _tv_dual(qy, qx, x, b1[x] - b0[x], b0[x + 1] - b0[x], sigma, gamma)
-        _tv_dual(qy, qx, m, b1[m] - b0[m], 0.0, sigma, gamma)
-    else:
-        for x in range(m):
-            _tv_dual(qy, qx, x, 0.0, b0[x + 1] - b0[x], sigma, gamma)
-        _tv_dual(qy, qx, m, 0.0, 0.0, sigma, gamma)
-    if y == 0 or i == 0:
-        for x in range(W):
-            dy[x] = qy[x]
-    elif y < H - 1:
-        above = py[i - 1]
-        for x in range(W):
-            dy[x] = qy[x] - above[x]
-    else:
-        above = py[i - 1]
-        for x in range(W):
-            dy[x] = -above[x]
-    fi, mi, wi, mui = f[i], mask[i], weight[i], mu[i]
-    _tv_primal(fi, mi, wi, mui, b0, 0, dy[0] + qx[0], tau)
-    for x in range(m - 1):
-        _tv_primal(fi, mi, wi, mui, b0, x + 1, dy[x + 1] + (qx[x + 1] - qx[x]), tau)
-    _tv_primal(fi, mi, wi, mui, b0, m, dy[m] + -qx[m - 1], tau)
+    below = y < H - 1 and i < n - 1
+    _tv_dual_row(py[i], px[i], bar[i], bar[i + 1] if below else bar[i], below, sigma, gamma)
+    edge = 0 if y == 0 or i == 0 else 1 if y < H - 1 else 2
+    _tv_divergence_row(div, py[i], px[i], py[i - 1] if i > 0 else py[i], edge)
+    _tv_primal_row(f[i], mask[i], weight[i], mu[i], bar[i], div, tau)
 
 
 #: Iterations the TV kernel carries through the rows in one sweep (:func:`_tv_wavefront`).
@@ -423,7 +434,7 @@ def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, d
     n, W = f.shape
     tau = 1.0 / np.sqrt(8.0)
     sigma = tau
-    dy = np.empty(W)
+    div = np.empty(W)
     done = 0
     while done < iterations:
         k = min(depth, iterations - done)
@@ -431,7 +442,7 @@ def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, d
             for j in range(k):
                 i = front - j
                 if 0 <= i < n:
-                    _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, dy)
+                    _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div)
         done += k
 
 
