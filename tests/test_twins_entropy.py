@@ -45,6 +45,20 @@ def test_select_windows_fast_matches_reference():
     assert np.array_equal(s_f, s_ref) and np.array_equal(z_f, z_ref)
 
 
+def test_select_windows_with_many_bins_matches_reference():
+    # 256 grey levels and 40 disparity bins: the three histograms of a window lie one after the
+    # other in one array, and after a window only the bins its pixels took are cleared
+    rng = seeded()
+    grey = rng.integers(0, 256, (17, 19))
+    disp = rng.integers(0, 40, (17, 19))
+    labels = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH], (17, 19)).astype(np.uint8)
+    kw = dict(sizes=(3, 5, 7), alpha1=1.0, alpha2_occlusion=1.0, alpha2_other=0.0)
+    s_ref, z_ref, e_ref = select_windows_reference(grey, disp, labels, **kw)
+    s_f, z_f, e_f = select_windows(grey, disp, labels, **kw)
+    np.testing.assert_allclose(e_f, e_ref, atol=1e-5)
+    assert np.array_equal(s_f, s_ref) and np.array_equal(z_f, z_ref)
+
+
 def test_window_avoids_a_disparity_edge():
     rng = seeded()
     grey = rng.integers(0, 8, (31, 31))  # texture whose grey entropy saturates (ln 8)
