@@ -343,7 +343,7 @@ def _select_kernel(bins, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_gr
     # no wrap-around of negative indices to their loads (a sign test and an add per load, and the
     # registers they took: backgammon 1.37 -> 0.80 s on one thread). Each pixel's three bins sit
     # together in ``bins`` and a window's three histograms in one array, and a window's log n is
-    # looked up (log_n): 0.73-0.78 -> 0.58-0.65 s (least of 12 runs).
+    # looked up (log_n): 0.67-0.73 -> 0.58-0.65 s (least of 12 runs).
     H, W = labels.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
