@@ -33,16 +33,29 @@ def test_matching_entropy_terms():
     assert with_occ < 0
 
 
-def test_select_windows_fast_matches_reference():
-    rng = seeded()
-    grey = rng.integers(0, 16, (14, 12))
-    disp = np.where(np.arange(12)[None] < 6, 0, 3) + rng.integers(0, 2, (14, 12))
-    labels = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH], (14, 12)).astype(np.uint8)
+def _assert_select_windows_matches_reference(grey, disp, labels):
     kw = dict(sizes=(3, 5, 7), alpha1=1.0, alpha2_occlusion=1.0, alpha2_other=0.0)
     s_ref, z_ref, e_ref = select_windows_reference(grey, disp, labels, **kw)
     s_f, z_f, e_f = select_windows(grey, disp, labels, **kw)
     np.testing.assert_allclose(e_f, e_ref, atol=1e-5)
     assert np.array_equal(s_f, s_ref) and np.array_equal(z_f, z_ref)
+
+
+def test_select_windows_fast_matches_reference():
+    rng = seeded()
+    grey = rng.integers(0, 16, (14, 12))
+    disp = np.where(np.arange(12)[None] < 6, 0, 3) + rng.integers(0, 2, (14, 12))
+    labels = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH], (14, 12)).astype(np.uint8)
+    _assert_select_windows_matches_reference(grey, disp, labels)
+
+
+def test_select_windows_with_many_bins_matches_reference():
+    # 256 grey levels and 40 disparity bins: the three histograms of a window lie one after the
+    # other in one array, and after a window only the bins its pixels took are cleared
+    rng = seeded()
+    labels = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH], (17, 19)).astype(np.uint8)
+    _assert_select_windows_matches_reference(rng.integers(0, 256, (17, 19)),
+                                             rng.integers(0, 40, (17, 19)), labels)
 
 
 def test_window_avoids_a_disparity_edge():

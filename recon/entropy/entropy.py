@@ -158,17 +158,18 @@ SELECT_BAND_MIB = 64
 
 
 @numba.njit(cache=True, inline="always")
-def _add_pixel(q, grey_f, disp_f, labels_f, layers_f, hg, hd, hm, sg, sd, sm, m, mixed, occl, opposite,
+def _add_pixel(q, bins, labels_f, layers_f, hist, sg, sd, sm, m, mixed, occl, opposite,
                gap, m_centre, xlogx):
     # Pixel q (flat index) into one window's histograms and sums: the grey and disparity terms;
     # in an occlusion region the mismatched term (a pixel of the opposite label), elsewhere, with
-    # a layer gap, whether the window reaches another layer.
-    g = grey_f[q]
-    sg = _add(hg, g, sg, xlogx)
-    sd = _add(hd, disp_f[q], sd, xlogx)
+    # a layer gap, whether the window reaches another layer. bins[3 q:3 q + 3]: the pixel's bins
+    # in hist, the window's three histograms one after the other (select_windows).
+    b = np.uint64(3) * q
+    sg = _add(hist, bins[b], sg, xlogx)
+    sd = _add(hist, bins[b + np.uint64(1)], sd, xlogx)
     if occl:
         if labels_f[q] == opposite:
-            sm = _add(hm, g, sm, xlogx)
+            sm = _add(hist, bins[b + np.uint64(2)], sm, xlogx)
             m += 1
     elif gap >= 0 and abs(layers_f[q] - m_centre) > gap:
         mixed = True
@@ -176,9 +177,9 @@ def _add_pixel(q, grey_f, disp_f, labels_f, layers_f, hg, hd, hm, sg, sd, sm, m,
 
 
 @numba.njit(cache=True, inline="always")
-def _window_entropy(n, sg, sd, sm, m, alpha1, a2):
-    # Eq. 1 from a window's pixel count and running sums of c log c (module docstring).
-    logn = np.log(n)
+def _window_entropy(n, logn, sg, sd, sm, m, alpha1, a2):
+    # Eq. 1 from a window's pixel count n (logn: its log) and running sums of c log c (module
+    # docstring).
     e = (logn - sg / n) + alpha1 * (sd / n - logn)
     if m > 0:
         e += a2 * (sm / n - m / n * logn)
@@ -203,18 +204,17 @@ def _verdict(occl, s, k, size, cap, side_r, mixed):
 
 
 @numba.njit(cache=True, inline="always")
-def _ring_windows(two, s, ring_a, ring_b, ends, base_u, grey_f, disp_f, labels_f, layers_f, hist_a, hist_b,
-                  xlogx, occl, opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, n_bins,
+def _ring_windows(two, s, ring_a, ring_b, ends, base_u, bins, labels_f, layers_f, hist_a, hist_b,
+                  xlogx, log_n, occl, opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2,
                   e_k, offered):
     # The windows of shape s (and, if two, of shape s + 1, whose rings are as long) of a pixel
     # that no window of which the image clips, size by size along the rings (ring_order's pixels
     # as flat offsets from base_u): e_k[j, k], offered[j, k] for shape s + j. The two shapes'
     # sums are independent chains of additions, each in its own shape's order, interleaved so
     # that the processor overlaps them. Then the histograms are cleared. hist_a, hist_b: each
-    # shape's grey, disparity and mismatched-grey histograms.
+    # shape's grey, disparity and mismatched-grey histograms, one after the other (bins: each
+    # pixel's three bins in them, _add_pixel).
     n_sizes = ends.shape[0]
-    hga, hda, hma = hist_a
-    hgb, hdb, hmb = hist_b
     sga = sda = sma = 0.0
     sgb = sdb = smb = 0.0
     ma = mb = 0
@@ -229,21 +229,21 @@ def _ring_windows(two, s, ring_a, ring_b, ends, base_u, grey_f, disp_f, labels_f
         i1 = np.uint64(n)
         if act_a and act_b:
             for i in range(i0, i1):
-                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], grey_f, disp_f, labels_f, layers_f,
-                                                     hga, hda, hma, sga, sda, sma, ma, mixa, occl,
+                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], bins, labels_f, layers_f,
+                                                     hist_a, sga, sda, sma, ma, mixa, occl,
                                                      opposite, gap, m_centre, xlogx)
-                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], grey_f, disp_f, labels_f, layers_f,
-                                                     hgb, hdb, hmb, sgb, sdb, smb, mb, mixb, occl,
+                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], bins, labels_f, layers_f,
+                                                     hist_b, sgb, sdb, smb, mb, mixb, occl,
                                                      opposite, gap, m_centre, xlogx)
         elif act_a:
             for i in range(i0, i1):
-                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], grey_f, disp_f, labels_f, layers_f,
-                                                     hga, hda, hma, sga, sda, sma, ma, mixa, occl,
+                sga, sda, sma, ma, mixa = _add_pixel(base_u + ring_a[i], bins, labels_f, layers_f,
+                                                     hist_a, sga, sda, sma, ma, mixa, occl,
                                                      opposite, gap, m_centre, xlogx)
         elif act_b:
             for i in range(i0, i1):
-                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], grey_f, disp_f, labels_f, layers_f,
-                                                     hgb, hdb, hmb, sgb, sdb, smb, mb, mixb, occl,
+                sgb, sdb, smb, mb, mixb = _add_pixel(base_u + ring_b[i], bins, labels_f, layers_f,
+                                                     hist_b, sgb, sdb, smb, mb, mixb, occl,
                                                      opposite, gap, m_centre, xlogx)
         offered[0, k] = offered[1, k] = False
         if act_a:
@@ -252,44 +252,40 @@ def _ring_windows(two, s, ring_a, ring_b, ends, base_u, grey_f, disp_f, labels_f
             act_a = v > 0
             if v == 2:
                 offered[0, k] = True
-                e_k[0, k] = _window_entropy(n, sga, sda, sma, ma, alpha1, a2)
+                e_k[0, k] = _window_entropy(n, log_n[n], sga, sda, sma, ma, alpha1, a2)
         if act_b:
             nb = n
             v = _verdict(occl, s + 1, k, sizes_n[k], cap, side_r, mixb)
             act_b = v > 0
             if v == 2:
                 offered[1, k] = True
-                e_k[1, k] = _window_entropy(n, sgb, sdb, smb, mb, alpha1, a2)
-    _clear_ring(hist_a, ring_a, na, base_u, grey_f, disp_f, n_bins)
+                e_k[1, k] = _window_entropy(n, log_n[n], sgb, sdb, smb, mb, alpha1, a2)
+    _clear_ring(hist_a, ring_a, na, base_u, bins)
     if two:
-        _clear_ring(hist_b, ring_b, nb, base_u, grey_f, disp_f, n_bins)
+        _clear_ring(hist_b, ring_b, nb, base_u, bins)
 
 
 @numba.njit(cache=True)
-def _clear_ring(hist, ring, n, base_u, grey_f, disp_f, n_bins):
-    # The histograms of a window of n ring pixels back to 0: whole where that is fewer stores
-    # (contiguous counts), else at the bins of its pixels.
-    hg, hd, hm = hist
-    if n_bins <= 4 * n:
-        hg[:] = 0
-        hd[:] = 0
-        hm[:] = 0
+def _clear_ring(hist, ring, n, base_u, bins):
+    # The histograms of a window of n ring pixels back to 0: whole where that is at most twice
+    # the stores (contiguous counts), else at the bins of its pixels.
+    if hist.shape[0] <= 6 * n:
+        hist[:] = 0
     else:
         for i in range(np.uint64(n)):
-            q = base_u + ring[i]
-            hg[grey_f[q]] = 0
-            hd[disp_f[q]] = 0
-            hm[grey_f[q]] = 0
+            b = np.uint64(3) * (base_u + ring[i])
+            hist[bins[b]] = 0
+            hist[bins[b + np.uint64(1)]] = 0
+            hist[bins[b + np.uint64(2)]] = 0
 
 
 @numba.njit(cache=True, inline="always")
-def _clipped_windows(y, x, rects_s, s, grey_f, disp_f, labels_f, layers_f, hist, xlogx, occl,
+def _clipped_windows(y, x, rects_s, s, bins, labels_f, layers_f, hist, xlogx, log_n, occl,
                      opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, H, W, e_k, offered):
     # The windows of shape s of a pixel near the border, clipped to the image: each size's new
     # pixels row by row left to right (in a row of the previous window, those left of it and
     # those right of it), the order of ring_order, so the sums of _ring_windows bit for bit.
     n_sizes = rects_s.shape[0]
-    hg, hd, hm = hist
     sg = sd = sm = 0.0
     n = m = 0
     mixed = False
@@ -307,8 +303,8 @@ def _clipped_windows(y, x, rects_s, s, grey_f, disp_f, labels_f, layers_f, hist,
                 runs = ((xa, xb + 1), (0, 0))
             for run in runs:
                 for xx in range(run[0], run[1]):
-                    sg, sd, sm, m, mixed = _add_pixel(yy * W + xx, grey_f, disp_f, labels_f, layers_f, hg, hd,
-                                                      hm, sg, sd, sm, m, mixed, occl, opposite, gap,
+                    sg, sd, sm, m, mixed = _add_pixel(np.uint64(yy * W + xx), bins, labels_f, layers_f, hist,
+                                                      sg, sd, sm, m, mixed, occl, opposite, gap,
                                                       m_centre, xlogx)
                     n += 1
         py0, py1, px0, px1 = ya, yb, xa, xb
@@ -320,16 +316,17 @@ def _clipped_windows(y, x, rects_s, s, grey_f, disp_f, labels_f, layers_f, hist,
             break
         if v == 2:
             offered[0, k] = True
-            e_k[0, k] = _window_entropy(n, sg, sd, sm, m, alpha1, a2)
+            e_k[0, k] = _window_entropy(n, log_n[n], sg, sd, sm, m, alpha1, a2)
     for yy in range(py0, py1 + 1):
         for xx in range(px0, px1 + 1):
-            hg[grey_f[yy * W + xx]] = 0
-            hd[disp_f[yy * W + xx]] = 0
-            hm[grey_f[yy * W + xx]] = 0
+            b = 3 * (yy * W + xx)
+            hist[bins[b]] = 0
+            hist[bins[b + 1]] = 0
+            hist[bins[b + 2]] = 0
 
 
 @numba.njit(cache=True, parallel=True)
-def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
+def _select_kernel(bins, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_grey,
                    n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring, ring_end,
                    paired, shape_map, size_map, best_e, all_e, dense, row_values, row_first, counts, mask):
     # Rows in ``order`` (layout.row_order: dealt round-robin to the threads; pixels near depth
@@ -344,22 +341,25 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
     # order), in the order of the windows. The per-pixel loops index with unsigned values only
     # (uint32 bins and counts, the ring's offsets shifted by ring_shift to uint64), so numba adds
     # no wrap-around of negative indices to their loads (a sign test and an add per load, and the
-    # registers they took: backgammon 1.37 -> 0.80 s on one thread).
-    H, W = grey_q.shape
+    # registers they took: backgammon 1.37 -> 0.80 s on one thread). Each pixel's three bins sit
+    # together in ``bins`` and a window's three histograms in one array, and a window's log n is
+    # looked up (log_n): 0.67-0.73 -> 0.58-0.65 s (least of 12 runs).
+    H, W = labels.shape
     n_shapes = rects.shape[0]
     n_sizes = rects.shape[1]
     r_max = (sizes_n[n_sizes - 1] - 1) // 2
-    grey_f = grey_q.ravel()
-    disp_f = disp_q.ravel()
     labels_f = labels.ravel()
     layers_f = layers.ravel()
     K = n_shapes * n_sizes
     ring_shift = r_max * W + r_max  # ring holds offsets + ring_shift (unsigned)
+    log_n = np.zeros(xlogx.shape[0])  # log of a window's pixel count, as np.log(n) there
+    for n in range(1, xlogx.shape[0]):
+        log_n[n] = np.log(n)
     for jr in numba.prange(order.shape[0]):
         y = order[jr]
         row_n = (y - row_first) * W * K
-        hist_a = (np.zeros(n_grey, np.uint32), np.zeros(n_disp, np.uint32), np.zeros(n_grey, np.uint32))
-        hist_b = (np.zeros(n_grey, np.uint32), np.zeros(n_disp, np.uint32), np.zeros(n_grey, np.uint32))
+        hist_a = np.zeros(2 * n_grey + n_disp, np.uint32)
+        hist_b = np.zeros(2 * n_grey + n_disp, np.uint32)
         e_k = np.empty((2, n_sizes))
         offered = np.zeros((2, n_sizes), np.bool_)
         for x in range(W):
@@ -380,11 +380,11 @@ def _select_kernel(grey_q, disp_q, labels, rects, sizes_n, alpha1, a2_occl, a2_o
             while s < s_last:
                 two = inside and paired[s] and s + 1 < s_last
                 if inside:
-                    _ring_windows(two, s, ring[s], ring[s + 1] if two else ring[s], ring_end[s], base_u, grey_f,
-                                  disp_f, labels_f, layers_f, hist_a, hist_b, xlogx, occl, opposite, gap,
-                                  m_centre, sizes_n, cap, side_r, alpha1, a2, n_grey + n_disp, e_k, offered)
+                    _ring_windows(two, s, ring[s], ring[s + 1] if two else ring[s], ring_end[s], base_u, bins,
+                                  labels_f, layers_f, hist_a, hist_b, xlogx, log_n, occl, opposite, gap,
+                                  m_centre, sizes_n, cap, side_r, alpha1, a2, e_k, offered)
                 else:
-                    _clipped_windows(y, x, rects[s], s, grey_f, disp_f, labels_f, layers_f, hist_a, xlogx, occl,
+                    _clipped_windows(y, x, rects[s], s, bins, labels_f, layers_f, hist_a, xlogx, log_n, occl,
                                      opposite, gap, m_centre, sizes_n, cap, side_r, alpha1, a2, H, W, e_k, offered)
                 for j in range(2 if two else 1):
                     for k in range(n_sizes):
@@ -474,10 +474,14 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     if grey_q.min(initial=0) < 0 or disp_q.min(initial=0) < 0:
         raise ValueError("grey_q and disp_q must be bin indices >= 0 (quantise_grey, quantise_disparity "
                          "with an origin at or below the map's minimum)")
-    grey_q = np.ascontiguousarray(grey_q, np.uint32)
-    disp_q = np.ascontiguousarray(disp_q, np.uint32)
     n_grey = int(grey_q.max()) + 1
     n_disp = int(disp_q.max()) + 1
+    # each pixel's bins in a window's histograms, one array of three parts: grey, disparity and
+    # mismatched grey
+    bins = np.empty((H * W, 3), np.uint32)
+    bins[:, 0] = grey_q.ravel()
+    bins[:, 1] = disp_q.ravel() + n_grey
+    bins[:, 2] = bins[:, 0] + (n_grey + n_disp)
     c = np.arange(max(sizes) ** 2 + 2, dtype=np.float64)
     xlogx = np.where(c > 0, c * np.log(np.maximum(c, 1)), 0.0)
     shape_map = np.zeros((H, W), np.int64)
@@ -492,7 +496,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     mask = np.zeros((H, W, (K + 7) // 8), np.uint8)
     if side_radius is None:
         side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
-    maps = (grey_q, disp_q, np.ascontiguousarray(labels, np.uint8), rects,
+    maps = (bins.ravel(), np.ascontiguousarray(labels, np.uint8), rects,
             np.array(sizes, np.int64), float(alpha1), float(alpha2_occlusion),
             float(alpha2_other), n_grey, n_disp, xlogx,
             np.ascontiguousarray(np.broadcast_to(side_radius, (H, W)), np.int64),
