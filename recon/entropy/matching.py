@@ -218,7 +218,8 @@ def _joint_group_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks,
 #: Image rows the joint search takes at a time (:func:`_joint_group_kernel`): its candidates'
 #: rings of summed-area table rows hold these and the rows the windows reach (15 at the default
 #: sizes). Backgammon, the whole search, CPU s of two threads (medians of 3, load 7): 4, 8 and 16
-#: rows 2.85, 2.64 and 3.22 (16 rows' penalty and views' rows no longer stay in cache).
+#: rows 2.85, 2.64 and 3.22 (16 rows' penalty and views' rows no longer stay in cache); the demo
+#: capture's step with 16 rows 6.66-8.00 s CPU against 5.34-6.57 with 8 (load 2).
 JOINT_ROWS = 8
 #: The candidates of a pass of the joint search share the penalty's and the views' reads; as many
 #: as the rings of table rows of this many whole tables hold (nine int64 tables of
