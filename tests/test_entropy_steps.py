@@ -73,7 +73,7 @@ def test_a_joint_search_within_the_whole_budget_runs_whole_and_others_in_bands()
     assert steps.joint_band_rows(backgammon, n_candidates=61, n_windows=77) == 512
     capture = (9, 9, 906, 1198)  # 25 candidates: 1.2 MB a row
     rows = steps.joint_band_rows(capture, n_candidates=25, n_windows=77)
-    per_pixel = 4 * 81 + 4 * 77 + 4 * 25 + 8 * 9 * steps.JOINT_GROUP + steps.JOINT_PIXEL_BYTES
+    per_pixel = 4 * 81 + 4 * 77 + 4 * 25 + 8 * 9 * steps.JOINT_TABLES + steps.JOINT_PIXEL_BYTES
     assert rows == int(steps.JOINT_BAND_MIB * 2 ** 20 // (1198 * per_pixel))
     assert steps.joint_band_rows(capture, n_candidates=25, n_windows=77, whole_mib=2000) == 906
 

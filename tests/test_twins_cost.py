@@ -98,27 +98,29 @@ def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
         numba.set_num_threads(threads)
 
 
-def test_block_set_integrals_is_bit_identical_to_reference_for_any_thread_count():
-    import numba
-    from recon.entropy.cost import BLOCK_ROWS, block_set_integrals, block_set_integrals_reference
+def test_ring_table_rows_are_the_reference_tables_rows():
+    # the joint search's rings of summed-area table rows, a stretch of rows at a time, made in runs
+    # of block rows (the ring just long enough, or the whole table)
+    from recon.entropy.cost import N_BLOCKS, _ring_table_rows, _set_sums_plan, _view_lists, block_set_integrals_reference
     from recon.entropy.initial import initial_view_mask
     rng = np.random.default_rng(3)
-    threads = numba.get_num_threads()
-    try:
-        for H, W in ((1, 7), (3, 5), (17, 21), (2 * BLOCK_ROWS + 5, 6)):  # the last in several runs of rows
-            gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties in the sums
-            for d, sets, mask in ((-0.7, np.arange(11), None), (0.35, np.array([0, 4, 9]), None),
-                                  (1.1, np.arange(11), initial_view_mask((9, 9)))):
-                ref = block_set_integrals_reference(gray, d, sets=sets, view_mask=mask)
-                for n in sorted({1, threads}):
-                    numba.set_num_threads(n)
-                    np.testing.assert_array_equal(block_set_integrals(gray, d, sets=sets, view_mask=mask), ref)
-            group = np.array([-0.7, 0.35, 1.1])  # three candidates in one pass: each one's tables
-            tables = block_set_integrals(gray, group, sets=np.arange(11))
-            for d, got in zip(group, tables):
-                np.testing.assert_array_equal(got, block_set_integrals_reference(gray, d, sets=np.arange(11)))
-    finally:
-        numba.set_num_threads(threads)
+    for H, W in ((1, 7), (3, 5), (17, 21)):
+        gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties in the sums
+        for d, sets, mask in ((-0.7, np.arange(11), None), (0.35, np.array([0, 4, 9]), None),
+                              (1.1, np.arange(11), initial_view_mask((9, 9)))):
+            ref = block_set_integrals_reference(gray, d, sets=sets, view_mask=mask)
+            S = len(sets)
+            for R, stretch, run in ((H + 1, H, H), (4, 3, 2), (2, 1, 1)):
+                ring = np.empty((R, S, W + 1), np.int64)
+                ring[0] = 0
+                scratch = (np.empty((run, N_BLOCKS, W), np.float32), np.empty((2, W), np.float32),
+                           np.empty((S, W), np.float64), np.empty(W, np.int64))
+                for y in range(0, H, stretch):
+                    y1 = min(y + stretch, H)
+                    _ring_table_rows(gray, *_view_lists((9, 9), mask), np.float32(d), *_set_sums_plan(sets), y, y1,
+                                     ring, *scratch)
+                    for r in range(y + 1, y1 + 1):
+                        np.testing.assert_array_equal(ring[r % R], ref[:, r])
 
 
 def test_set_integrals_converts_large_set_values_exactly():

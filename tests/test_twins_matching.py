@@ -59,64 +59,67 @@ def test_joint_line_search_fast_matches_reference():
     assert (np.abs(d - cands[i_ref]) <= 0.5 * 0.4 + 1e-6).all()
 
 
-def _joint_kernels(integral_sets, H, W, windows, rects, shapes, penalty, occluded, counts):
-    """Each kernel's ``(objectives per candidate, least, window)`` over the candidates' summed-area
-    tables ``integral_sets``: the pixelwise twin and the window-major kernel with either int64 ->
-    float64 conversion, the candidates in groups of one, two and three (the last group short)."""
+def _joint_kernels(gray, candidates, rects, shapes, penalty, occluded, counts):
+    """Each kernel's ``(objectives per candidate, least, window)`` at ``candidates``: the pixelwise
+    twin over the summed-area tables of ``block_abs_diff`` and ``set_integrals``, and the
+    row-stretch kernel over the views, in groups of one, two and three candidates (the last group
+    short) and stretches of one, three and eight rows."""
+    from recon.entropy.cost import _set_sums_plan, _view_lists, block_abs_diff, set_integrals
     from recon.entropy.layout import offer_runs, row_order
     from recon.entropy.legacy_matching import _joint_cost_pixelwise
-    from recon.entropy.matching import _joint_cost_kernel
+    from recon.entropy.matching import _joint_group_kernel
+    _, _, H, W = gray.shape
     starts, ks, pens = _compact_penalty(penalty)
     dense = np.ascontiguousarray(penalty.transpose(0, 2, 1))  # (H, K, W), inf: not offered
     run_start, runs = offer_runs(dense, occluded, shapes)
     order = row_order(H)
+    views = _view_lists((9, 9), None)
+    plan = _set_sums_plan(np.arange(11))
+    disparities = np.asarray(candidates, np.float32)
     state = {}
-    for name, group in (("pixelwise", 1), ("window-major", 1), ("window-major", 3), ("window-major magic", 2)):
+    for name, group, rows in (("pixelwise", 1, 0), ("stretch", 1, 1), ("stretch", 3, 3), ("stretch", 2, 8)):
         least = np.full((H, W), np.inf, np.float32)
         best_k = np.full((H, W), -1, np.int64)
-        outs = np.empty((len(integral_sets), H, W), np.float32)
-        for i in range(0, len(integral_sets), group):
+        outs = np.empty((len(candidates), H, W), np.float32)
+        for i in range(0, len(candidates), group):
             if name == "pixelwise":
-                _joint_cost_pixelwise(integral_sets[i], occluded, rects, shapes, counts, starts, ks, pens,
+                tables = set_integrals(block_abs_diff(gray, candidates[i]), np.arange(11))
+                _joint_cost_pixelwise(tables, occluded, rects, shapes, counts, starts, ks, pens,
                                       255.0, order, outs[i], least, best_k)
             else:
-                tables = np.ascontiguousarray(np.stack(integral_sets[i:i + group]))
-                _joint_cost_kernel(tables, occluded, rects, shapes, counts, dense, run_start, runs, 255.0,
-                                   order, name.endswith("magic"), outs[i:i + group], least, best_k)
-        state[name if name == "pixelwise" else f"{name} {group}"] = (outs, least, best_k)
+                _joint_group_kernel(gray, *views, disparities[i:i + group], *plan, occluded, rects, shapes, counts,
+                                    dense, run_start, runs, 255.0, rows, outs[i:i + group], least, best_k)
+        state[name if name == "pixelwise" else f"{name} {group} {rows}"] = (outs, least, best_k)
     return state
 
 
-def test_joint_cost_kernel_is_bit_identical_to_pixelwise_twin():
-    from recon.entropy.cost import block_abs_diff, set_integrals
+def test_joint_group_kernel_is_bit_identical_to_pixelwise_twin():
     from recon.entropy.layout import RUN_GAP
     rng = np.random.default_rng(13)
-    # (6, 9): the 15-px windows wider than the image; the widest: rows with several runs
+    # (6, 9): the 15-px windows wider and taller than the image; the widest: rows with several runs
     for H, W in ((21, 33), (6, 9), (7, RUN_GAP + 20)):
-        gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8
-        inputs = joint_inputs(rng, H, W)
-        tables = [set_integrals(block_abs_diff(gray, d), np.arange(11)) for d in (-0.7, 0.0, 0.35, 1.1)]
-        state = _joint_kernels(tables, H, W, *inputs)
-        for name in ("window-major 1", "window-major 3", "window-major magic 2"):
+        gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties between candidates
+        inputs = joint_inputs(rng, H, W)[1:]
+        state = _joint_kernels(gray, np.array([-0.7, 0.0, 0.35, 1.1, 0.0]), *inputs)
+        for name in ("stretch 1 1", "stretch 3 3", "stretch 2 8"):
             for a, b in zip(state["pixelwise"], state[name]):
                 np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
             assert (state[name][2] >= 0).all()
 
 
-def test_joint_cost_kernel_converts_large_window_totals_exactly():
-    # window totals up to 2^51 (the magic conversion's limit) whose float64 values differ in the
-    # last bits: the same maps as the twin's int64 -> float64 conversion
-    from recon.entropy.matching import MAGIC_LIMIT
+def test_joint_group_kernel_converts_large_window_totals_exactly():
+    # grey values up to 1000 in the lower rows: window totals beyond 2^51 (the magic conversion's
+    # limit) there, so that those stretches take the plain conversion, the upper ones the magic one;
+    # the same maps as the twin's int64 -> float64 conversion
     rng = np.random.default_rng(17)
-    H, W = 12, 40
-    inputs = joint_inputs(rng, H, W)
-    pixels = rng.integers(0, MAGIC_LIMIT // (15 * 15), (3, 11, H, W), dtype=np.int64)
-    pixels[..., ::5] |= 2 ** 40 - 1  # low bits set: float64 rounding at 2^-28 units would show
-    tables = np.zeros((3, 11, H + 1, W + 1), np.int64)
-    tables[..., 1:, 1:] = pixels.cumsum(axis=2).cumsum(axis=3)
-    state = _joint_kernels(list(tables), H, W, *inputs)
-    for a, b in zip(state["pixelwise"], state["window-major magic 2"]):
-        np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
+    H, W = 30, 40
+    gray = rng.random((9, 9, H, W)).astype(np.float32)
+    gray[:, :, H // 2:] *= 1000
+    inputs = joint_inputs(rng, H, W)[1:]
+    state = _joint_kernels(gray, np.array([-0.7, 0.1, 0.6]), *inputs)
+    for name in ("stretch 1 1", "stretch 3 3", "stretch 2 8"):
+        for a, b in zip(state["pixelwise"], state[name]):
+            np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
 
 
 def test_compact_penalty_is_identical_to_reference():

@@ -23,8 +23,6 @@ from recon.costvolume import add_shifted_row_diff, add_two_shifted_row_diffs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 N_BLOCKS = 9
-#: Image rows whose block rows the joint search's pass makes together, a view at a time.
-BLOCK_ROWS = 24
 
 
 def view_offsets(grid_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -300,43 +298,46 @@ def _set_sum(rows, set_blocks, set_from, s, sums):
 
 
 @numba.njit(cache=True)
+def _fixed_table_row(v, fixed, prev, cur, first):
+    # cur ((W + 1,) int64), a row of a set's table: v ((W,) float64, the set's image row) rounded
+    # to an int64 multiple of 1 / FIXED_POINT, summed along x and, unless first, onto the row above,
+    # prev. Rounded apart from the running sum: these loops vectorise (float64 -> int64 as the bits
+    # of f + MAGIC_FLOAT less MAGIC_BITS, exact for integral |f| < 2^51; a row with a value out of
+    # that range, or NaN, takes the scalar conversion). fixed: (W,) int64 scratch.
+    W = v.shape[0]
+    fixed_bits = fixed.view(np.float64)
+    out_of_range = 0
+    for x in range(W):
+        out_of_range += not (abs(v[x]) < FIXED_LIMIT)
+    if out_of_range == 0:
+        for x in range(W):
+            fixed_bits[x] = np.floor(v[x] * FIXED_POINT + 0.5) + MAGIC_FLOAT
+        for x in range(W):
+            fixed[x] -= MAGIC_BITS
+    else:
+        for x in range(W):
+            fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
+    cur[0] = 0
+    acc = np.int64(0)
+    if not first:
+        for x in range(W):
+            acc += fixed[x]
+            cur[x + 1] = acc + prev[x + 1]
+    else:
+        for x in range(W):
+            acc += fixed[x]
+            cur[x + 1] = acc
+
+
+@numba.njit(cache=True)
 def _set_table_row(rows, set_blocks, set_from, set_order, y, first, sums, fixed, out):
     # Row y + 1 of every set's table out (S, H + 1, W + 1) from the block rows of image row y,
     # rows (9, W): each set's row (_set_sum, the sets in set_order: a set after the one it
-    # continues; sums (S, W) scratch) rounded to an int64 multiple of 1 / FIXED_POINT, summed
-    # along x and, unless y is the band's first row (first), onto the row above. fixed: (W,)
-    # int64 scratch.
-    W = rows.shape[1]
-    fixed_bits = fixed.view(np.float64)
+    # continues; sums (S, W) scratch) summed into it (_fixed_table_row), onto row y unless y is
+    # the band's first row (first). fixed: (W,) int64 scratch.
     for i in range(set_blocks.shape[0]):
         s = set_order[i]
-        v = _set_sum(rows, set_blocks, set_from, s, sums)
-        # rounded apart from the running sum: these loops vectorise (float64 -> int64 as the bits
-        # of f + MAGIC_FLOAT less MAGIC_BITS, exact for integral |f| < 2^51; a row with a value out
-        # of that range, or NaN, takes the scalar conversion)
-        out_of_range = 0
-        for x in range(W):
-            out_of_range += not (abs(v[x]) < FIXED_LIMIT)
-        if out_of_range == 0:
-            for x in range(W):
-                fixed_bits[x] = np.floor(v[x] * FIXED_POINT + 0.5) + MAGIC_FLOAT
-            for x in range(W):
-                fixed[x] -= MAGIC_BITS
-        else:
-            for x in range(W):
-                fixed[x] = np.int64(np.floor(v[x] * FIXED_POINT + 0.5))
-        cur = out[s, y + 1]
-        cur[0] = 0
-        acc = np.int64(0)
-        if not first:
-            prev = out[s, y]
-            for x in range(W):
-                acc += fixed[x]
-                cur[x + 1] = acc + prev[x + 1]
-        else:
-            for x in range(W):
-                acc += fixed[x]
-                cur[x + 1] = acc
+        _fixed_table_row(_set_sum(rows, set_blocks, set_from, s, sums), fixed, out[s, y], out[s, y + 1], first)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -378,39 +379,26 @@ def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, o
             _set_table_row(blocks_ad[:, y], set_blocks, set_from, set_order, y, y == y0, sums, fixed, out)
 
 
-@numba.njit(cache=True, parallel=True)
-def _block_set_integrals_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks, set_from,
-                                set_order, n_bands, out):
-    # _block_abs_diff_kernel and _set_integrals_kernel in one pass for G candidates (disparities
-    # (G,) float32, out (G, S, H + 1, W + 1)): each band makes its rows' block rows BLOCK_ROWS rows
-    # at a time, view by view and within a view candidate by candidate (_block_view_rows; each
-    # candidate's sums add the views in the same order as one candidate alone, the same bits), so
-    # that a view's source rows are read from memory once for the group; from the block rows,
-    # while they are in cache, its rows of the tables; no (9, H, W) block images (then
-    # _finish_tables).
-    S = set_blocks.shape[0]
-    G = disparities.shape[0]
-    H = gray.shape[2]
-    W = gray.shape[3]
-    for band in numba.prange(n_bands):
-        y0 = band * H // n_bands
-        y1 = (band + 1) * H // n_bands
-        acc = np.empty((G, BLOCK_ROWS, N_BLOCKS, W), np.float32)
-        rv = np.empty((2, W), np.float32)
-        sums = np.empty((S, W), np.float64)
-        fixed = np.empty(W, np.int64)
-        for y in range(y0, y1, BLOCK_ROWS):
-            n = min(BLOCK_ROWS, y1 - y)
-            acc[:] = 0.0
-            k = 0
-            while k < vu.shape[0]:
-                for g in range(G):
-                    after = _block_view_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], y, acc[g, :n], rv, k)
-                k = after
-            for g in range(G):
-                for j in range(n):
-                    _set_table_row(acc[g, j], set_blocks, set_from, set_order, y + j, y + j == y0, sums,
-                                   fixed, out[g])
+@numba.njit(cache=True)
+def _ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order, y0, y1,
+                     ring, acc, rv, sums, fixed):
+    # Rows y0 + 1..y1 of the sets' summed-area tables at one candidate (block_set_integrals_reference's
+    # tables, bit for bit) into the ring (R, S, W + 1): table row r in ring[r % R], made from the
+    # one above it, which must be there (row 0, zero, to begin). The block rows of acc.shape[0]
+    # image rows at a time, view by view (_block_rows: a view's source rows read in one run), then,
+    # while they are in cache, those rows of every set's table. acc (n, 9, W) float32, rv (2, W)
+    # float32, sums (S, W) float64 and fixed (W,) int64: scratch.
+    R = ring.shape[0]
+    for y in range(y0, y1, acc.shape[0]):
+        n = min(acc.shape[0], y1 - y)
+        acc[:n] = 0.0
+        _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc[:n], rv)
+        for j in range(n):
+            prev = ring[(y + j) % R]
+            cur = ring[(y + j + 1) % R]
+            for i in range(set_blocks.shape[0]):
+                s = set_order[i]
+                _fixed_table_row(_set_sum(acc[j], set_blocks, set_from, s, sums), fixed, prev[s], cur[s], False)
 
 
 def _set_block_lists(sets: np.ndarray) -> np.ndarray:
@@ -452,28 +440,9 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
 def block_set_integrals_reference(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
                                   view_mask: np.ndarray | None = None) -> np.ndarray:
     """``(S, H + 1, W + 1)`` int64 summed-area tables of the view sets ``sets`` at ``disparity``,
-    step by step (readable twin of :func:`block_set_integrals`): the block images
-    (:func:`block_abs_diff`), then their sets' tables (:func:`set_integrals_reference`)."""
+    step by step (readable twin of the rows the joint search makes, ``_ring_table_rows``): the
+    block images (:func:`block_abs_diff`), then their sets' tables (:func:`set_integrals_reference`)."""
     return set_integrals_reference(block_abs_diff(gray, disparity, view_mask=view_mask), np.asarray(sets))
-
-
-def block_set_integrals(gray: np.ndarray, disparity, *, sets: np.ndarray,
-                        view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
-    """Compiled twin of :func:`block_set_integrals_reference` (same arguments and tables, bit for
-    bit; ``gray`` contiguous float32), written into ``out`` when given: one pass over the rows,
-    without the ``(9, H, W)`` block images. With ``disparity`` a ``(G,)`` array the ``(G, S,
-    H + 1, W + 1)`` tables of G candidates, each view's rows read once for all of them."""
-    U, V, H, W = gray.shape
-    group = np.ndim(disparity) == 1
-    disparities = np.asarray(disparity, np.float32).reshape(-1)
-    if out is None:
-        out = np.empty((len(disparities), len(sets), H + 1, W + 1), np.int64)
-    tables = out.reshape(len(disparities), len(sets), H + 1, W + 1)
-    n_bands = max(1, min(numba.get_num_threads(), H))
-    _block_set_integrals_kernel(gray, *_view_lists((U, V), view_mask), disparities,
-                                *_set_sums_plan(np.asarray(sets)), n_bands, tables)
-    _finish_tables(tables.reshape(-1, H + 1, W + 1), n_bands)
-    return tables if group else tables[0]
 
 
 class WindowCost:
@@ -534,6 +503,17 @@ def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rec
         return best.astype(np.float32)
 
 
+@numba.njit(cache=True)
+def _window_reach(rects):
+    # (up, down): how many rows above and below its pixel any of the windows rects (K, 4) reaches.
+    up = 0
+    down = 0
+    for k in range(rects.shape[0]):
+        up = max(up, -rects[k, 0])
+        down = max(down, rects[k, 1])
+    return up, down
+
+
 @numba.njit(cache=True, parallel=True)
 def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order,
                              window_set, rects, counts, allowed, n_chunks, out):
@@ -553,11 +533,7 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
     W = gray.shape[3]
     S = set_blocks.shape[0]
     K = rects.shape[0]
-    up = 0  # rows above and below a pixel that its windows reach
-    down = 0
-    for k in range(K):
-        up = max(up, -rects[k, 0])
-        down = max(down, rects[k, 1])
+    up, down = _window_reach(rects)
     R = up + down + 2  # and the row just above the windows, taken away from the column sums
     per_pixel = allowed.shape[1] > 1 or allowed.shape[2] > 1  # (K, H, W), or (K, 1, 1) for all alike
     for chunk in numba.prange(n_chunks):

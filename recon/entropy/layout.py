@@ -19,7 +19,7 @@ RUN_GAP = 64
 @numba.njit(cache=True)
 def _offer_runs(row, occluded, shaped, runs, n, lo, hi):
     # The runs of the pixels that offer one window in one row, both passes in one scan (see
-    # _joint_cost_kernel; row: (W,) penalty, inf = not offered; a pixel is in pass 1 if the window
+    # _joint_row; row: (W,) penalty, inf = not offered; a pixel is in pass 1 if the window
     # is shaped and the pixel occluded, else in pass 0), gaps below RUN_GAP closed. n: (2,) each
     # pass's next run, advanced by the runs found, which are written to runs if it has rows;
     # lo, hi: (2,) scratch.

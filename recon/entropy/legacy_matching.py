@@ -2,7 +2,7 @@
 to them (``tests/test_twins_matching.py``): nothing in the estimator calls them.
 
 - ``_joint_cost_pixelwise``: the pixel-by-pixel joint search kernel, the readable twin of
-  :func:`recon.entropy.matching._joint_cost_kernel` (the same maps bit for bit), over the penalty
+  :func:`recon.entropy.matching._joint_group_kernel` (the same maps bit for bit), over the penalty
   lists of ``_compact_penalty``;
 - ``_compact_penalty`` and its readable twin ``_compact_penalty_reference``: each pixel's offered
   windows and penalties as flat lists.
@@ -19,7 +19,7 @@ from recon.entropy.cost import FIXED_INV
 @numba.njit(cache=True, parallel=True)
 def _joint_cost_pixelwise(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
                           order, out, best, best_k):
-    # The readable twin of _joint_cost_kernel (the same maps bit for bit; the search used it until
+    # The readable twin of _joint_group_kernel (the same maps bit for bit; the search used it until
     # issue #14's fourth session): pixel by pixel, each pixel's allowed windows
     # ks[starts[p]:starts[p + 1]] with penalties pens[...] (:func:`_compact_penalty`) in ascending
     # order, the first least objective kept. out = this candidate's objective; best/best_k = the

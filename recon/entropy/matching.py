@@ -13,10 +13,10 @@ import numba
 import numpy as np
 
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
-                                WindowCost, block_abs_diff, block_abs_diff_reference, block_set_integrals,
-                                cost_ambiguity, min_window_costs, min_window_costs_reference, set_view_counts,
-                                window_sum_bound)
-from recon.entropy.layout import offer_runs, row_order
+                                WindowCost, _ring_table_rows, _set_sums_plan, _view_lists, _window_reach,
+                                block_abs_diff, block_abs_diff_reference, cost_ambiguity, min_window_costs,
+                                min_window_costs_reference, set_view_counts, window_sum_bound)
+from recon.entropy.layout import offer_runs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
@@ -71,7 +71,7 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
 @numba.njit(cache=True, inline="always")
 def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
                       c_best, k_best):
-    # _joint_cost_kernel at a pixel whose window the image's left or right edge clips.
+    # _joint_row at a pixel whose window the image's left or right edge clips.
     xa = max(x + ra, 0)
     xb = min(x + rb, W - 1) + 1
     total = (iyb[xb] - iya[xb] - iyb[xa] + iya[xa]) * FIXED_INV
@@ -81,101 +81,152 @@ def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
         k_best[x] = k
 
 
-@numba.njit(cache=True, parallel=True)
-def _joint_cost_kernel(integrals, pixel_set, rects, window_shape, counts, penalty, run_start,
-                       runs, scale, order, magic, out, best, best_k):
-    # Window-major twin of _joint_cost_pixelwise for a group of G candidates: integrals
-    # (G, S, H + 1, W + 1), out (G, H, W); the same float64 arithmetic for every pixel, window and
-    # candidate, windows in ascending order, strict <, each candidate's objective folded into
-    # best / best_k after the one before it: the same maps bit for bit as one candidate a call.
-    # A run's penalty and occlusion flags are read once from memory for the whole group (the
-    # penalty, H x K x W float32, is the kernel's largest read). For one row and one window the
-    # four corners of every pixel's window lie on two rows of one integral table, contiguous in x:
-    # away from the image's left and right edges the loop over x vectorises (the slices index from
-    # 0, so that numba's negative-index wrap does not turn loads into gathers).
+@numba.njit(cache=True)
+def _joint_row(tables, y, pixel_set, rects, window_shape, counts, penalty, run_start, runs, scale, magic,
+               c_best, k_best, tb, tf):
+    # One candidate's objective at the pixels of row y, the least over the windows (ascending, strict
+    # <) folded into c_best / k_best ((W,) float64 and int64). tables (R, S, W + 1): the candidate's
+    # summed-area tables' rows, table row r in tables[r % R] (_ring_table_rows); the same float64
+    # arithmetic for every pixel and window as the pixelwise twin. For one window the four corners
+    # of every pixel's window lie on two rows of one table, contiguous in x: away from the image's
+    # left and right edges the loop over x vectorises (the slices index from 0, so that numba's
+    # negative-index wrap does not turn loads into gathers).
     # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
     # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
     # visible set (pass 1: occluded pixels, shaped windows). See recon.entropy.layout.offer_runs.
-    # magic: every window total is below MAGIC_LIMIT (its int64 -> float64 conversion vectorises,
-    # recon.entropy.cost.MAGIC_FLOAT).
-    # The least objective c_best is min(old, c) with c = inf where the pass does not apply: the
-    # same value as a strict < (no objective is NaN or -0.0), and a plain store, not a masked one.
-    G = integrals.shape[0]
+    # magic: every window total of the row is below MAGIC_LIMIT (its int64 -> float64 conversion
+    # vectorises, recon.entropy.cost.MAGIC_FLOAT; the same values as the plain conversion).
+    # The least c_best is min(old, c) with c = inf where the pass does not apply: the same value as
+    # a strict < (no objective is NaN or -0.0), and a plain store, not a masked one. tb (W,) int64
+    # and tf (W,) float64: scratch.
     H, K, W = penalty.shape
-    for jr in numba.prange(H):
-        y = order[jr]
-        c_all = np.full((G, W), 1e300)
-        k_all = np.full((G, W), -1, np.int64)
-        tb = np.empty(W, np.int64)
-        fb = tb.view(np.float64)
-        tf = np.empty(W, np.float64)
-        occluded = pixel_set[y]
-        for k in range(K):
-            ya = max(y + rects[k, 0], 0)
-            yb = min(y + rects[k, 1], H - 1) + 1
-            ra = rects[k, 2]
-            rb = rects[k, 3]
-            pen = penalty[y, k]
-            for r in range(run_start[(y * K + k) * 2], run_start[(y * K + k) * 2 + 2]):
-                x0 = runs[r, 0]
-                x1 = runs[r, 1]
-                pas = 1 if r >= run_start[(y * K + k) * 2 + 1] else 0
-                s = window_shape[k] if pas == 1 else 0
-                every = window_shape[k] == 0  # a square: the same set for every pixel
-                want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
-                cnt = counts[s]
-                lo = min(max(x0, -ra), x1)  # [lo, hi): the window's columns inside the image
-                hi = max(min(x1, W - 1 - rb), lo)
-                n = hi - lo
+    R = tables.shape[0]
+    fb = tb.view(np.float64)
+    occluded = pixel_set[y]
+    for k in range(K):
+        ya = max(y + rects[k, 0], 0)
+        yb = min(y + rects[k, 1], H - 1) + 1
+        ra = rects[k, 2]
+        rb = rects[k, 3]
+        pen = penalty[y, k]
+        for r in range(run_start[(y * K + k) * 2], run_start[(y * K + k) * 2 + 2]):
+            x0 = runs[r, 0]
+            x1 = runs[r, 1]
+            pas = 1 if r >= run_start[(y * K + k) * 2 + 1] else 0
+            s = window_shape[k] if pas == 1 else 0
+            every = window_shape[k] == 0  # a square: the same set for every pixel
+            want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
+            cnt = counts[s]
+            iya = tables[ya % R, s]
+            iyb = tables[yb % R, s]
+            lo = min(max(x0, -ra), x1)  # [lo, hi): the window's columns inside the image
+            hi = max(min(x1, W - 1 - rb), lo)
+            n = hi - lo
+            for x in range(x0, lo):  # left edge: the window clipped
+                _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
+                                  c_best, k_best)
+            if n > 0:
                 denom = (yb - ya) * (rb - ra + 1) * cnt
                 pn = pen[lo:hi]
                 oc = occluded[lo:hi]
-                for g in range(G):
-                    iya = integrals[g, s, ya]
-                    iyb = integrals[g, s, yb]
-                    c_best = c_all[g]
-                    k_best = k_all[g]
-                    for x in range(x0, lo):  # left edge: the window clipped
-                        _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
-                                          want, occluded, c_best, k_best)
-                    if n > 0:
-                        b1 = iyb[lo + rb + 1:hi + rb + 1]
-                        a1 = iya[lo + rb + 1:hi + rb + 1]
-                        b0 = iyb[lo + ra:hi + ra]
-                        a0 = iya[lo + ra:hi + ra]
-                        if magic:
-                            for i in range(n):
-                                tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
-                            for i in range(n):
-                                tf[i] = fb[i] - MAGIC_FLOAT
-                        else:
-                            for i in range(n):
-                                tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
-                        cb = c_best[lo:hi]
-                        kb = k_best[lo:hi]
-                        for i in range(n):
-                            c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
-                            c = c if (every | (oc[i] == want)) else np.inf
-                            old = cb[i]
-                            kb[i] = k if c < old else kb[i]
-                            cb[i] = min(old, c)
-                    for x in range(hi, x1):  # right edge
-                        _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every,
-                                          want, occluded, c_best, k_best)
-        for g in range(G):
-            for x in range(W):
-                c32 = np.float32(c_all[g, x])
-                out[g, y, x] = c32
-                if c32 < best[y, x]:
-                    best[y, x] = c32
-                    best_k[y, x] = k_all[g, x]
+                b1 = iyb[lo + rb + 1:hi + rb + 1]
+                a1 = iya[lo + rb + 1:hi + rb + 1]
+                b0 = iyb[lo + ra:hi + ra]
+                a0 = iya[lo + ra:hi + ra]
+                if magic:
+                    for i in range(n):
+                        tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
+                    for i in range(n):
+                        tf[i] = fb[i] - MAGIC_FLOAT
+                else:
+                    for i in range(n):
+                        tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
+                cb = c_best[lo:hi]
+                kb = k_best[lo:hi]
+                for i in range(n):
+                    c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
+                    c = c if (every | (oc[i] == want)) else np.inf
+                    old = cb[i]
+                    kb[i] = k if c < old else kb[i]
+                    cb[i] = min(old, c)
+            for x in range(hi, x1):  # right edge
+                _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
+                                  c_best, k_best)
 
 
-#: Candidates whose objectives the joint search's kernel makes in one pass, each run of the
-#: penalty read from memory once for all of them; their summed-area tables are held together
-#: (nine int64 tables of ``(H + 1) x (W + 1)`` each, 19 MB a candidate at 512x512).
-JOINT_GROUP = 2
+@numba.njit(cache=True, parallel=True)
+def _joint_group_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks, set_from, set_order,
+                        pixel_set, rects, window_shape, counts, penalty, run_start, runs, scale, rows, out,
+                        best, best_k):
+    # The joint search for a group of G candidates (disparities (G,) float32, out (G, H, W)), down
+    # the image `rows` rows at a time. For each stretch of rows the candidates, in parallel, extend
+    # their rings of summed-area table rows (_ring_table_rows: the stretch's rows and the rows its
+    # windows reach below; the ring holds the rows they reach above as well) and evaluate its rows
+    # (_joint_row), so that the stretch's penalty rows and the views' source rows, the search's
+    # largest reads, come from memory once for the group and from cache for every candidate; then
+    # each pixel's objectives are folded into best / best_k candidate after candidate (strict <: the
+    # first least wins), as one candidate at a time. The int64 tables give the same window totals
+    # from any row, so the ring's rows are those of the whole image's tables.
+    H, K, W = penalty.shape
+    S = set_blocks.shape[0]
+    G = disparities.shape[0]
+    up, down = _window_reach(rects)
+    R = rows + up + down + 1
+    tables = np.empty((G, R, S, W + 1), np.int64)
+    tables[:, 0] = 0  # table row 0
+    acc = np.empty((G, rows, N_BLOCKS, W), np.float32)
+    rv = np.empty((G, 2, W), np.float32)
+    sums = np.empty((G, S, W), np.float64)
+    fixed = np.empty((G, W), np.int64)
+    c_best = np.empty((G, W), np.float64)
+    k_best = np.empty((G, rows, W), np.int64)
+    tb = np.empty((G, W), np.int64)
+    tf = np.empty((G, W), np.float64)
+    made = 0  # image rows in the tables
+    for y0 in range(0, H, rows):
+        y1 = min(y0 + rows, H)
+        need = min(y1 + down, H)
+        for g in numba.prange(G):
+            ring = tables[g]
+            _ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], set_blocks, set_from, set_order,
+                             made, need, ring, acc[g], rv[g], sums[g], fixed[g])
+            # no window total of the stretch exceeds its rows' total (the set values are >= 0)
+            top = ring[max(y0 - up, 0) % R]
+            bottom = ring[need % R]
+            magic = True
+            for s in range(S):
+                magic = magic and bottom[s, W] - top[s, W] < MAGIC_LIMIT
+            for y in range(y0, y1):
+                cb = c_best[g]
+                kb = k_best[g, y - y0]
+                cb[:] = 1e300
+                kb[:] = -1
+                _joint_row(ring, y, pixel_set, rects, window_shape, counts, penalty, run_start, runs, scale,
+                           magic, cb, kb, tb[g], tf[g])
+                for x in range(W):
+                    out[g, y, x] = np.float32(cb[x])
+        made = need
+        for y in numba.prange(y0, y1):
+            for g in range(G):
+                for x in range(W):
+                    if out[g, y, x] < best[y, x]:
+                        best[y, x] = out[g, y, x]
+                        best_k[y, x] = k_best[g, y - y0, x]
+
+
+#: Image rows the joint search takes at a time (:func:`_joint_group_kernel`): its candidates'
+#: rings of summed-area table rows hold these and the rows the windows reach (15 at the default
+#: sizes). Backgammon, the whole search, CPU s of two threads (medians of 3, load 7): 4, 8 and 16
+#: rows 2.85, 2.64 and 3.22 (16 rows' penalty and views' rows no longer stay in cache); the demo
+#: capture's step with 16 rows 6.66-8.00 s CPU against 5.34-6.57 with 8 (load 2).
+JOINT_ROWS = 8
+#: The candidates of a pass of the joint search share the penalty's and the views' reads; as many
+#: as the rings of table rows of this many whole tables hold (nine int64 tables of
+#: ``(H + 1) x (W + 1)`` each, 19 MB at 512x512): on backgammon two passes of 31 and 30
+#: candidates, 22 MB of rings. One, two and four tables' worth: 2.89, 2.64 and 2.90 s CPU (as for
+#: :data:`JOINT_ROWS`).
+JOINT_TABLES = 2
 
 
 def joint_line_search_reference(gray: np.ndarray, candidates: np.ndarray, *,
@@ -233,7 +284,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     ambiguity_delta
         Tolerance of :func:`cost_ambiguity` (objective units).
     progress
-        Called as ``progress(fraction)`` after each group of :data:`JOINT_GROUP` candidates.
+        Called as ``progress(fraction)`` after each pass over a group of candidates
+        (:data:`JOINT_TABLES`).
 
     Returns
     -------
@@ -248,22 +300,21 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty = np.ascontiguousarray(penalty, dtype=np.float32)
     run_start, runs = offer_runs(penalty, pixel_set, shapes)
-    all_sets = np.arange(SET_BLOCKS.shape[0])
+    views = _view_lists((U, V), view_mask)
+    plan = _set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
     D = len(candidates)
-    integrals = np.empty((min(JOINT_GROUP, D), len(all_sets), H + 1, W + 1), np.int64)
+    ring_rows = JOINT_ROWS + int(rects[:, 1].max() - rects[:, 0].min()) + 1  # as the kernel's rings
+    group = max(JOINT_TABLES * (H + 1) // ring_rows, numba.get_num_threads(), 1)
+    bounds = np.linspace(0, D, -(-D // group) + 1).astype(int)  # passes of even size
     costs = np.empty((D, H, W), np.float32)
     least = np.full((H, W), np.inf, np.float32)
-    order = row_order(H)
     window_index = np.full((H, W), -1, np.int64)
-    for i in range(0, D, JOINT_GROUP):
-        group = integrals[:min(JOINT_GROUP, D - i)]
-        block_set_integrals(gray, candidates[i:i + len(group)], sets=all_sets, view_mask=view_mask, out=group)
-        # no window total exceeds its table's whole-image total (the set values are >= 0)
-        magic = bool(group[:, :, -1, -1].max() < MAGIC_LIMIT)
-        _joint_cost_kernel(group, pixel_set, rects, shapes, counts, penalty, run_start, runs,
-                           float(intensity_scale), order, magic, costs[i:i + len(group)], least, window_index)
+    for i, j in zip(bounds[:-1], bounds[1:]):
+        _joint_group_kernel(gray, *views, np.asarray(candidates[i:j], np.float32), *plan, pixel_set, rects,
+                            shapes, counts, penalty, run_start, runs, float(intensity_scale), JOINT_ROWS,
+                            costs[i:j], least, window_index)
         if progress is not None:
-            progress((i + len(group)) / D)
+            progress(j / D)
     disparity, best = subpixel_argmin(costs, candidates)
     return disparity, best, window_index, cost_ambiguity(costs, ambiguity_delta)
 

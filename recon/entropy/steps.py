@@ -20,7 +20,7 @@ from recon.entropy.entropy import quantise_disparity, quantise_grey, select_wind
 from recon.entropy.initial import (discover_range, initial_disparity, initial_view_mask, range_from_initial,
                                   sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
-from recon.entropy.matching import JOINT_GROUP, cost_ambiguity, disparity_candidates, joint_line_search, line_search
+from recon.entropy.matching import JOINT_TABLES, cost_ambiguity, disparity_candidates, joint_line_search, line_search
 from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
                                  soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
                                  weak_texture_pixels)
@@ -358,12 +358,12 @@ def joint_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: int
     least one). Per pixel of a row, what is alive at the search's peak, its sweep over the
     candidates in :func:`recon.entropy.matching.joint_line_search`: the band's ``U * V`` float32
     view samples (:func:`filtered_views`), its ``n_windows`` float32 penalty, ``n_candidates``
-    float32 costs, nine int64 summed-area tables for each of the
-    :data:`~recon.entropy.matching.JOINT_GROUP` candidates a pass takes and
+    float32 costs, the rings of summed-area table rows of a pass over a group of candidates (at
+    most :data:`~recon.entropy.matching.JOINT_TABLES` whole sets of nine int64 tables) and
     :data:`JOINT_PIXEL_BYTES`. The penalty while it is made, a row of its flat pixels at a time,
     and the filters' temporaries, a row of views at a time, take less."""
     U, V, H, W = views_shape
-    per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 * JOINT_GROUP + JOINT_PIXEL_BYTES)
+    per_row = W * (4 * U * V + 4 * n_windows + 4 * n_candidates + 8 * 9 * JOINT_TABLES + JOINT_PIXEL_BYTES)
     if H * per_row <= whole_mib * 2 ** 20:
         return H
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
