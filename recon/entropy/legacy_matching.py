@@ -19,8 +19,8 @@ from recon.entropy.cost import FIXED_INV
 @numba.njit(cache=True, parallel=True)
 def _joint_cost_pixelwise(integrals, pixel_set, rects, window_shape, counts, starts, ks, pens, scale,
                           order, out, best, best_k):
-    # The readable twin of _joint_group_kernel (the same maps bit for bit; the search used it until
-    # issue #14's fourth session): pixel by pixel, each pixel's allowed windows
+    # The readable twin of _joint_group_kernel (the same maps bit for bit; the search's kernel
+    # before the window-major one): pixel by pixel, each pixel's allowed windows
     # ks[starts[p]:starts[p + 1]] with penalties pens[...] (:func:`_compact_penalty`) in ascending
     # order, the first least objective kept. out = this candidate's objective; best/best_k = the
     # least objective over the candidates so far and its window (the first candidate on ties, as
