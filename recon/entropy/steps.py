@@ -240,12 +240,10 @@ def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
     # views filtered where noise-limited pixels land (a forward warp with d0) and the view is flat
     # (Eq. 12, or with noise_gate="texture" the window-scale test); then the mild filter where
     # weak-texture pixels land (the same warp)
-    o, radius = options, options.windows.largest_radius_px
-    px = filter_reach_px(o.noise_filter, size=o.smooth_neighbourhood,
-                         radius_px=radius if o.noise_gate == "texture" else None) + reach.view_px(o) + 1
+    o = options
+    px = view_filter_rows(o) + reach.view_px(o) + 1
     if o.weak_texture_filter > 0:
-        px += (soften_reach_px(o.weak_texture_filter) + reach.view_px(o) + 1
-               + texture_reach_px(texture_sigma_px(o), radius_px=radius))
+        px += reach.view_px(o) + 1 + texture_reach_px(texture_sigma_px(o), radius_px=o.windows.largest_radius_px)
     return px
 
 
