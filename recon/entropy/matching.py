@@ -303,8 +303,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     views = _view_lists((U, V), view_mask)
     plan = _set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
     D = len(candidates)
-    up, down = _window_reach(rects)
-    ring_rows = JOINT_ROWS + up + down + 1  # as the kernel's rings
+    ring_rows = JOINT_ROWS + int(rects[:, 1].max() - rects[:, 0].min()) + 1  # as the kernel's rings
     group = max(JOINT_TABLES * (H + 1) // ring_rows, numba.get_num_threads(), 1)
     bounds = np.linspace(0, D, -(-D // group) + 1).astype(int)  # passes of even size
     costs = np.empty((D, H, W), np.float32)
