@@ -225,6 +225,44 @@ def test_ship_mode_sends_views_and_gets_files_back(tmp_path, captures, client, o
     assert_same_result(out / "tiny_capture", one_by_one["tiny_capture"])
 
 
+class _Unreachable:
+    """The client, except that its first ``failures`` scatters raise what distributed raises when the
+    scheduler still lists a worker that was killed a moment ago: a bare ``OSError`` after the connect
+    timeout (seen in a fault test, after 30 s)."""
+
+    def __init__(self, client, failures: int) -> None:
+        self._client, self.failures, self.calls = client, failures, 0
+
+    def __getattr__(self, name):
+        return getattr(self._client, name)
+
+    def scatter(self, *args, **kwargs):
+        self.calls += 1
+        if self.calls <= self.failures:
+            raise OSError("Timed out trying to connect to tcp://127.0.0.1:37899 after 30 s")
+        return self._client.scatter(*args, **kwargs)
+
+
+def test_ship_mode_sends_again_when_a_worker_cannot_be_reached_and_gives_up_after_three(tmp_path, captures, client,
+                                                                                        one_by_one):
+    request = BatchRequest(method="baseline", options=OPTIONS, export="mesh")
+    notes: list[str] = []
+    flaky = _Unreachable(client, failures=1)
+    outcomes = run_batch(flaky, prepare_batch([captures["tiny_capture"]], tmp_path / "once", request=request),
+                         transfer="ship", on_note=notes.append)
+    assert [o.status for o in outcomes] == ["ok"] and flaky.calls == 2
+    assert notes == ["tiny_capture: sending it failed (OSError); trying again (attempt 2 of 3)"]
+    assert_same_result(tmp_path / "once" / "tiny_capture", one_by_one["tiny_capture"])
+
+    notes.clear()
+    dead = _Unreachable(client, failures=10**6)
+    outcomes = run_batch(dead, prepare_batch([captures["tiny_capture"], captures["scene_a"]], tmp_path / "never",
+                                             request=request), transfer="ship", on_note=notes.append)
+    assert [o.status for o in outcomes] == ["failed", "failed"] and dead.calls == 6  # three sends each, then stop
+    assert "sending it to a worker failed 3 times (OSError: Timed out trying to connect" in outcomes[0].error
+    assert not (tmp_path / "never" / "tiny_capture" / MARKER).exists()
+
+
 def test_tiled_batch_equals_untiled(tmp_path, captures, client, one_by_one):
     out = tmp_path / "out"
     request = BatchRequest(method="baseline", options=OPTIONS, export=None, tile=16)

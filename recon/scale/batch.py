@@ -480,6 +480,7 @@ class _Task:
     job: CaptureJob
     fingerprint: str
     attempt: int = 1
+    sends: int = 0  # failed attempts to send it (the views to a worker, or the task to the scheduler)
     payload: Any = None  # the scattered views (ship mode): kept referenced while the task runs
 
 
@@ -544,12 +545,20 @@ def _run(client: Any, plan: BatchPlan, *, transfer: Transfer, threads: int | Non
             future = client.submit(reconstruct_capture, str(job.source),
                                    None if transfer == "ship" else str(job.out_dir), request, task.payload, threads,
                                    plan.command, pure=False, key=f"lfrig-capture-{job.name}-{os.urandom(4).hex()}")
-        except (CommClosedError, ConnectionError, TimeoutError) as error:
-            # the worker chosen for the views (or the scheduler) went away during the call: try again;
+        except (CommClosedError, OSError) as error:
+            # the worker chosen for the views (or the scheduler) went away during the call. distributed
+            # raises a bare OSError when it cannot reach a worker the scheduler has not yet dropped
+            # (a killed one, for up to its connect timeout): try again, a bounded number of times;
             # if it was the scheduler, the loop's status check stops the batch
             task.payload = None
+            task.sends += 1
+            if task.sends >= attempts:
+                failed(task, f"sending it to a worker failed {task.sends} times ({type(error).__name__}: {error}); "
+                             "check the workers' logs and run the same command again")
+                return True
             pending.appendleft(task)
-            say(f"{job.name}: sending it failed ({type(error).__name__}); trying again")
+            say(f"{job.name}: sending it failed ({type(error).__name__}); trying again "
+                f"(attempt {task.sends + 1} of {attempts})")
             return False
         running[future] = task
         return True
