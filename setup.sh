@@ -121,8 +121,11 @@ export UV_PYTHON_DOWNLOADS=never
 "$UV" sync --frozen $SYNC_EXTRAS --python "$PYTHON" --quiet || die "uv sync failed (see above)"
 # uv installs no bytecode, and Python only writes it on import when PYTHONDONTWRITEBYTECODE is
 # unset: without it every process compiles the ~500 modules numpy/numba/scipy import from source,
-# ~1 s of CPU before any work (backgammon, docs/entropy-method.md "Speed, session 4"). Compile
-# once here; compileall skips files whose bytecode is current (~0.4 s when nothing changed).
+# ~1 s of CPU before any work (backgammon; docs/entropy-results.md, "Speed and memory"). Compile
+# once here, lfrig's own packages too (installed in place, so not in purelib: the ~50 modules of
+# `lfrig reconstruct`, most of them in the warm-up the estimate waits for); compileall skips files
+# whose bytecode is current (~0.4 s when nothing changed), and a file edited since compiles on import
+# as before.
 .venv/bin/python -m compileall -qq "$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
-  >/dev/null || say "warning: some installed modules did not compile to bytecode (imports are slower, nothing else)"
+  rig recon calib >/dev/null || say "warning: some modules did not compile to bytecode (imports are slower, nothing else)"
 say "environment ready: .venv/bin/lfrig"

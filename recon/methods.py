@@ -10,10 +10,11 @@ reads the views only as grey (:meth:`recon.lf.lightfield.LightField.gray`), so
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,30 +53,46 @@ def _entropy(lf: LightField, progress: Any, **options: Any) -> MethodResult:
                         write_extras=lambda folder: write_outputs(result, folder))
 
 
-def _warm_baseline() -> None:
+@contextlib.contextmanager
+def _blas_check_skipped() -> Iterator[None]:
+    """numba's start-up asks whether BLAS is there by importing scipy.linalg (0.17 s of the 0.39 s
+    CPU of the baseline's start-up and kernel, with scipy's array-API layer). scipy is a
+    dependency, so the answer is yes: the check is skipped within and kept for any later compilation."""
     import numba.np.linalg
 
-    from recon.baseline import load_kernels
-
-    # numba's start-up asks whether BLAS is there by importing scipy.linalg (0.17 s of the 0.39 s
-    # CPU of start-up and kernel; the baseline uses no scipy). scipy is a dependency, so the answer
-    # is yes: the check is skipped during the start-up and kept for any later compilation.
     check = numba.np.linalg.ensure_blas
     numba.np.linalg.ensure_blas = lambda: None
     try:
-        load_kernels()
+        yield
     finally:
         numba.np.linalg.ensure_blas = check
 
 
+def _warm_baseline() -> None:
+    from recon.baseline import load_kernels
+
+    with _blas_check_skipped():  # the baseline uses no scipy
+        load_kernels()
+
+
 def _warm_entropy() -> None:
-    import recon.entropy.estimate  # noqa: F401  numba, scipy and the estimator's modules
+    import recon.entropy.estimate  # noqa: F401  numba and the estimator's modules (scipy loads later)
     import recon.entropy.outputs  # noqa: F401
     from recon.costvolume import start_numba
-    from recon.entropy.preload import load_kernels
+    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
 
-    start_numba()
-    load_kernels()  # each kernel the estimate calls, with its argument types
+    with _blas_check_skipped():  # the first phase uses no scipy
+        start_numba()
+        load_kernels(KERNELS[:FIRST_PHASE_KERNELS])  # the nine-view search's kernels, with their argument types
+
+
+def _warm_entropy_later() -> None:
+    import scipy.sparse.linalg  # noqa: F401  the hole fill's solver, the first step after the first phase
+
+    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
+
+    load_kernels(KERNELS[FIRST_PHASE_KERNELS:])  # the later steps' kernels
+    import scipy.ndimage  # noqa: F401  first used by the region types (the matching phase)
 
 
 def _check_baseline(options: dict[str, Any]) -> None:
@@ -93,21 +110,23 @@ def _check_entropy(options: dict[str, Any]) -> None:
 @dataclass(frozen=True)
 class Method:
     """A reconstruction method: ``run(lf, progress, **options)``, ``check(options)`` (raises
-    ``ValueError`` for an option value it cannot use, before any work), a one-line description and
-    ``warm()``, which loads what the method's first call would load (imports, compiled kernels) and
-    changes no result (:func:`warm_in_background`)."""
+    ``ValueError`` for an option value it cannot use, before any work), a one-line description,
+    ``warm()``, which loads what the method's first call would load before its first step (imports,
+    compiled kernels), and ``warm_later()``, which loads what only its later steps use while the
+    first ones run; neither changes any result (:func:`warm_in_background`)."""
 
     run: Callable[..., MethodResult]
     check: Callable[[dict[str, Any]], None]
     description: str
     warm: Callable[[], None] | None = None
+    warm_later: Callable[[], None] | None = None
 
 
 #: name -> :class:`Method`. The first is the default.
 METHODS: dict[str, Method] = {
     "entropy": Method(_entropy, _check_entropy,
                       "matching entropy (Shi et al.): adaptive windows, visible views, TV in smooth regions",
-                      _warm_entropy),
+                      _warm_entropy, _warm_entropy_later),
     "baseline": Method(_baseline, _check_baseline,
                        "fixed square window, SAD over all views, parabolic sub-pixel refinement",
                        _warm_baseline),
@@ -130,22 +149,42 @@ def check_method_options(name: str, options: dict[str, Any]) -> None:
 _FROZE: list[str] = []  # the first warm-up of this process (it freezes: see below)
 
 
-def warm_in_background(name: str) -> threading.Thread | None:
-    """Start method ``name``'s ``warm()`` in a daemon thread and return it (``None`` for an unknown
-    name or a method without one).
+@dataclass(frozen=True)
+class Warming:
+    """A method's warm-up running in a thread (:func:`warm_in_background`)."""
+
+    thread: threading.Thread
+    #: Set when ``warm()`` has ended (or failed): the method's call may start.
+    ready: threading.Event
+
+    def wait(self) -> None:
+        """Block until the method's call may start; ``warm_later()`` may still run."""
+        self.ready.wait()
+
+    def join(self) -> None:
+        """Block until the whole warm-up has ended."""
+        self.thread.join()
+
+
+def warm_in_background(name: str) -> Warming | None:
+    """Start method ``name``'s ``warm()``, then its ``warm_later()``, in a daemon thread (``None``
+    for an unknown name or a method without a warm-up).
 
     numba's start-up (importing it, its first load of a cached kernel: ~0.5 s of Python that holds
     the interpreter lock) then overlaps work that releases the lock, such as decoding the views.
-    The method's own first call waits for it where it must (the import lock, numba's compiler
-    lock); join the thread before the work to keep the two apart. A failure here is dropped: the
-    method's own call meets the same problem and reports it.
+    Wait for it (:meth:`Warming.wait`) before the method's call, which then starts with what its first
+    steps need loaded; ``warm_later()`` (scipy for the entropy method, ~0.3 s of CPU) runs beside
+    those steps, whose compiled kernels release the lock. A later step that needs what is still
+    loading waits for it where it must (the import lock, numba's compiler lock). A failure here is
+    dropped: the method's own call meets the same problem and reports it.
 
     The imports make some 10^5 objects that live as long as the process (numba's types and
-    templates, scipy's functions): the garbage collector is off while the first warm-up of a
-    process runs, and what is alive after it is frozen (``gc.freeze``), left out of later
-    collections. Without that, a reconstruction's ~265 collections (two of them full) walked those
-    objects again and again. Frozen objects are still freed when their last reference goes; only a
-    reference cycle that is already garbage at that moment stays.
+    templates): the garbage collector is off while the first ``warm()`` of a process runs, and what
+    is alive after it is frozen (``gc.freeze``), left out of later collections. Without that, a
+    reconstruction's ~265 collections (two of them full) walked those objects again and again.
+    Frozen objects are still freed when their last reference goes; only a reference cycle that is
+    already garbage at that moment stays. ``warm_later()`` runs with the collector as it was (the
+    method's call runs meanwhile), so scipy's ~3x10^4 objects are not frozen.
     """
     method = METHODS.get(name)
     if method is None or method.warm is None:
@@ -154,6 +193,7 @@ def warm_in_background(name: str) -> threading.Thread | None:
     first = not _FROZE
     if first:
         _FROZE.append(name)
+    ready = threading.Event()
 
     def warm() -> None:
         collecting = gc.isenabled()
@@ -168,10 +208,14 @@ def warm_in_background(name: str) -> threading.Thread | None:
                 gc.freeze()
                 if collecting:
                     gc.enable()
+            ready.set()
+        if method.warm_later is not None:
+            with contextlib.suppress(Exception):  # as above
+                method.warm_later()
 
     thread = threading.Thread(target=warm, name=f"lfrig-warm-{name}", daemon=True)
     thread.start()
-    return thread
+    return Warming(thread, ready)
 
 
 def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:

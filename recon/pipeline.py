@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -29,7 +28,7 @@ from recon.errors import ReconError
 from recon.paths import writable_file, writable_folder
 from recon.lf.lightfield import LightField
 from recon.lf.params import disparity_range_problem
-from recon.methods import DEFAULT_METHOD, MethodResult, check_method_options, run_method, warm_in_background
+from recon.methods import DEFAULT_METHOD, MethodResult, Warming, check_method_options, run_method, warm_in_background
 from recon.progress import ProgressCallback
 from recon.lf.lock import FolderLock
 from recon.result import (CENTRE_VIEW_PNG, DISPARITY_PFM, DISPARITY_PNG, RESULT_JSON, ResultRecord, clear_result,
@@ -234,7 +233,7 @@ def reconstruct_to_folder(
 
 def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[str, Any], ply, ply_kind,
                         progress, estimate, source, extra, made: dict[str, Any],
-                        warming: threading.Thread | None = None) -> FolderResult:
+                        warming: Warming | None = None) -> FolderResult:
     from recon.colour import colourise
     from recon.evaluate import score
     from recon.lf.imageio import write_png
@@ -263,7 +262,7 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
         version = beside.submit(lfrig_version)  # cached: provenance() below takes it from there
         started = time.perf_counter()
         if warming is not None:
-            warming.join()
+            warming.wait()  # what the estimate's first steps need; the rest loads beside them
         method_result = (estimate or run_in_process)(lf, method, opts, progress)
         seconds = time.perf_counter() - started
     centre.result()  # its error (a full disk) is raised here

@@ -54,13 +54,31 @@ def test_argument_types_reads_scalars_arrays_and_read_only_arrays():
 
 
 def test_the_first_warm_up_freezes_what_its_imports_made_without_collecting_meanwhile():
-    # recon.methods.warm_in_background: the collector is off during the first warm-up of a process
-    # (no full collection walks the new modules' objects) and they are frozen after it.
+    # recon.methods.warm_in_background: the collector is off during the first warm() of a process
+    # (no full collection walks the new modules' objects) and they are frozen when it ends, before
+    # the estimate may start.
     probe = ("import gc, json\n"
              "from recon.methods import warm_in_background\n"
              "full = gc.get_stats()[2]['collections']\n"
-             "warm_in_background('entropy').join()\n"
+             "warming = warm_in_background('entropy')\n"
+             "warming.wait()\n"
              "print(json.dumps([gc.get_stats()[2]['collections'] - full, gc.get_freeze_count() > 10000,"
-             " gc.isenabled()]))")
+             " gc.isenabled()]))\n"
+             "warming.join()")
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [0, True, True]
+
+
+def test_the_warm_up_before_the_estimate_loads_the_first_phase_without_scipy():
+    # What the estimate waits for (Method.warm) loads numba, the estimator's modules and the first
+    # phase's kernels, not scipy; scipy and the later kernels load beside the estimate (warm_later).
+    probe = ("import json, sys\n"
+             "from recon.methods import METHODS\n"
+             "from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels\n"
+             "METHODS['entropy'].warm()\n"
+             "scipy = sorted(m for m in ('scipy.ndimage', 'scipy.sparse', 'scipy.linalg') if m in sys.modules)\n"
+             "first = load_kernels(KERNELS[:FIRST_PHASE_KERNELS])\n"
+             "METHODS['entropy'].warm_later()\n"
+             "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules]))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 0, 0, True]

@@ -48,7 +48,6 @@ import math
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 #: A 5x5 neighbour supports the far value when it lies within this of it (px/view).
 SUPPORT_TOLERANCE = 0.1
@@ -89,6 +88,8 @@ def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(ys, xs, far)`` of the pixels :func:`snap_boundaries` tests: value more than ``jump`` above
     the 3x3 minimum, that minimum supported by ``support`` pixels of the 5x5 neighbourhood."""
+    from scipy import ndimage
+
     m = np.asarray(matched, np.float32)
     low = ndimage.minimum_filter(m, size=3, mode="nearest")
     ys, xs = np.nonzero(m - low > jump)
@@ -104,6 +105,8 @@ def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
 
 def occluder_map(matched: np.ndarray) -> np.ndarray:
     """The map the visibility rays march through: ``matched`` grey-eroded by 3x3 (float32)."""
+    from scipy import ndimage
+
     return ndimage.grey_erosion(np.asarray(matched, np.float32), size=(3, 3), mode="nearest")
 
 
@@ -235,6 +238,8 @@ def snap_boundaries_reference(gray: np.ndarray, matched: np.ndarray, *, noise_si
 
 def _sample(image: np.ndarray, y: float, x: float) -> float:
     # bilinear, coordinates clamped to the image (as recon.entropy.cost._bilinear)
+    from scipy import ndimage
+
     return float(ndimage.map_coordinates(image.astype(np.float64), [[y], [x]], order=1, mode="nearest")[0])
 
 
@@ -405,6 +410,8 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     # the nearest occluder any ray of a pixel can meet: bounds its march (exact: nothing farther
     # on the ray can hide it)
     reach = ray_reach_px(disparity_range, gray.shape[:2])
+    from scipy import ndimage
+
     top = np.minimum(ndimage.maximum_filter(occ, size=2 * reach + 1, mode="nearest"),
                      np.float32(disparity_range[1]))
     _snap_kernel(gray, m, occ, top, reach, ys.astype(np.int64), xs.astype(np.int64),

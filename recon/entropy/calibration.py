@@ -33,7 +33,6 @@ outside the searched range or sits on its first or last candidate. The coefficie
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from recon.entropy.confidence import confidence_map
 from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
@@ -88,11 +87,15 @@ def jump_distance(d: np.ndarray) -> np.ndarray:
         jump[tuple(lead)] |= step
     if not jump.any():
         return np.full(d.shape, float(JUMP_REACH_PX))
+    from scipy import ndimage
+
     return np.minimum(ndimage.distance_transform_edt(~jump), JUMP_REACH_PX)
 
 
 def local_spread(d: np.ndarray, size: int = 5) -> np.ndarray:
     """``(H, W)`` standard deviation of ``d`` in each ``size`` box (px/view; borders reflected)."""
+    from scipy import ndimage
+
     mean = ndimage.uniform_filter(d, size)
     return np.sqrt(np.maximum(ndimage.uniform_filter(d * d, size) - mean * mean, 0.0))
 
@@ -260,6 +263,8 @@ class _BoxSpread:
             sums.append(tmp)
         self.sums = (sums[0], sums[1])
         self.next_row = y1
+        from scipy import ndimage
+
         mean, mean2 = (ndimage.uniform_filter1d(c, size, axis=1) for c in columns)
         return np.sqrt(np.maximum(mean2 - mean * mean, 0.0))
 

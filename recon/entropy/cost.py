@@ -514,7 +514,9 @@ def _window_reach(rects):
     return up, down
 
 
-@numba.njit(cache=True, parallel=True)
+# nogil (here and in the first phase's other kernels): the warm-up's later imports run beside it
+# (recon.methods.warm_in_background)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order,
                              window_set, rects, counts, allowed, n_chunks, out):
     # The whole chain block_abs_diff -> set_integrals -> min_window_cost_reference for one
@@ -724,7 +726,7 @@ def cost_ambiguity_reference(costs: np.ndarray, delta: float) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: see _min_window_costs_kernel
 def _cost_ambiguity_kernel(costs, delta, out):
     # Twin of cost_ambiguity_reference: the float32 least cost of each pixel (NaN if any cost is
     # NaN, as ndarray.min), then how many costs are <= least + delta (float32 sum).

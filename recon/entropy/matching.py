@@ -369,7 +369,7 @@ def subpixel_argmin_reference(costs: np.ndarray, candidates: np.ndarray) -> tupl
     return disparity.astype(np.float32), c0.astype(np.float32)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: see recon.entropy.cost._min_window_costs_kernel
 def _subpixel_argmin_kernel(costs, candidates, step, disparity, best_out):
     # Twin of subpixel_argmin_reference, rows in parallel, candidates outer within a row so the
     # volume is read contiguously. Arg-min as np.argmin: the first minimum, the first NaN if any.

@@ -18,11 +18,12 @@ from functools import lru_cache
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 
 def median_filter_nearest_reference(image: np.ndarray, *, footprint: np.ndarray) -> np.ndarray:
     """``scipy.ndimage.median_filter(image, footprint=footprint, mode="nearest")``."""
+    from scipy import ndimage
+
     return ndimage.median_filter(image, footprint=footprint, mode="nearest")
 
 

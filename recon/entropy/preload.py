@@ -5,8 +5,9 @@ In a fresh process numba loads a cached kernel at its first call: the index look
 LLVM's materialising of the object code, 5-50 ms of CPU per kernel and signature (the first one of
 a process also sets up numba's typing and target registries, ~0.35 s: :func:`recon.costvolume.start_numba`).
 :func:`load_kernels` does that for every kernel of a default estimate, in the order the estimate
-first calls them; ``lfrig reconstruct`` runs it in a thread while the views are decoded
-(:func:`recon.methods.warm_in_background`). It computes nothing and changes no result.
+first calls them; ``lfrig reconstruct`` runs it in a thread (:func:`recon.methods.warm_in_background`):
+the first phase's kernels (:data:`FIRST_PHASE_KERNELS`) while the views are decoded, the others
+while that phase runs. It computes nothing and changes no result.
 
 A signature is written as one token per argument: a scalar type by its numba name (``int64``,
 ``float32``, ``bool``) and a C-contiguous array as ``dtype:ndim``, with ``:ro`` for a read-only
@@ -26,6 +27,7 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
      "float64:1 bool:3 int64 float32:2"),
     ("recon.entropy.matching", "_subpixel_argmin_kernel", "float32:3 float64:1 float64 float32:2 float32:2"),
     ("recon.entropy.cost", "_cost_ambiguity_kernel", "float32:3 float32 int32:2"),
+    # the first phase (the nine-view search) calls the kernels above, the later phases those below
     ("recon.entropy.median", "_median_kernel", "float32:2 int64:1 int64:1 int64:2 int64 float32:2"),
     ("recon.entropy.regions", "_occlusion_kernel", "float32:2 float64:2 float32 int64 int64 float32:2 float32:2"),
     ("recon.entropy.entropy", "_select_kernel",
@@ -45,6 +47,8 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
      "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64 int64"),
     ("recon.entropy.median", "_median_kernel", "float64:2 int64:1 int64:1 int64:2 int64 float64:2"),
 )
+#: How many of :data:`KERNELS` the estimate's first phase calls (the first ones).
+FIRST_PHASE_KERNELS = 3
 
 
 def argument_types(tokens: str) -> tuple:
@@ -61,11 +65,11 @@ def argument_types(tokens: str) -> tuple:
     return tuple(one(token) for token in tokens.split())
 
 
-def load_kernels() -> int:
-    """Load every kernel of :data:`KERNELS` with its signature (from numba's cache, or compile it
-    where the cache has none); return how many were not loaded yet."""
+def load_kernels(kernels: tuple[tuple[str, str, str], ...] = KERNELS) -> int:
+    """Load every kernel of ``kernels`` (default :data:`KERNELS`) with its signature (from numba's
+    cache, or compile it where the cache has none); return how many were not loaded yet."""
     loaded = 0
-    for module, name, tokens in KERNELS:
+    for module, name, tokens in kernels:
         kernel = getattr(importlib.import_module(module), name)
         signature = argument_types(tokens)
         if signature not in kernel.overloads:

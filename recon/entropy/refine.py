@@ -17,10 +17,13 @@ converge in a few hundred iterations; :func:`harmonic_fill` gives it (exact on a
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numba
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
+
+if TYPE_CHECKING:  # scipy loads at the first solve: the estimate's first phase does without it
+    import scipy.sparse
 
 
 #: Holes of up to this many pixels (every hole of a 512x512 image) are filled by a sparse LU of their
@@ -50,6 +53,8 @@ def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto"
     out = np.array(values, np.float64)
     if not holes.any() or holes.all():
         return out.astype(np.float32)
+    import scipy.sparse.linalg
+
     ys, xs = np.nonzero(holes)
     A, rhs = _laplace_system(out, holes, ys, xs)
     if solver == "lu" or (solver == "auto" and len(ys) <= LU_MAX_PIXELS):
@@ -92,6 +97,8 @@ def _laplace_system(values: np.ndarray, holes: np.ndarray, ys: np.ndarray, xs: n
 def _rows_to_csr(columns: np.ndarray, data: np.ndarray, n_columns: int) -> scipy.sparse.csr_matrix:
     """The CSR matrix whose row ``i`` holds ``data[i, j]`` at column ``columns[i, j]`` for every
     ``j`` with ``columns[i, j] >= 0`` (``(n, k)`` arrays; -1: no entry)."""
+    import scipy.sparse
+
     present = columns >= 0
     indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
     return scipy.sparse.csr_matrix((data[present], columns[present], indptr), shape=(len(columns), n_columns))
@@ -130,6 +137,8 @@ def _multigrid_cg(A: scipy.sparse.csr_matrix, b: np.ndarray, ys: np.ndarray, xs:
     preconditioned with one V-cycle: Galerkin coarse levels ``P^T A P`` on grids of every other row and
     column (:func:`_coarser`), two damped-Jacobi sweeps before and after each coarse correction
     (damping ``4 / 3`` over the Gershgorin bound of ``D^-1 A``), a sparse LU on the coarsest level."""
+    import scipy.sparse.linalg
+
     system = A
     ys, xs = ys.astype(np.int32), xs.astype(np.int32)  # (H * W < 2 ** 31)
     levels = []  # (A, omega / diagonal, P to the next level)

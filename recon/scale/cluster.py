@@ -1,8 +1,8 @@
 """Where the work runs: a local Dask cluster sized to this machine, or a scheduler by address.
 
 Sizing a local cluster for lfrig's kernels: the hot loops are numba ``parallel=True`` kernels that
-hold the GIL (they are not ``nogil``), and the rest (PNG decoding, OpenCV filters, PLY export) is
-mostly single-threaded. So workers are **processes** with **one task thread each**, as many as there
+hold the GIL (all but the nine-view search's are not ``nogil``), and the rest (PNG decoding, OpenCV
+filters, PLY export) is mostly single-threaded. So workers are **processes** with **one task thread each**, as many as there
 are cores (fewer when there are fewer captures than cores), and each worker's numba gets
 ``cores // workers`` threads (``NUMBA_NUM_THREADS``): on 2 cores, 2 workers x 1 numba thread for a
 batch, 1 worker x 2 numba threads for a single capture. Nothing is oversubscribed and every core is
