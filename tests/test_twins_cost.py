@@ -160,14 +160,18 @@ def test_min_window_costs_is_bit_identical_to_reference_for_any_thread_count():
             gray = np.round(rng.random((9, 9, H, W)) * 8).astype(np.float32) / 8  # ties between windows
             K = len(windows)
             for allowed in (np.ones((K, 1, 1), bool), rng.random((K, H, W)) < 0.1, np.eye(K, 1, 3, bool)[:, :, None]):
-                for d in (0.37, -2.6, 9.0):  # 9.0: the outer views clamped whole
-                    ref = min_window_costs_reference(gray, d, allowed=allowed, view_mask=mask, **shared)
-                    for n in sorted({1, threads}):
-                        numba.set_num_threads(n)
-                        fast = min_window_costs(gray, d, allowed=allowed, view_mask=mask, **shared)
-                        np.testing.assert_array_equal(fast.view(np.uint32), ref.view(np.uint32))
+                disparities = (0.37, -2.6, 9.0)  # 9.0: the outer views clamped whole
+                ref = [min_window_costs_reference(gray, d, allowed=allowed, view_mask=mask, **shared)
+                       for d in disparities]
+                for n in sorted({1, threads}):
+                    numba.set_num_threads(n)
+                    for group in (disparities, disparities[1:], disparities[:1]):  # each with every group
+                        fast = min_window_costs(gray, np.array(group), allowed=allowed, view_mask=mask, **shared)
+                        for i, d in enumerate(group):
+                            expected = ref[disparities.index(d)]
+                            np.testing.assert_array_equal(fast[i].view(np.uint32), expected.view(np.uint32))
                 nothing = ~allowed.any(axis=0) & np.ones((H, W), bool)
-                assert np.isinf(fast[nothing]).all()  # no window allowed: 1e300, inf in float32
+                assert np.isinf(fast[0][nothing]).all()  # no window allowed: 1e300, inf in float32
     finally:
         numba.set_num_threads(threads)
 
@@ -179,10 +183,10 @@ def test_min_window_costs_on_every_view_of_another_grid():
     shared = _min_window_inputs(windows, grid=(5, 7))
     gray = rng.random((5, 7, 17, 19)).astype(np.float32)
     allowed = rng.random((len(windows), 17, 19)) < 0.5
-    for d in (0.0, 1.3):
-        fast = min_window_costs(gray, d, allowed=allowed, **shared)
+    fast = min_window_costs(gray, np.array([0.0, 1.3]), allowed=allowed, **shared)
+    for i, d in enumerate((0.0, 1.3)):
         ref = min_window_costs_reference(gray, d, allowed=allowed, **shared)
-        np.testing.assert_array_equal(fast.view(np.uint32), ref.view(np.uint32))
+        np.testing.assert_array_equal(fast[i].view(np.uint32), ref.view(np.uint32))
 
 
 def test_min_window_line_search_keeps_the_int64_sums_where_float64_would_not_hold_them():

@@ -517,35 +517,38 @@ def _window_reach(rects):
 # nogil (here and in the first phase's other kernels): the warm-up's later imports run beside it
 # (recon.methods.warm_in_background)
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order,
+def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks, set_from, set_order,
                              window_set, rects, counts, allowed, n_chunks, out):
-    # The whole chain block_abs_diff -> set_integrals -> min_window_cost_reference for one
-    # candidate, without the images in between. The rows are dealt out in n_chunks chunks; a chunk
-    # walks down its rows keeping a ring of the set images' last rows (each pixel's set value
-    # rounded to a multiple of 1 / FIXED_POINT as set_integrals does, held as an integer-valued
-    # float64) and each window's column sums over its rows (a row added below, one taken away
-    # above). Those are exact integers: the caller makes sure every window sum stays below 2^53,
-    # where float64 adds and subtracts integers exactly, so a window's sum is the integer the
-    # summed-area tables give, in any order, and its cost (min_window_cost_reference's float64
-    # expression) the same bits. A set whose blocks begin with another set's (set_from, -1: none)
-    # continues that set's float64 sum: the same additions in the same order (set_order puts that
-    # set first). Rows at a chunk's edge are made by both chunks next to it; no value depends on
-    # the chunking.
+    # The whole chain block_abs_diff -> set_integrals -> min_window_cost_reference for each of
+    # the G candidates disparities (G,) into out (G, H, W), without the images in between. The
+    # rows are dealt out in n_chunks chunks; a chunk walks down its rows keeping, per candidate, a
+    # ring of the set images' last rows (each pixel's set value rounded to a multiple of
+    # 1 / FIXED_POINT as set_integrals does, held as an integer-valued float64) and each window's
+    # column sums over its rows (a row added below, one taken away above). A row comes in for
+    # every candidate in turn, so the few source rows of the views that the candidates' shifts
+    # read come from memory once for the group. The sums are exact integers: the caller makes
+    # sure every window sum stays below 2^53, where float64 adds and subtracts integers exactly,
+    # so a window's sum is the integer the summed-area tables give, in any order, and its cost
+    # (min_window_cost_reference's float64 expression) the same bits. A set whose blocks begin
+    # with another set's (set_from, -1: none) continues that set's float64 sum: the same additions
+    # in the same order (set_order puts that set first). Rows at a chunk's edge are made by both
+    # chunks next to it; no value depends on the chunking or the grouping.
     H = gray.shape[2]
     W = gray.shape[3]
     S = set_blocks.shape[0]
     K = rects.shape[0]
     up, down = _window_reach(rects)
     R = up + down + 2  # and the row just above the windows, taken away from the column sums
+    G = disparities.shape[0]
     per_pixel = allowed.shape[1] > 1 or allowed.shape[2] > 1  # (K, H, W), or (K, 1, 1) for all alike
     for chunk in numba.prange(n_chunks):
         c0 = chunk * H // n_chunks
         c1 = (chunk + 1) * H // n_chunks
-        ring = np.empty((R, S, W), np.float64)
+        rings = np.empty((G, R, S, W), np.float64)
         acc = np.empty((1, N_BLOCKS, W), np.float32)
         rv = np.empty((2, W), np.float32)
         sums = np.empty((S, W), np.float64)
-        cols = np.empty((K, W), np.float64)
+        all_cols = np.empty((G, K, W), np.float64)
         tot = np.empty(W, np.float64)
         pairs = np.empty(W, np.float64)
         zero = np.zeros(W, np.float64)
@@ -553,96 +556,100 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, set_bloc
         nxt = max(c0 - up, 0)  # the next row to put in the ring
         for y in range(c0, c1):
             while nxt <= min(y + down, H - 1):
-                acc[:] = 0.0
-                _block_rows(gray, vu, vv, vdu, vdv, vblock, disparity, nxt, acc, rv)
-                slot = ring[nxt % R]
-                for i in range(S):
-                    s = set_order[i]
-                    v = _set_sum(acc[0], set_blocks, set_from, s, sums)
-                    fixed = slot[s]
-                    for x in range(W):
-                        fixed[x] = np.floor(v[x] * FIXED_POINT + 0.5)
+                for g in range(G):
+                    acc[:] = 0.0
+                    _block_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], nxt, acc, rv)
+                    slot = rings[g, nxt % R]
+                    for i in range(S):
+                        s = set_order[i]
+                        v = _set_sum(acc[0], set_blocks, set_from, s, sums)
+                        fixed = slot[s]
+                        for x in range(W):
+                            fixed[x] = np.floor(v[x] * FIXED_POINT + 0.5)
                 nxt += 1
-            for x in range(W):
-                best[x] = 1e300
-            for k in range(K):
-                if not per_pixel and not allowed[k, 0, 0]:
-                    continue
-                s = window_set[k]
-                ya = max(y + rects[k, 0], 0)
-                yb = min(y + rects[k, 1], H - 1) + 1
-                col = cols[k]
-                if y == c0:
-                    f = ring[ya % R, s]
-                    for x in range(W):
-                        col[x] = f[x]
-                    for r in range(ya + 1, yb):
-                        f = ring[r % R, s]
-                        for x in range(W):
-                            col[x] += f[x]
-                else:
-                    if y + rects[k, 0] - 1 >= 0:  # the row that left the window, then the new one
-                        f = ring[(y + rects[k, 0] - 1) % R, s]
-                        for x in range(W):
-                            col[x] -= f[x]
-                    if y + rects[k, 1] <= H - 1:
-                        f = ring[(y + rects[k, 1]) % R, s]
-                        for x in range(W):
-                            col[x] += f[x]
-                ck = counts[k]
-                ra = rects[k, 2]
-                rb = rects[k, 3]
-                # [lo, hi): the window's columns inside the image; there the sums run over slices
-                # indexed from 0 and vectorise
-                lo = min(max(-ra, 0), W)
-                hi = min(max(W - 1 - rb, lo), W)
-                for e in range(lo + W - hi):  # the pixels whose window the left or right edge cuts
-                    x = e if e < lo else hi + e - lo
-                    if per_pixel and not allowed[k, y, x]:
+            for g in range(G):
+                ring = rings[g]
+                cols = all_cols[g]
+                for x in range(W):
+                    best[x] = 1e300
+                for k in range(K):
+                    if not per_pixel and not allowed[k, 0, 0]:
                         continue
-                    xa = max(x + ra, 0)
-                    xb = min(x + rb, W - 1) + 1
-                    total = 0.0
-                    for j in range(xa, xb):
-                        total += col[j]
-                    c = total * FIXED_INV / ((yb - ya) * (xb - xa) * ck)
-                    if c < best[x]:
-                        best[x] = c
-                n = hi - lo
-                if n > 0:  # the window's columns as pairs (a, b: the last two; the rest in tot) and one (c)
-                    width = rb - ra + 1
-                    n_pairs = width // 2
-                    a = zero[:n]
-                    b = zero[:n]
-                    c1 = col[lo + rb:hi + rb] if width % 2 else zero[:n]
-                    if n_pairs > 0:
-                        for x in range(W - 1):
-                            pairs[x] = col[x] + col[x + 1]
-                        b = pairs[lo + ra + 2 * (n_pairs - 1):hi + ra + 2 * (n_pairs - 1)]
-                    if n_pairs > 1:
-                        a = pairs[lo + ra:hi + ra]
-                    if n_pairs > 2:
-                        head = tot[:n]
-                        for i in range(n):
-                            head[i] = a[i]
-                        for q in range(1, n_pairs - 1):
-                            nb = pairs[lo + ra + 2 * q:hi + ra + 2 * q]
-                            for i in range(n):
-                                head[i] += nb[i]
-                        a = head
-                    bs = best[lo:hi]
-                    denom = (yb - ya) * width * ck
-                    if per_pixel:
-                        al = allowed[k, y, lo:hi]
-                        for i in range(n):  # & not and: no branch, the loop vectorises
-                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
-                            bs[i] = c if al[i] & (c < bs[i]) else bs[i]
+                    s = window_set[k]
+                    ya = max(y + rects[k, 0], 0)
+                    yb = min(y + rects[k, 1], H - 1) + 1
+                    col = cols[k]
+                    if y == c0:
+                        f = ring[ya % R, s]
+                        for x in range(W):
+                            col[x] = f[x]
+                        for r in range(ya + 1, yb):
+                            f = ring[r % R, s]
+                            for x in range(W):
+                                col[x] += f[x]
                     else:
-                        for i in range(n):
-                            c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
-                            bs[i] = c if c < bs[i] else bs[i]
-            for x in range(W):
-                out[y, x] = best[x]
+                        if y + rects[k, 0] - 1 >= 0:  # the row that left the window, then the new one
+                            f = ring[(y + rects[k, 0] - 1) % R, s]
+                            for x in range(W):
+                                col[x] -= f[x]
+                        if y + rects[k, 1] <= H - 1:
+                            f = ring[(y + rects[k, 1]) % R, s]
+                            for x in range(W):
+                                col[x] += f[x]
+                    ck = counts[k]
+                    ra = rects[k, 2]
+                    rb = rects[k, 3]
+                    # [lo, hi): the window's columns inside the image; there the sums run over slices
+                    # indexed from 0 and vectorise
+                    lo = min(max(-ra, 0), W)
+                    hi = min(max(W - 1 - rb, lo), W)
+                    for e in range(lo + W - hi):  # the pixels whose window the left or right edge cuts
+                        x = e if e < lo else hi + e - lo
+                        if per_pixel and not allowed[k, y, x]:
+                            continue
+                        xa = max(x + ra, 0)
+                        xb = min(x + rb, W - 1) + 1
+                        total = 0.0
+                        for j in range(xa, xb):
+                            total += col[j]
+                        c = total * FIXED_INV / ((yb - ya) * (xb - xa) * ck)
+                        if c < best[x]:
+                            best[x] = c
+                    n = hi - lo
+                    if n > 0:  # the window's columns as pairs (a, b: the last two; the rest in tot) and one (c)
+                        width = rb - ra + 1
+                        n_pairs = width // 2
+                        a = zero[:n]
+                        b = zero[:n]
+                        c1 = col[lo + rb:hi + rb] if width % 2 else zero[:n]
+                        if n_pairs > 0:
+                            for x in range(W - 1):
+                                pairs[x] = col[x] + col[x + 1]
+                            b = pairs[lo + ra + 2 * (n_pairs - 1):hi + ra + 2 * (n_pairs - 1)]
+                        if n_pairs > 1:
+                            a = pairs[lo + ra:hi + ra]
+                        if n_pairs > 2:
+                            head = tot[:n]
+                            for i in range(n):
+                                head[i] = a[i]
+                            for q in range(1, n_pairs - 1):
+                                nb = pairs[lo + ra + 2 * q:hi + ra + 2 * q]
+                                for i in range(n):
+                                    head[i] += nb[i]
+                            a = head
+                        bs = best[lo:hi]
+                        denom = (yb - ya) * width * ck
+                        if per_pixel:
+                            al = allowed[k, y, lo:hi]
+                            for i in range(n):  # & not and: no branch, the loop vectorises
+                                c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
+                                bs[i] = c if al[i] & (c < bs[i]) else bs[i]
+                        else:
+                            for i in range(n):
+                                c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
+                                bs[i] = c if c < bs[i] else bs[i]
+                for x in range(W):
+                    out[g, y, x] = best[x]
 
 
 #: Largest window sum, in units of ``1 / FIXED_POINT``, that :func:`min_window_costs` adds up in
@@ -664,21 +671,40 @@ def min_window_costs_reference(gray: np.ndarray, disparity: float, *, sets: np.n
     return min_window_cost_reference(integrals, window_set, rects, counts, np.moveaxis(allowed, 0, -1))
 
 
-def min_window_costs(gray: np.ndarray, disparity: float, *, sets: np.ndarray, window_set: np.ndarray,
+def min_window_costs(gray: np.ndarray, disparities: np.ndarray, *, sets: np.ndarray, window_set: np.ndarray,
                      rects: np.ndarray, counts: np.ndarray, allowed: np.ndarray,
                      view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
-    """Compiled twin of :func:`min_window_costs_reference` (same arguments and map, bit for bit;
-    ``gray`` contiguous float32, ``counts`` float64, ``allowed`` a contiguous bool array), written
-    into ``out`` when given. One pass over the rows, with none of the ``(9, H, W)`` block images
-    or ``(S, H + 1, W + 1)`` tables in memory."""
+    """``(G, H, W)`` float32: :func:`min_window_costs_reference`'s map at each of the ``G``
+    ``disparities`` (compiled twin, bit for bit; ``gray`` contiguous float32, ``counts`` float64,
+    ``allowed`` a contiguous bool array), written into ``out`` when given. One pass over the rows
+    for the group, with none of the ``(9, H, W)`` block images or ``(S, H + 1, W + 1)`` tables in
+    memory; groups of :func:`min_window_group` candidates read the views' rows once for all."""
     U, V, H, W = gray.shape
+    disparities = np.asarray(disparities, np.float32)
     if out is None:
-        out = np.empty((H, W), np.float32)
+        out = np.empty((len(disparities), H, W), np.float32)
     n_chunks = max(1, min(numba.get_num_threads(), H))
-    _min_window_costs_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity),
+    _min_window_costs_kernel(gray, *_view_lists((U, V), view_mask), disparities,
                              *_set_sums_plan(np.asarray(sets)), window_set, rects, counts, allowed,
                              n_chunks, out)
     return out
+
+
+#: Bytes of the rings of set rows and the column sums the candidates of one group of
+#: :func:`min_window_costs` keep per thread (:func:`min_window_group`): within a core's L2 cache.
+#: On backgammon (512 px wide, 315 KB a candidate) two candidates a group take the nine-view
+#: search 0.60-0.65 -> 0.48-0.51 s CPU on one thread; on the demo capture (1198 px, 737 KB) two
+#: took it 1.80-2.08 -> 2.01-2.44 s, where one candidate's rows alone fill the cache.
+MIN_WINDOW_GROUP_BYTES = 768 * 1024
+
+
+def min_window_group(width: int, *, n_sets: int, n_windows: int, rects: np.ndarray) -> int:
+    """How many candidates of a ``width``-pixel wide image :func:`min_window_costs` takes at once:
+    as many as keep their rings of ``n_sets`` set rows (the rows the windows ``rects`` reach, and
+    one) and ``n_windows`` column sums within :data:`MIN_WINDOW_GROUP_BYTES` (at least one)."""
+    ring_rows = max(int(-rects[:, 0].min()), 0) + max(int(rects[:, 1].max()), 0) + 2  # as the kernel's
+    per_candidate = 8 * width * (ring_rows * n_sets + n_windows)
+    return max(MIN_WINDOW_GROUP_BYTES // per_candidate, 1)
 
 
 def _set_sums_plan(sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

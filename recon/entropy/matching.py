@@ -15,7 +15,7 @@ import numpy as np
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
                                 WindowCost, _ring_table_rows, _set_sums_plan, _view_lists, _window_reach,
                                 block_abs_diff, block_abs_diff_reference, cost_ambiguity, min_window_costs,
-                                min_window_costs_reference, set_view_counts, window_sum_bound)
+                                min_window_costs_reference, min_window_group, set_view_counts, window_sum_bound)
 from recon.entropy.layout import offer_runs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
@@ -32,7 +32,7 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     bool, every pixel allowed at least one window) over the windows allowed at the pixel only. Returns ``(disparity, cost)``,
     ``(H, W)`` float32, with the parabolic sub-step refinement of :func:`subpixel_argmin`, and
     with ``ambiguity_delta`` also :func:`cost_ambiguity` of the cost curves. ``progress(fraction)``
-    is called after each candidate.
+    is called after each group of candidates (:func:`recon.entropy.cost.min_window_group`).
     """
     U, V, H, W = gray.shape
     counts = set_view_counts((U, V), view_mask)
@@ -50,16 +50,18 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
         allowed = np.ascontiguousarray(np.moveaxis(allowed, 2, 0), dtype=np.bool_)
     exact = window_sum_bound(gray, rects=rects, view_mask=view_mask) < EXACT_FLOAT_SUM
     costs = np.empty((len(candidates), H, W), np.float32)
-    for i, d in enumerate(candidates):
+    group = min_window_group(W, n_sets=len(sets), n_windows=len(windows), rects=rects) if exact else 1
+    for i in range(0, len(candidates), group):
+        j = min(i + group, len(candidates))
         if exact:
-            min_window_costs(gray, float(d), sets=sets, window_set=window_set, rects=rects, counts=wcounts,
-                             allowed=allowed, view_mask=view_mask, out=costs[i])
+            min_window_costs(gray, candidates[i:j], sets=sets, window_set=window_set, rects=rects, counts=wcounts,
+                             allowed=allowed, view_mask=view_mask, out=costs[i:j])
         else:  # sums beyond float64's integers: the int64 tables
-            costs[i] = min_window_costs_reference(gray, float(d), sets=sets, window_set=window_set,
+            costs[i] = min_window_costs_reference(gray, float(candidates[i]), sets=sets, window_set=window_set,
                                                   rects=rects, counts=wcounts, allowed=allowed,
                                                   view_mask=view_mask)
         if progress is not None:
-            progress((i + 1) / len(candidates))
+            progress(j / len(candidates))
     disparity, best = subpixel_argmin(costs, candidates)
     if ambiguity_delta is not None:
         return disparity, best, cost_ambiguity(costs, ambiguity_delta)

@@ -23,8 +23,8 @@ import importlib
 #: (module, kernel, argument types), in the order of the estimate's first calls.
 KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.cost", "_min_window_costs_kernel",
-     "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32 int64:2 int64:1 int64:1 int64:1 int64:2 "
-     "float64:1 bool:3 int64 float32:2"),
+     "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32:1 int64:2 int64:1 int64:1 int64:1 int64:2 "
+     "float64:1 bool:3 int64 float32:3"),
     ("recon.entropy.matching", "_subpixel_argmin_kernel", "float32:3 float64:1 float64 float32:2 float32:2"),
     ("recon.entropy.cost", "_cost_ambiguity_kernel", "float32:3 float32 int32:2"),
     # the first phase (the nine-view search) calls the kernels above, the later phases those below
