@@ -58,6 +58,15 @@ def test_select_windows_with_many_bins_matches_reference():
                                              rng.integers(0, 40, (17, 19)), labels)
 
 
+def test_select_windows_with_bins_beyond_16_bits_matches_reference():
+    # 2 n_grey + n_disp > 2**16: the bins are held in 32 bits, not 16
+    rng = seeded()
+    labels = rng.choice([OCCLUDING, OCCLUDED, TEXTURE, SMOOTH], (17, 19)).astype(np.uint8)
+    grey = rng.integers(0, 256, (17, 19))
+    grey[0, 0] = 40_000
+    _assert_select_windows_matches_reference(grey, rng.integers(0, 40, (17, 19)), labels)
+
+
 def test_window_avoids_a_disparity_edge():
     rng = seeded()
     grey = rng.integers(0, 8, (31, 31))  # texture whose grey entropy saturates (ln 8)

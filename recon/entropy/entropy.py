@@ -116,7 +116,8 @@ def select_windows_reference(grey_q, disp_q, labels, *, sizes, alpha1, alpha2_oc
 
 @numba.njit(cache=True)
 def _add(counts, k, s, xlogx):
-    # counts uint32 and k unsigned: no index below is negative, so numba adds no wrap-around
+    # counts uint32 and k unsigned (a uint16 or uint32 bin): no index below is negative, so numba
+    # adds no wrap-around
     c = counts[k]
     counts[k] = c + np.uint32(1)
     return s + xlogx[c + np.uint32(1)] - xlogx[c]
@@ -339,7 +340,7 @@ def _select_kernel(bins, labels, rects, sizes_n, alpha1, a2_occl, a2_other, n_gr
     # ``row_values[(y - row_first) * W * K]`` (the rows of ``order`` from ``row_first`` on, a band
     # of them), the count per pixel in ``counts``, the bit of window k in ``mask`` (np.packbits'
     # order), in the order of the windows. The per-pixel loops index with unsigned values only
-    # (uint32 bins and counts, the ring's offsets shifted by ring_shift to uint64), so numba adds
+    # (uint16 or uint32 bins, uint32 counts, the ring's offsets shifted by ring_shift to uint64), so numba adds
     # no wrap-around of negative indices to their loads (a sign test and an add per load, and the
     # registers they took: backgammon 1.37 -> 0.80 s on one thread). Each pixel's three bins sit
     # together in ``bins`` and a window's three histograms in one array, and a window's log n is
@@ -477,8 +478,9 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     n_grey = int(grey_q.max()) + 1
     n_disp = int(disp_q.max()) + 1
     # each pixel's bins in a window's histograms, one array of three parts: grey, disparity and
-    # mismatched grey
-    bins = np.empty((H * W, 3), np.uint32)
+    # mismatched grey, 16 bits each where the histograms' 2 n_grey + n_disp bins allow (6 bytes a
+    # pixel instead of 12: the rows a window reads are half as many cache lines)
+    bins = np.empty((H * W, 3), np.uint16 if 2 * n_grey + n_disp <= 2 ** 16 else np.uint32)
     bins[:, 0] = grey_q.ravel()
     bins[:, 1] = disp_q.ravel() + n_grey
     bins[:, 2] = bins[:, 0] + (n_grey + n_disp)
@@ -486,13 +488,13 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     xlogx = np.where(c > 0, c * np.log(np.maximum(c, 1)), 0.0)
     shape_map = np.zeros((H, W), np.int64)
     size_map = np.zeros((H, W), np.int64)
-    best_e = np.zeros((H, W), np.float64)
+    best_e = np.zeros((H, W), np.float32)
     K = n_shapes * len(sizes)
     if return_all not in (False, True, "sparse"):
         raise ValueError(f"return_all must be False, True or 'sparse', got {return_all!r}")
     dense = return_all is True
     all_e = np.full((H, W, K) if dense else (0, 0, 0), -np.inf, np.float32)
-    counts = np.zeros(H * W, np.int64)
+    start = np.zeros(H * W + 1, np.int64)  # the kernel counts each pixel's values in start[1:]
     mask = np.zeros((H, W, (K + 7) // 8), np.uint8)
     if side_radius is None:
         side_radius = np.full((H, W), np.iinfo(np.int64).max // 2, np.int64)
@@ -505,22 +507,27 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
             np.full((H, W), max(sizes), np.int64) if max_size is None
             else np.ascontiguousarray(np.broadcast_to(max_size, (H, W)), np.int64))
     band = max(1, min(H, int(SELECT_BAND_MIB * 2 ** 20 // (W * K * 4))))
-    parts = []  # each band's values, packed
+    counts = start[1:]
+    values = np.empty(0, np.float32)  # the bands' values, packed
     for y0 in range(0, H, band):
         n = min(band, H - y0)
         row_values = np.empty(n * W * K, np.float32)  # only the pages a row's values fill are touched
         _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, paired, shape_map,
                        size_map, best_e, all_e, dense, row_values, y0, counts, mask)
-        per_row = counts[y0 * W:(y0 + n) * W].reshape(n, W).sum(axis=1)
-        parts.append(np.concatenate([row_values[i * W * K:i * W * K + per_row[i]] for i in range(n)]))
+        if return_all == "sparse":
+            per_row = counts[y0 * W:(y0 + n) * W].reshape(n, W).sum(axis=1)
+            end = values.size
+            # grown in place (realloc; a large block's pages are remapped, not copied), so that
+            # the packed values are not held twice, as a list of parts and joined
+            values.resize(end + int(per_row.sum()), refcheck=False)
+            for i, m in enumerate(per_row.tolist()):
+                values[end:end + m] = row_values[i * W * K:i * W * K + m]
+                end += m
         del row_values
     if dense:
-        return shape_map, size_map, best_e.astype(np.float32), all_e
+        return shape_map, size_map, best_e, all_e
     if return_all == "sparse":
-        start = np.zeros(H * W + 1, np.int64)
-        np.cumsum(counts, out=start[1:])
-        values = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        del parts
-        return (shape_map, size_map, best_e.astype(np.float32),
-                SparseVolume((H, W, K), float(-np.inf), mask, start, values))
-    return shape_map, size_map, best_e.astype(np.float32)
+        del maps, bins  # not alive beside the volume's offsets
+        np.cumsum(counts, out=counts)
+        return shape_map, size_map, best_e, SparseVolume((H, W, K), float(-np.inf), mask, start, values)
+    return shape_map, size_map, best_e

@@ -31,8 +31,8 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.median", "_median_kernel", "float32:2 int64:1 int64:1 int64:2 int64 float32:2"),
     ("recon.entropy.regions", "_occlusion_kernel", "float32:2 float64:2 float32 int64 int64 float32:2 float32:2"),
     ("recon.entropy.entropy", "_select_kernel",
-     "uint32:1 uint8:2 int64:3 int64:1 float64 float64 float64 int64 int64 float64:1 int64:2:ro float32:2 "
-     "float64 int64:2:ro int64:1 int64 uint64:2 int64:2 bool:1 int64:2 int64:2 float64:2 float32:3 bool float32:1 int64 "
+     "uint16:1 uint8:2 int64:3 int64:1 float64 float64 float64 int64 int64 float64:1 int64:2:ro float32:2 "
+     "float64 int64:2:ro int64:1 int64 uint64:2 int64:2 bool:1 int64:2 int64:2 float32:2 float32:3 bool float32:1 int64 "
      "int64:1 uint8:3"),
     ("recon.entropy.volume", "_window_major_kernel", "uint8:3 int64:1 float32:1 int64 int64 float32 float32:3"),
     ("recon.entropy.layout", "_offer_runs_kernel", "float32:3 bool:2 int64:1"),

@@ -255,7 +255,7 @@ def flat_pixels(centre: np.ndarray, *, size: int, tolerance: float,
 def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_median: int,
                   smooth_neighbourhood: int, smooth_tolerance: float, occlusion_views: str = "all",
                   keep: np.ndarray | None = None, fast: bool = True,
-                  noise: float | None = None) -> tuple[np.ndarray, dict]:
+                  noise: float | None = None, flat: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Region map of Eq. 8 for the centre view.
 
     Parameters
@@ -276,11 +276,16 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
         ``(H, W)`` bool: pixels whose ``d0`` enters the layer map unfiltered (:func:`layer_map`).
     noise
         Noise sigma of the centre view (grey units); default: estimated from it (:func:`noise_sigma`).
+    flat
+        ``(H, W)`` bool: Eq. 12's flat pixels of the centre view when they are known already
+        (:func:`flat_pixels` with ``smooth_neighbourhood``, ``smooth_tolerance`` and ``noise``);
+        default: tested here.
 
     Returns
     -------
     ``(labels, info)``: ``(H, W)`` uint8 labels 0..3, and a dict with ``diff_occluded``,
-    ``diff_occluding`` (``(H, W)`` float32), ``psi`` and ``noise_sigma``.
+    ``diff_occluding`` (``(H, W)`` float32) and ``layers``, and unless ``flat`` was given
+    :func:`flat_pixels`' ``psi``, ``noise_sigma`` and ``smooth_tolerance_abs``.
     """
     U, V = gray.shape[:2]
     u0, v0 = U // 2, V // 2
@@ -291,8 +296,10 @@ def region_labels(gray: np.ndarray, d0: np.ndarray, *, layer_gap: float, layer_m
     layers = layer_map(d0, median_size=layer_median, keep=keep)
     diffs = occlusion_diffs if fast else occlusion_diffs_reference
     neg, pos = diffs(layers, offsets, layer_gap=layer_gap)
-    flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance,
-                                  sigma=noise)
+    flat_info = {}
+    if flat is None:
+        flat, flat_info = flat_pixels(gray[u0, v0], size=smooth_neighbourhood, tolerance=smooth_tolerance,
+                                      sigma=noise)
     labels = np.full(d0.shape, TEXTURE, np.uint8)
     labels[flat] = SMOOTH
     occluded = neg < 0

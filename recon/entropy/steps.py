@@ -26,7 +26,8 @@ from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limit
                                  weak_texture_pixels)
 from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
-from recon.entropy.regions import flat_pixels, jump_distance, layer_jumps, layer_map, region_labels
+from recon.entropy.regions import (flat_pixels, jump_distance, layer_jumps, layer_map, region_labels,
+                                   smooth_tolerance_abs)
 from recon.entropy.state import Reach, State, Step
 from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
@@ -249,16 +250,19 @@ def view_filters_reach(options: EntropyOptions, reach: Reach) -> int:
 
 def regions_step(s: State) -> None:
     """``s.labels`` (Eqs. 8-11) and ``s.region_info``: the layer map (for the window selection) and
-    the noise figures; the rest of :func:`recon.entropy.regions.region_labels`' info (Eq. 12's
-    ``psi``, the occlusion differences: 46 MiB at 2000x1500) has no reader and is let go."""
+    the noise figures; Eq. 12's smooth region is ``s.flat`` (:func:`flat_step`, the same test on
+    the same centre view), and the rest of :func:`recon.entropy.regions.region_labels`' info (the
+    occlusion differences: 23 MiB at 2000x1500) has no reader and is let go."""
     o = s.options
     s.lap("initial")
     s.reporter.step("regions", "region types")
     s.labels, info = region_labels(
         s.raw, s.d0, layer_gap=o.layer_gap, layer_median=o.layer_median,
         smooth_neighbourhood=o.smooth_neighbourhood, smooth_tolerance=o.smooth_tolerance,
-        occlusion_views=o.occlusion_views, noise=s.noise_sigma, keep=_layer_keep(s.ambiguity0, s.flat, o))
-    s.region_info = {key: info[key] for key in ("layers", "noise_sigma", "smooth_tolerance_abs")}
+        occlusion_views=o.occlusion_views, noise=s.noise_sigma, keep=_layer_keep(s.ambiguity0, s.flat, o),
+        flat=s.flat)
+    s.region_info = {"layers": info["layers"], "noise_sigma": s.noise_sigma,
+                     "smooth_tolerance_abs": smooth_tolerance_abs(o.smooth_tolerance, s.noise_sigma)}
     s.lap("regions")
 
 

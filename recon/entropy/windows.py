@@ -143,7 +143,8 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     sizes = tuple(sorted(int(s) for s in sizes))
     m = np.asarray(layers, np.float64)
     ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
-    unmeasured = (np.zeros(m.shape) if measured is None
+    # None: every pixel measured, no square blind (the filters of a map of zeros would give zeros)
+    unmeasured = (None if measured is None or np.all(measured)
                   else (~np.asarray(measured, bool)).astype(np.float64))
     tol = np.full(m.shape, float(tolerance))
     if noise_factor > 0 and initial is not None:
@@ -156,8 +157,9 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     cap = np.full(m.shape, sizes[0], np.int64)
     allowed = np.ones(m.shape, bool)
     for size in sizes[1:]:
-        dev = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref)
-        blind = ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25
-        allowed &= (dev <= tol) | blind
+        ok = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref) <= tol
+        if unmeasured is not None:
+            ok |= ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25  # blind
+        allowed &= ok
         cap[allowed] = size
     return cap
