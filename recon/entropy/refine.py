@@ -674,6 +674,9 @@ def _centroid_kernel(d, rects, max_residual, max_shift, out):
             yb = min(y + rects[y, x, 1], H - 1) + 1
             xa = max(x + rects[y, x, 2], 0)
             xb = min(x + rects[y, x, 3], W - 1) + 1
+            if ya + yb - 1 == 2 * y and xa + xb - 1 == 2 * x:  # centred on the pixel: nothing to move
+                out[y, x] = d[y, x]
+                continue
             s1 = 0.0
             sy = 0.0
             sx = 0.0
