@@ -47,7 +47,6 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.refine", "_tv_blocks",
      "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64:1 int64 int64:1 "
      "uint64:1 uint64:1"),
-    ("recon.entropy.median", "_median_kernel", "float64:2 int64:1 int64:1 int64:2 int64 float64:2"),
 )
 
 
