@@ -361,7 +361,7 @@ def _tv_primal(f, mask, weight, mu, div, tau):
     return (v + w * f) / (1 + w) if mask else f
 
 
-# A row's three loops over x (_tv_row), each a function of its own: LLVM vectorises them so (sqrt
+# A row's loops over x (_tv_row), in two functions of their own: LLVM vectorises them so (sqrt
 # and division packed, which round exactly as the scalar ones: the same values), not inlined into
 # the sweep. The numpy error model leaves out the test for a zero divisor, which would keep the
 # loops scalar (there is none: the norm is at least 1, and so is 1 + w). Each runs over the runs
