@@ -143,6 +143,18 @@ def test_box_spread_in_bands_is_the_whole_images():
         _BoxSpread(lambda a, b: clean[a:b], clean.shape).rows(3, 6)
 
 
+def _probability_inputs(result, *, refined):
+    """The arguments of probability_right from an estimate's result, with the final map ``refined``."""
+    o = result.options
+    return dict(refined=refined, matched=result.matched_disparity, initial=result.initial_disparity,
+                ambiguity=result.info["ambiguity"], labels=result.labels, holes=result.info["holes"],
+                noise_limited=result.info["noise_limited"], window_size=result.window_size,
+                cost=matching_cost(result.cost, result.entropy, lambda_entropy=o.lambda_entropy,
+                                   intensity_scale=o.intensity_scale),
+                entropy=result.entropy, noise_sigma=result.info["noise_sigma"], step=o.step,
+                disparity_range=result.disparity_range)
+
+
 def test_confidence_in_bands_is_the_whole_images(monkeypatch):
     """Features, heuristic and probability made in bands of 5 rows (halos of 11 rows: the jump
     distance's reach) equal those made in one band of the whole image, bit for bit, with holes,
@@ -153,13 +165,7 @@ def test_confidence_in_bands_is_the_whole_images(monkeypatch):
     o = result.options
     d = result.disparity.copy()
     d[np.random.default_rng(1).random(d.shape) < 0.01] = np.nan
-    maps = dict(refined=d, matched=result.matched_disparity, initial=result.initial_disparity,
-                ambiguity=result.info["ambiguity"], labels=result.labels, holes=result.info["holes"],
-                noise_limited=result.info["noise_limited"], window_size=result.window_size,
-                cost=matching_cost(result.cost, result.entropy, lambda_entropy=o.lambda_entropy,
-                                   intensity_scale=o.intensity_scale),
-                entropy=result.entropy, noise_sigma=result.info["noise_sigma"], step=o.step,
-                disparity_range=result.disparity_range)
+    maps = _probability_inputs(result, refined=d)
     assert result.info["holes"].any()
     heuristic = confidence.confidence_map(refined=d, matched=maps["matched"], ambiguity=maps["ambiguity"],
                                           step=o.step, disparity_range=result.disparity_range, holes=maps["holes"])
@@ -177,3 +183,22 @@ def test_confidence_in_bands_is_the_whole_images(monkeypatch):
         for (name, expected), value in zip(whole.items(), got):
             np.testing.assert_array_equal(value, expected, err_msg=name)
     assert 0 < np.mean(whole["probability"] >= 0.5) < 1
+
+
+def test_one_median_serves_the_heuristic_and_the_features(monkeypatch):
+    """A finite float32 map's 5x5 median made once (``confidence.finite_median5``) gives the
+    probability, bit for bit, that each band's own medians give (the heuristic's over float64 with
+    non-finite values filled by the median, the features' over float32 with 0); a map with a
+    non-finite value, or not float32, gets none: each makes its own."""
+    from recon.entropy import calibration, confidence
+
+    result = estimate_disparity(make_scene("thin", size=96, seed=3).lf)
+    maps = _probability_inputs(result, refined=result.disparity)
+    assert result.disparity.dtype == np.float32 and confidence.finite_median5(result.disparity) is not None
+    shared = calibration.probability_right(**maps)
+    monkeypatch.setattr(calibration, "finite_median5", lambda refined: None)
+    np.testing.assert_array_equal(shared, calibration.probability_right(**maps))
+    d = result.disparity.copy()
+    d[3, 4] = np.nan
+    assert confidence.finite_median5(d) is None
+    assert confidence.finite_median5(result.disparity.astype(np.float64)) is None

@@ -50,10 +50,17 @@ def test_tv_refine_fast_agrees_with_reference():
                                                    iterations=10), rtol=0, atol=1e-7)
 
 
+def _whole_rows(H, W):
+    # tv_runs of every pixel: one run over each row
+    from recon.entropy.refine import tv_runs
+
+    return tv_runs(np.ones((H, W), bool), np.zeros((H, W)), np.zeros((H, W)))
+
+
 def test_tv_refine_in_bands_gives_the_one_thread_values():
     # The bands of rows (one per thread, exchanged every few iterations) give bit for bit what one
     # sweep over the whole image gives: 3 bands, 4 iterations between exchanges, 23 iterations.
-    from recon.entropy.refine import _tv_blocks, _tv_kernel
+    from recon.entropy.refine import _tv_blocks, _tv_kernel, tv_bands
 
     rng = np.random.default_rng(11)
     f = 0.5 + 0.1 * rng.standard_normal((61, 37))
@@ -61,9 +68,60 @@ def test_tv_refine_in_bands_gives_the_one_thread_values():
     weight = np.where(rng.random(f.shape) < 0.2, rng.uniform(0.0, 1.0, f.shape), 1.0)
     one = [f.copy(), f.copy(), np.zeros_like(f), np.zeros_like(f)]
     _tv_kernel(f, mask, weight, 0.2, 23, *one, 0, f.shape[0])
-    banded = _tv_blocks(f, mask, weight, 0.2, 23, f.copy(), f.copy(), np.zeros_like(f), np.zeros_like(f), 3, 4)
+    runs = _whole_rows(*f.shape)
+    banded = _tv_blocks(f, mask, weight, 0.2, 23, f.copy(), f.copy(), np.zeros_like(f), np.zeros_like(f),
+                        tv_bands(*runs, 3), 4, *runs)
     np.testing.assert_array_equal(banded, one[0])
     assert np.abs(one[0] - f).max() > 0.01
+
+
+def test_tv_runs_leave_out_only_values_that_cannot_change():
+    # Over the runs of a sparse mask (specks, a stretch on each image edge, pixels outside the
+    # mask that start away from their data), one sweep and the bands give the whole image's
+    # refined map bit for bit, with runs joined across gaps or not.
+    from recon.entropy.refine import _tv_blocks, _tv_kernel, _tv_wavefront, tv_bands, tv_runs
+
+    rng = np.random.default_rng(15)
+    H, W = 70, 45
+    f = 0.5 + 0.1 * rng.standard_normal((H, W))
+    mask = rng.random(f.shape) < 0.03
+    mask[20:24, 30:40] = True
+    mask[0, :6] = mask[-1, -7:] = mask[30:33, 0] = mask[40:44, -1] = True
+    weight = np.where(rng.random(f.shape) < 0.3, rng.uniform(0.0, 1.0, f.shape), 1.0)
+    start = f.copy()
+    start[rng.random(f.shape) < 0.01] += 0.2
+    one = [start.copy(), start.copy(), np.zeros_like(f), np.zeros_like(f)]
+    _tv_kernel(f, mask, weight, 0.2, 37, *one, 0, H)
+    for gap in (0, 3, 8):
+        runs = tv_runs(mask, start, f, gap=gap)
+        assert np.sum(runs[2] - runs[1]) < f.size // 3
+        wave = [start.copy(), start.copy(), np.zeros_like(f), np.zeros_like(f)]
+        _tv_wavefront(f, mask, weight, 0.2, 37, *wave, 0, H, 8, *runs)
+        np.testing.assert_array_equal(wave[0], one[0])
+        for n_bands in (2, 3):
+            banded = _tv_blocks(f, mask, weight, 0.2, 37, start.copy(), start.copy(), np.zeros_like(f),
+                                np.zeros_like(f), tv_bands(*runs, n_bands), 5, *runs)
+            np.testing.assert_array_equal(banded, one[0])
+    assert np.abs(one[0] - f)[mask].max() > 0.01
+
+
+def test_tv_runs_and_bands():
+    from recon.entropy.refine import tv_bands, tv_runs
+
+    mask = np.zeros((5, 12), bool)
+    mask[1, [2, 3, 9]] = True
+    mask[4, 0] = True
+    data = np.zeros(mask.shape)
+    start = data.copy()
+    start[3, 11] = 1.0  # outside the mask, away from its data: set to it by the first iteration
+    runs, x0, x1 = tv_runs(mask, start, data, gap=0)
+    # row 0: the pixels above the mask's; row 1: theirs and those to their left; row 3: above (4, 0)
+    assert runs.tolist() == [0, 2, 4, 4, 6, 7]
+    assert list(zip(x0.tolist(), x1.tolist())) == [(2, 4), (9, 10), (1, 4), (8, 10), (0, 1), (11, 12), (0, 1)]
+    runs, x0, x1 = tv_runs(mask, start, data, gap=4)  # gaps of up to 4 columns joined
+    assert list(zip(x0.tolist(), x1.tolist())) == [(2, 4), (9, 10), (1, 10), (0, 1), (11, 12), (0, 1)]
+    edges = tv_bands(runs, x0, x1, 3)
+    assert edges[0] == 0 and edges[-1] == 5 and np.all(np.diff(edges) >= 1)
 
 
 def test_tv_wavefront_gives_the_two_sweep_values():
@@ -82,7 +140,7 @@ def test_tv_wavefront_gives_the_two_sweep_values():
         plain[1] = plain[0].copy()
         wave = [a.copy() for a in plain]
         _tv_kernel(f, mask, weight, 0.2, iterations, *plain, top, H)
-        _tv_wavefront(f, mask, weight, 0.2, iterations, *wave, top, H, depth)
+        _tv_wavefront(f, mask, weight, 0.2, iterations, *wave, top, H, depth, *_whole_rows(H, W))
         for a, b in zip(wave, plain):
             np.testing.assert_array_equal(a, b)
         assert np.abs(plain[0] - f).max() > 0.001
@@ -112,7 +170,7 @@ def test_tv_wavefront_vectorised_rows_give_the_kernel_values():
             plain[0][3:6] = plain[1][3:6] = 0.25  # flat rows: the dual values stay where they start at first
             wave = [a.copy() for a in plain]
             _tv_kernel(f, mask, weight, gamma, 5, *plain, 0, n)
-            _tv_wavefront(f, mask, weight, gamma, 5, *wave, 0, n, 3)
+            _tv_wavefront(f, mask, weight, gamma, 5, *wave, 0, n, 3, *_whole_rows(n, W))
             for a, b in zip(wave, plain):
                 np.testing.assert_array_equal(a, b, err_msg=f"W={W}")
 

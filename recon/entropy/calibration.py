@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.entropy.confidence import confidence_map
+from recon.entropy.confidence import confidence_map, finite_median5
 from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
 from recon.entropy.median import median_filter_nearest
 
@@ -118,7 +118,7 @@ class FeatureInputs:
     features of a band of rows."""
 
     def __init__(self, *, refined, matched, initial, ambiguity, labels, holes, noise_limited, window_size,
-                 cost, noise_sigma, step, heuristic, entropy) -> None:
+                 cost, noise_sigma, step, heuristic, entropy, median=None) -> None:
         self.refined = np.asarray(refined)
         self.shape = self.refined.shape
         self.matched, self.initial, self.ambiguity = np.asarray(matched), np.asarray(initial), np.asarray(ambiguity)
@@ -126,6 +126,7 @@ class FeatureInputs:
         self.holes = None if holes is None else np.asarray(holes)
         self.noise_limited = None if noise_limited is None else np.asarray(noise_limited)
         self.heuristic, self.entropy = np.asarray(heuristic), np.asarray(entropy)
+        self.median = median  # the 5x5 median of d when every value is finite (finite_median5), or None
         self.step = float(step)
         self.noise = max(float(noise_sigma), 0.5 / 255)
         self.spread = _BoxSpread(self.d_rows, self.shape)
@@ -169,6 +170,8 @@ class Band:
         return self._cache[name]
 
     def median(self) -> np.ndarray:
+        if self.inputs.median is not None:
+            return self.rows("median")
         return self.shared("median", lambda: median_filter_nearest(
             self.d_halo.astype(np.float32), size=5).astype(np.float64)[self.core])
 
@@ -342,12 +345,13 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
     coefficients)``, default the fitted ones (:func:`load_coefficients`). The features are made and
     used a band of :data:`BAND_ROWS` rows at a time: the step's memory is the heuristic's, the
     output and one band's features, not ``(H, W, F)``."""
+    median = finite_median5(refined)  # the heuristic's and the features' 5x5 median, made once
     heuristic = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=step,
                                disparity_range=disparity_range, holes=holes, valley_px=valley_px,
-                               hole_support=hole_support, hole_ramp=hole_ramp)
+                               hole_support=hole_support, hole_ramp=hole_ramp, median=median)
     inputs = FeatureInputs(refined=refined, matched=matched, initial=initial, ambiguity=ambiguity, labels=labels,
                            holes=holes, noise_limited=noise_limited, window_size=window_size, cost=cost,
-                           noise_sigma=noise_sigma, step=step, heuristic=heuristic, entropy=entropy)
+                           noise_sigma=noise_sigma, step=step, heuristic=heuristic, entropy=entropy, median=median)
     bias, coef = coefficients if coefficients is not None else load_coefficients()
     H, W = inputs.shape
     out = np.empty((H, W), np.float32)

@@ -44,7 +44,7 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
                    disparity_range: tuple[float, float], holes: np.ndarray | None = None,
                    valley_px: float = 0.3, change_px: float = 0.1,
                    hole_confidence: float = 0.5, hole_support: float = 0.25,
-                   hole_ramp: float = 0.1) -> np.ndarray:
+                   hole_ramp: float = 0.1, median: np.ndarray | None = None) -> np.ndarray:
     """``(H, W)`` float32 confidence in ``[0, 1]`` (see the module docstring).
 
     Parameters
@@ -62,6 +62,9 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     valley_px, change_px, hole_confidence, hole_support, hole_ramp
         See the module docstring; ``hole_support`` 0 and ``hole_ramp`` 0 give every hole
         ``hole_confidence`` times the neighbour factor, whatever its rim and slope.
+    median
+        ``(H, W)`` the 5x5 median of ``refined`` when every value is finite
+        (:func:`finite_median5`; made band by band when not given).
 
     Computed in bands of :data:`BAND_ROWS` rows (float64 temporaries of a band, not of the map,
     but for the neighbour factor at the holes, kept for their own factor); the holes' support is
@@ -78,7 +81,7 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     H = refined.shape[0]
     bands = [(y0, min(y0 + BAND_ROWS, H)) for y0 in range(0, H, BAND_ROWS)]
     parts = dict(refined=refined, matched=matched, ambiguity=ambiguity, step=step, disparity_range=disparity_range,
-                 fill=fill, valley_px=valley_px, change_px=change_px)
+                 fill=fill, valley_px=valley_px, change_px=change_px, median=median)
     out = np.empty(refined.shape, np.float32)
     holes = None if holes is None or not np.any(holes) else np.asarray(holes, bool)
     measured = None if holes is None or hole_support <= 0 else np.empty(refined.shape, np.float32)
@@ -111,6 +114,18 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     return out
 
 
+def finite_median5(refined: np.ndarray) -> np.ndarray | None:
+    """``(H, W)`` float32 5x5 median of ``refined`` (borders continued by the nearest pixel) when
+    it is float32 and every value is finite, else ``None``. What the heuristic's neighbour factor
+    and the model's ``log_neighbour`` feature (:mod:`recon.entropy.calibration`) each take: they
+    differ only in what they put in place of a value that is not finite, and a float32 map's
+    median taken in float64 is the same number."""
+    refined = np.asarray(refined)
+    if refined.dtype != np.float32 or not np.isfinite(refined).all():
+        return None
+    return median_filter_nearest(refined, size=5)
+
+
 def _inside(refined: np.ndarray, finite: np.ndarray, disparity_range: tuple[float, float]) -> np.ndarray:
     """Where ``refined`` is finite (``finite``) and within ``disparity_range`` (to 1e-6)."""
     r = np.asarray(refined, np.float64)
@@ -123,15 +138,19 @@ BAND_ROWS = 64
 
 
 def _band_factors(y0: int, y1: int, *, refined, matched, ambiguity, step, disparity_range, fill, valley_px,
-                  change_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  change_px, median) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows ``[y0, y1)`` of ``(valley * agree * neighbours * ~on_end, neighbours, finite)`` (float64,
-    float64, bool), the 5x5 median over the band with 2 rows around it (non-finite values replaced
-    by ``fill``, the finite values' median), the same values as over the whole map."""
-    H = refined.shape[0]
-    a, b = max(y0 - 2, 0), min(y1 + 2, H)
-    halo = np.asarray(refined[a:b], np.float64)
-    median = median_filter_nearest(np.where(np.isfinite(halo), halo, fill), size=5)[y0 - a:y1 - a]
-    r = halo[y0 - a:y1 - a]
+    float64, bool), the 5x5 median ``median``'s rows or, when it is ``None``, the median over the
+    band with 2 rows around it (non-finite values replaced by ``fill``, the finite values' median),
+    the same values as over the whole map."""
+    if median is None:
+        H = refined.shape[0]
+        a, b = max(y0 - 2, 0), min(y1 + 2, H)
+        halo = np.asarray(refined[a:b], np.float64)
+        median = median_filter_nearest(np.where(np.isfinite(halo), halo, fill), size=5)[y0 - a:y1 - a]
+    else:
+        median = np.asarray(median[y0:y1], np.float64)
+    r = np.asarray(refined[y0:y1], np.float64)
     m = np.asarray(matched[y0:y1], np.float64)
     width = np.maximum(np.asarray(ambiguity[y0:y1], np.float64) - 1, 0) * step
     valley = np.exp(-width / valley_px)

@@ -43,9 +43,12 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.boundary", "_snap_kernel",
      "float32:4 float32:2 float32:2 float32:2 int64 int64:1 int64:1 float64:1 float64:1 float64 int64 float64 "
      "float64:1 float64:1 int64:1 float64:1 float64:1"),
+    ("recon.entropy.refine", "_tv_wavefront",
+     "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64 int64 int64 int64:1 "
+     "uint64:1 uint64:1"),
     ("recon.entropy.refine", "_tv_blocks",
-     "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64 int64"),
-    ("recon.entropy.median", "_median_kernel", "float64:2 int64:1 int64:1 int64:2 int64 float64:2"),
+     "float64:2 bool:2 float64:2 float64 int64 float64:2 float64:2 float64:2 float64:2 int64:1 int64 int64:1 "
+     "uint64:1 uint64:1"),
 )
 #: How many of :data:`KERNELS` the estimate's first phase calls (the first ones).
 FIRST_PHASE_KERNELS = 3

@@ -370,63 +370,73 @@ def _tv_primal(f, mask, weight, mu, div, tau):
     return (v + w * f) / (1 + w) if mask else f
 
 
-# A row's three loops over x (_tv_row), each a function of its own: LLVM vectorises them so (sqrt
+# A row's loops over x (_tv_row), in two functions of their own: LLVM vectorises them so (sqrt
 # and division packed, which round exactly as the scalar ones: the same values), not inlined into
 # the sweep. The numpy error model leaves out the test for a zero divisor, which would keep the
-# loops scalar (there is none: the norm is at least 1, and so is 1 + w).
+# loops scalar (there is none: the norm is at least 1, and so is 1 + w). Each runs over the runs
+# ``r0 .. r1 - 1`` of the row's columns (tv_runs) with unsigned indices: a signed one, which numba
+# cannot prove to be >= 0, gets a test for wrapping around and keeps the loop scalar.
 
 @numba.njit(cache=True, error_model="numpy")
-def _tv_dual_row(qy, qx, b0, b1, below, sigma, gamma):
-    # The dual step along a row, in place on its dual values qy, qx, from its primal values b0 and,
-    # if ``below``, the next row's b1 (else the y difference is 0).
-    m = b0.shape[0] - 1
-    for x in range(m):
-        qy[x], qx[x] = _tv_dual(qy[x], qx[x], b1[x] - b0[x] if below else 0.0, b0[x + 1] - b0[x], sigma, gamma)
-    qy[m], qx[m] = _tv_dual(qy[m], qx[m], b1[m] - b0[m] if below else 0.0, 0.0, sigma, gamma)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _tv_divergence_row(div, qy, qx, above, edge):
-    # The divergence along a row into div from its dual values qy, qx and the row above's y part
-    # ``above``: ``edge`` 0 on the first row (no row above), 1 inside, 2 on the last row.
-    W = qy.shape[0]
-    m = W - 1
-    if edge == 0:
-        for x in range(W):
-            div[x] = qy[x]
-    elif edge == 1:
-        for x in range(W):
-            div[x] = qy[x] - above[x]
-    else:
-        for x in range(W):
-            div[x] = -above[x]
-    div[0] += qx[0]
-    for x in range(1, m):
-        div[x] += qx[x] - qx[x - 1]
-    div[m] += -qx[m - 1]
+def _tv_dual_row(qy, qx, b0, b1, below, sigma, gamma, run_x0, run_x1, r0, r1):
+    # The dual step along the runs of a row, in place on its dual values qy, qx, from its primal
+    # values b0 and, if ``below``, the next row's b1 (else the y difference is 0).
+    one = np.uint64(1)
+    m = np.uint64(b0.shape[0] - 1)
+    for r in range(r0, r1):
+        x0, x1 = run_x0[r], run_x1[r]
+        for x in range(x0, min(x1, m)):
+            qy[x], qx[x] = _tv_dual(qy[x], qx[x], b1[x] - b0[x] if below else 0.0, b0[x + one] - b0[x], sigma, gamma)
+        if x1 > m:
+            qy[m], qx[m] = _tv_dual(qy[m], qx[m], b1[m] - b0[m] if below else 0.0, 0.0, sigma, gamma)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _tv_primal_row(f, mask, weight, mu, bar, div, tau):
-    # The primal step along a row, in place on its mu and bar, given its divergence.
-    for x in range(f.shape[0]):
-        new = _tv_primal(f[x], mask[x], weight[x], mu[x], div[x], tau)
-        bar[x] = 2 * new - mu[x]
-        mu[x] = new
+def _tv_divergence_primal_row(f, mask, weight, mu, bar, div, qy, qx, above, edge, tau, run_x0, run_x1, r0, r1):
+    # Along the runs of a row: the divergence into div from its dual values qy, qx and the row
+    # above's y part ``above`` (``edge`` 0 on the first row, no row above, 1 inside, 2 on the last
+    # row), then the primal step, in place on its mu and bar.
+    one = np.uint64(1)
+    m = np.uint64(qy.shape[0] - 1)
+    for r in range(r0, r1):
+        x0, x1 = run_x0[r], run_x1[r]
+        if edge == 0:
+            for x in range(x0, x1):
+                div[x] = qy[x]
+        elif edge == 1:
+            for x in range(x0, x1):
+                div[x] = qy[x] - above[x]
+        else:
+            for x in range(x0, x1):
+                div[x] = -above[x]
+        if x0 == 0:
+            div[0] += qx[0]
+        for x in range(max(x0, one), min(x1, m)):
+            div[x] += qx[x] - qx[x - one]
+        if x1 > m:
+            div[m] += -qx[m - one]
+        for x in range(x0, x1):
+            new = _tv_primal(f[x], mask[x], weight[x], mu[x], div[x], tau)
+            bar[x] = 2 * new - mu[x]
+            mu[x] = new
 
 
 @numba.njit(cache=True, inline="always")
-def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div):
-    # One iteration of _tv_kernel at row i: its dual step (reads bar's rows i and i + 1), then its
-    # primal step (reads py's rows i - 1 and i, writes bar's and mu's row i), with the tests of
-    # the image's edges taken out of the loops over x. ``div``: (W,) scratch for the divergence.
+def _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div, runs, run_x0, run_x1):
+    # One iteration of _tv_kernel at row i over its runs (image row top + i): their dual step
+    # (reads bar's rows i and i + 1), then their primal step (reads py's rows i - 1 and i, writes
+    # bar's and mu's row i), with the tests of the image's edges taken out of the loops over x.
+    # ``div``: (W,) scratch for the divergence.
     n = f.shape[0]
     y = top + i
+    if runs[y] == runs[y + 1]:
+        return
     below = y < H - 1 and i < n - 1
-    _tv_dual_row(py[i], px[i], bar[i], bar[i + 1] if below else bar[i], below, sigma, gamma)
+    _tv_dual_row(py[i], px[i], bar[i], bar[i + 1] if below else bar[i], below, sigma, gamma, run_x0, run_x1,
+                 runs[y], runs[y + 1])
     edge = 0 if y == 0 or i == 0 else 1 if y < H - 1 else 2
-    _tv_divergence_row(div, py[i], px[i], py[i - 1] if i > 0 else py[i], edge)
-    _tv_primal_row(f[i], mask[i], weight[i], mu[i], bar[i], div, tau)
+    _tv_divergence_primal_row(f[i], mask[i], weight[i], mu[i], bar[i], div, py[i], px[i], py[i - 1] if i > 0 else py[i],
+                              edge, tau, run_x0, run_x1, runs[y], runs[y + 1])
 
 
 #: Iterations the TV kernel carries through the rows in one sweep (:func:`_tv_wavefront`).
@@ -434,12 +444,14 @@ TV_WAVE_ITERATIONS = 8
 
 
 @numba.njit(cache=True)
-def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, depth):
-    # _tv_kernel with the same operations on every value in an order that keeps the rows it works
-    # on in cache: `depth` iterations at a time in one sweep down the rows, iteration t + 1 one row
-    # behind iteration t (row i of iteration t + 1 needs rows i and i + 1 of iteration t, and
-    # overwrites row i's dual values only after iteration t's row i + 1 has read them). Each row's
-    # two steps follow each other (the dual step of row i reads no primal value of this iteration).
+def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, depth, runs, run_x0, run_x1):
+    # _tv_kernel with the same operations on the values of the runs (tv_runs: where they can
+    # change) in an order that keeps the rows it works on in cache: `depth` iterations at a time in
+    # one sweep down the rows, iteration t + 1 one row behind iteration t (row i of iteration t + 1
+    # needs rows i and i + 1 of iteration t, and overwrites row i's dual values only after
+    # iteration t's row i + 1 has read them). Each row's two steps follow each other (the dual step
+    # of row i reads no primal value of this iteration). ``runs``: per image row, where its runs
+    # begin in run_x0, run_x1 (the arrays hold the rows top .. top + n - 1).
     n, W = f.shape
     tau = 1.0 / np.sqrt(8.0)
     sigma = tau
@@ -451,21 +463,39 @@ def _tv_wavefront(f, mask, weight, gamma, iterations, mu, bar, py, px, top, H, d
             for j in range(k):
                 i = front - j
                 if 0 <= i < n:
-                    _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div)
+                    _tv_row(f, mask, weight, gamma, mu, bar, py, px, i, top, H, tau, sigma, div, runs, run_x0, run_x1)
         done += k
 
 
+@numba.njit(cache=True)
+def _copy_runs(source, target, source_top, target_top, y0, y1, runs, run_x0, run_x1):
+    # The values of the runs of image rows [y0, y1) from the maps of `source` (rows from
+    # source_top) into those of `target` (rows from target_top).
+    for y in range(y0, y1):
+        for r in range(runs[y], runs[y + 1]):
+            a, b = run_x0[r], run_x1[r]
+            for s, t in zip(source, target):
+                t[y - target_top, a:b] = s[y - source_top, a:b]
+
+
 @numba.njit(cache=True, parallel=True)
-def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, halo):
-    # The image in n_blocks bands of rows, one per thread, each iterated on a private copy of its
-    # band and `halo` rows around it for up to `halo` iterations at a time (the wrong rows at a
-    # copy's cut edges advance one row per iteration, so they never reach the band), then the bands
-    # written into the next arrays. The values are those of one thread over the whole image; one
-    # barrier per `halo` iterations instead of two per iteration.
+def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, edges, halo, runs, run_x0, run_x1):
+    # The image in bands of rows [edges[b], edges[b + 1]), one per thread, each iterated on a copy
+    # of its own of its band and `halo` rows around it for up to `halo` iterations at a time (the
+    # wrong rows at a copy's cut edges advance one row per iteration, so they never reach the
+    # band); between those rounds each band's runs go into the next maps and each copy takes its
+    # halo rows' runs from them (the values outside the runs never change). The values are those
+    # of one thread over the whole image; one barrier per `halo` iterations instead of two per
+    # iteration.
     H, W = f.shape
-    edges = np.linspace(0, H, n_blocks + 1).astype(np.int64)
+    n_blocks = edges.shape[0] - 1
+    depth = 0
+    for b in range(n_blocks):
+        depth = max(depth, min(edges[b + 1] + halo, H) - max(edges[b] - halo, 0))
+    copies = (np.empty((n_blocks, depth, W)), np.empty((n_blocks, depth, W)), np.empty((n_blocks, depth, W)),
+              np.empty((n_blocks, depth, W)))
     state = (mu, bar, py, px)
-    nxt = (np.empty_like(mu), np.empty_like(bar), np.empty_like(py), np.empty_like(px))
+    nxt = (mu.copy(), bar.copy(), py.copy(), px.copy())
     done = 0
     while done < iterations:
         k = min(halo, iterations - done)
@@ -473,15 +503,16 @@ def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, ha
             lo, hi = edges[b], edges[b + 1]
             a = max(lo - halo, 0)
             z = min(hi + halo, H)
-            m = state[0][a:z].copy()
-            r = state[1][a:z].copy()
-            qy = state[2][a:z].copy()
-            qx = state[3][a:z].copy()
-            _tv_wavefront(f[a:z], mask[a:z], weight[a:z], gamma, k, m, r, qy, qx, a, H, TV_WAVE_ITERATIONS)
-            nxt[0][lo:hi] = m[lo - a:hi - a]
-            nxt[1][lo:hi] = r[lo - a:hi - a]
-            nxt[2][lo:hi] = qy[lo - a:hi - a]
-            nxt[3][lo:hi] = qx[lo - a:hi - a]
+            own = (copies[0][b][:z - a], copies[1][b][:z - a], copies[2][b][:z - a], copies[3][b][:z - a])
+            if done == 0:
+                for s, t in zip(state, own):
+                    t[:] = s[a:z]
+            else:
+                _copy_runs(state, own, 0, a, a, lo, runs, run_x0, run_x1)
+                _copy_runs(state, own, 0, a, hi, z, runs, run_x0, run_x1)
+            _tv_wavefront(f[a:z], mask[a:z], weight[a:z], gamma, k, own[0], own[1], own[2], own[3], a, H,
+                          TV_WAVE_ITERATIONS, runs, run_x0, run_x1)
+            _copy_runs(own, nxt, a, 0, lo, hi, runs, run_x0, run_x1)
         state, nxt = nxt, state
         done += k
     return state[0]
@@ -491,6 +522,57 @@ def _tv_blocks(f, mask, weight, gamma, iterations, mu, bar, py, px, n_blocks, ha
 #: band's copy reaches beyond it): 300 iterations are 19 parallel regions.
 TV_HALO_ROWS = 16
 
+#: Fewest pixels in the TV kernel's runs (:func:`tv_runs`) for which it runs in bands on every
+#: thread: below, the copies and the halo rows cost more CPU than the second thread saves wall
+#: (backgammon's 131 k: 0.21 s CPU on one thread, 0.26 s in two bands, and 0.43 against 0.55 s
+#: wall at load 6).
+TV_PARALLEL_PIXELS = 2 ** 18
+
+#: Columns between two runs of the TV kernel's pixels (:func:`tv_runs`) up to which they are
+#: worked as one: a loop over x stays long enough to run several pixels at once.
+TV_RUN_GAP = 8
+
+
+def tv_runs(mask: np.ndarray, start: np.ndarray, data: np.ndarray, *, gap: int = TV_RUN_GAP
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where Eq. 13's iteration (:func:`tv_refine`) can change a value: the pixels of ``mask``,
+    those whose dual value a pixel of ``mask`` reads (the one above and the one to the left of it),
+    and those outside ``mask`` that start away from their ``data`` (the first iteration sets them
+    to it). Every other pixel keeps its primal value (its data) and its dual value, which no
+    pixel of ``mask`` reads, so the iteration leaves them out. ``(H, W)`` maps in; out ``(runs,
+    x0, x1)``: row ``y``'s runs of such columns are ``[x0[r], x1[r])`` for ``r`` in
+    ``range(runs[y], runs[y + 1])``, runs at most ``gap`` columns apart joined (int64 each)."""
+    mask = np.asarray(mask, bool)
+    active = mask | (start != data)
+    active[:-1] |= mask[1:]
+    active[:, :-1] |= mask[:, 1:]
+    H, W = active.shape
+    padded = np.zeros((H, W + 2), np.int8)
+    padded[:, 1:-1] = active
+    change = np.diff(padded, axis=1)
+    ys, x0 = np.nonzero(change == 1)  # row by row, left to right
+    x1 = np.nonzero(change == -1)[1]
+    first = np.ones(ys.size, bool)  # a run that does not continue the one before
+    first[1:] = (ys[1:] != ys[:-1]) | (x0[1:] - x1[:-1] > gap)
+    begin = np.flatnonzero(first)
+    end = np.append(begin[1:], ys.size) - 1
+    runs = np.zeros(H + 1, np.int64)
+    np.cumsum(np.bincount(ys[begin], minlength=H), out=runs[1:])
+    return runs, x0[begin].astype(np.uint64), x1[end].astype(np.uint64)
+
+
+def tv_bands(runs: np.ndarray, run_x0: np.ndarray, run_x1: np.ndarray, n_bands: int) -> np.ndarray:
+    """``(n_bands + 1,)`` int64 row edges of ``n_bands`` bands of rows (at least one row each) with
+    about the same share of the runs' columns (:func:`tv_runs`), a column more for every row."""
+    H = runs.shape[0] - 1
+    rows = np.repeat(np.arange(H), np.diff(runs))
+    total = np.cumsum(np.bincount(rows, weights=run_x1 - run_x0, minlength=H) + 1)
+    edges = [0]
+    for share in total[-1] * np.arange(1, n_bands) / n_bands:
+        cut = int(np.searchsorted(total, share)) + 1
+        edges.append(min(max(cut, edges[-1] + 1), H - n_bands + len(edges)))
+    return np.array(edges + [H], np.int64)
+
 
 def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
               iterations: int, holes: np.ndarray | None = None,
@@ -498,7 +580,8 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
 
     Compiled twin of :func:`tv_refine_reference`: the same parameters and result (Chambolle-Pock in
-    two sweeps per iteration instead of 300 rounds of whole-array numpy operations).
+    two sweeps per iteration instead of 300 rounds of whole-array numpy operations, over the
+    pixels whose values can change, :func:`tv_runs`).
     """
     if min(np.shape(disparity)) < 2:
         return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes,
@@ -508,6 +591,7 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     if gamma <= 0 or not mask.any() or iterations <= 0:
         return start.astype(np.float32)
     mu = np.ascontiguousarray(start, dtype=np.float64)
+    runs = tv_runs(mask, mu, f)
     bar = mu.copy()
     py = np.zeros_like(f)
     px = np.zeros_like(f)
@@ -515,11 +599,12 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     weight = np.ascontiguousarray(weight, dtype=np.float64)
     H = f.shape[0]
     n_blocks = min(numba.get_num_threads(), H // (4 * TV_HALO_ROWS))
-    if n_blocks < 2:
-        _tv_wavefront(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H, TV_WAVE_ITERATIONS)
+    if n_blocks < 2 or np.sum(runs[2] - runs[1]) < TV_PARALLEL_PIXELS:
+        _tv_wavefront(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H, TV_WAVE_ITERATIONS,
+                      *runs)
         return mu.astype(np.float32)
-    return _tv_blocks(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, n_blocks,
-                      TV_HALO_ROWS).astype(np.float32)
+    return _tv_blocks(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, tv_bands(*runs, n_blocks),
+                      TV_HALO_ROWS, *runs).astype(np.float32)
 
 
 def _box_sums(table: np.ndarray, ya, yb, xa, xb) -> np.ndarray:
@@ -598,6 +683,9 @@ def _centroid_kernel(d, rects, max_residual, max_shift, out):
             yb = min(y + rects[y, x, 1], H - 1) + 1
             xa = max(x + rects[y, x, 2], 0)
             xb = min(x + rects[y, x, 3], W - 1) + 1
+            if ya + yb - 1 == 2 * y and xa + xb - 1 == 2 * x:  # centred on the pixel: nothing to move
+                out[y, x] = d[y, x]
+                continue
             s1 = 0.0
             sy = 0.0
             sx = 0.0
