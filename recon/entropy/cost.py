@@ -503,9 +503,17 @@ def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rec
         return best.astype(np.float32)
 
 
+def window_reach(rects: np.ndarray) -> tuple[int, int]:
+    """``(up, down)``: how many rows above and below its pixel any of the windows ``rects``
+    ``(K, 4)`` reaches; what the kernels count with :func:`_window_reach` (a compiled helper is
+    not called from here: each one the estimate calls is another kernel to load,
+    ``recon/entropy/preload.py``)."""
+    return max(int(-rects[:, 0].min()), 0), max(int(rects[:, 1].max()), 0)
+
+
 @numba.njit(cache=True)
 def _window_reach(rects):
-    # (up, down): how many rows above and below its pixel any of the windows rects (K, 4) reaches.
+    # window_reach within the kernels.
     up = 0
     down = 0
     for k in range(rects.shape[0]):
@@ -702,7 +710,7 @@ def min_window_group(width: int, *, n_sets: int, n_windows: int, rects: np.ndarr
     """How many candidates of a ``width``-pixel wide image :func:`min_window_costs` takes at once:
     as many as keep their rings of ``n_sets`` set rows (the rows the windows ``rects`` reach, and
     one) and ``n_windows`` column sums within :data:`MIN_WINDOW_GROUP_BYTES` (at least one)."""
-    ring_rows = max(int(-rects[:, 0].min()), 0) + max(int(rects[:, 1].max()), 0) + 2  # as the kernel's
+    ring_rows = sum(window_reach(rects)) + 2  # as the kernel's
     per_candidate = 8 * width * (ring_rows * n_sets + n_windows)
     return max(MIN_WINDOW_GROUP_BYTES // per_candidate, 1)
 

@@ -15,7 +15,8 @@ import numpy as np
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
                                 WindowCost, _ring_table_rows, _set_sums_plan, _view_lists, _window_reach,
                                 block_abs_diff, block_abs_diff_reference, cost_ambiguity, min_window_costs,
-                                min_window_costs_reference, min_window_group, set_view_counts, window_sum_bound)
+                                min_window_costs_reference, min_window_group, set_view_counts, window_reach,
+                                window_sum_bound)
 from recon.entropy.layout import offer_runs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
@@ -305,7 +306,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     views = _view_lists((U, V), view_mask)
     plan = _set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
     D = len(candidates)
-    ring_rows = JOINT_ROWS + int(rects[:, 1].max() - rects[:, 0].min()) + 1  # as the kernel's rings
+    ring_rows = JOINT_ROWS + sum(window_reach(rects)) + 1  # as the kernel's rings
     group = max(JOINT_TABLES * (H + 1) // ring_rows, numba.get_num_threads(), 1)
     bounds = np.linspace(0, D, -(-D // group) + 1).astype(int)  # passes of even size
     costs = np.empty((D, H, W), np.float32)
