@@ -1,5 +1,5 @@
 """PNG views decode to OpenCV's pixels whichever decoder reads them: every kind of PNG (grey, RGB,
-palette, grey+alpha, RGBA; 1 to 16 bits; interlaced; tRNS, gAMA, sBIT), written here chunk by chunk
+palette, grey+alpha, RGBA; 1 to 16 bits; interlaced; tRNS, gAMA, sBIT, eXIf), written here chunk by chunk
 with random pixels, reads as ``cv2.imdecode(IMREAD_UNCHANGED)`` in RGB order without alpha."""
 
 import struct
@@ -64,7 +64,9 @@ def opencv_pixels(data: bytes) -> np.ndarray:
 
 KINDS = ([(0, depth) for depth in (1, 2, 4, 8, 16)] + [(3, depth) for depth in (1, 2, 4, 8)]
          + [(colour, depth) for colour in (2, 4, 6) for depth in (8, 16)])
-GAMA_SBIT = chunk(b"gAMA", struct.pack(">I", 100000))  # sBIT follows per kind
+#: Chunks neither decoder applies: a gamma, and an EXIF orientation (rotate by 90 degrees); sBIT per kind.
+ANCILLARY = chunk(b"gAMA", struct.pack(">I", 100000)) + chunk(
+    b"eXIf", b"MM\0*" + struct.pack(">IHHHIHHI", 8, 1, 0x0112, 3, 1, 6, 0, 0))
 
 
 def cases():
@@ -78,14 +80,14 @@ def cases():
 @pytest.mark.parametrize("colour, depth, trns, interlace", list(cases()))
 def test_every_kind_of_png_reads_as_opencv_decodes_it(tmp_path, monkeypatch, colour, depth, trns, interlace):
     """``read_image`` and ``read_images`` (as stored, in place, and as grey) give OpenCV's pixels,
-    with a gAMA and an sBIT chunk too (neither decoder applies them); OpenCV itself decodes only the
+    with gAMA, sBIT and eXIf chunks too (neither decoder applies them); OpenCV itself decodes only the
     kinds libpng through imagecodecs gives otherwise: grey with alpha, grey with tRNS."""
     sbit = chunk(b"sBIT", bytes([max(1, depth // 2)] * (3 if colour == 3 else SAMPLES[colour])))
     paths = []
     for i in range(3):
         paths.append(tmp_path / f"view{i}.png")
         paths[-1].write_bytes(make_png(colour, depth, seed=i, trns=trns, interlace=interlace,
-                                       extra=GAMA_SBIT + sbit if i == 1 else b""))
+                                       extra=ANCILLARY + sbit if i == 1 else b""))
     expected = np.stack([opencv_pixels(path.read_bytes()) for path in paths])
     by_opencv = []
     decode_quietly = imageio.decode_quietly
