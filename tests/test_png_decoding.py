@@ -73,8 +73,8 @@ def cases():
     for colour, depth in KINDS:
         for trns in (False, True) if colour in (0, 2, 3) else (False,):
             for interlace in (False, True):
-                yield pytest.param(colour, depth, trns, interlace,
-                                   id=f"colour{colour}-{depth}bit{'-tRNS' if trns else ''}{'-interlaced' if interlace else ''}")
+                name = f"colour{colour}-{depth}bit{'-tRNS' if trns else ''}{'-interlaced' if interlace else ''}"
+                yield pytest.param(colour, depth, trns, interlace, id=name)
 
 
 @pytest.mark.parametrize("colour, depth, trns, interlace", list(cases()))

@@ -236,7 +236,7 @@ def _libpng_shape(kind: PngKind) -> tuple[int, ...] | None:
 
     Every other kind matches OpenCV's pixels exactly (both are libpng with the same transformations:
     1-, 2- and 4-bit grey expanded to 8 bits, palettes to RGB, tRNS to alpha, 16 bits in native byte
-    order, interlacing undone, gAMA and sBIT ignored; ``tests/test_png_decoding.py``)."""
+    order, interlacing undone, gAMA, sBIT and an EXIF orientation ignored; ``tests/test_png_decoding.py``)."""
     grey = kind.colour_type == 0
     if kind.colour_type == 4 or (grey and kind.transparency):
         return None
