@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import io
+import logging
 import math
 import os
 import re
@@ -16,15 +17,20 @@ import zlib
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, NamedTuple, Sequence
 
 import cv2
+import imagecodecs
 import numpy as np
 
 from recon.errors import FileWriteError, LfrigError, LightFieldFormatError
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+# libpng's warnings through imagecodecs (a benign chunk problem, an interlaced PNG read whole) are
+# not the user's to read: the pixels are the same, and a damaged view is reported by lfrig itself.
+logging.getLogger("imagecodecs").setLevel(logging.ERROR)
 
 
 def png_problem(data: bytes) -> str | None:
@@ -204,6 +210,40 @@ def check_image_size(path: str | os.PathLike, width: int, height: int) -> None:
         )
 
 
+class PngKind(NamedTuple):
+    """What decides a PNG's decoded shape and dtype: its IHDR fields and whether it has a tRNS chunk
+    (a transparent colour or palette alpha) before its image data."""
+    width: int
+    height: int
+    bit_depth: int
+    colour_type: int
+    transparency: bool
+
+
+def png_kind(data: bytes, header: tuple[int, int, int, int]) -> PngKind:
+    """The :class:`PngKind` of PNG bytes that passed :func:`checked_png_header` (``header``)."""
+    pos, transparency = len(PNG_SIGNATURE), False
+    while pos + 8 <= len(data) and data[pos + 4:pos + 8] != b"IDAT":  # libpng reads tRNS before IDAT only
+        transparency = transparency or data[pos + 4:pos + 8] == b"tRNS"
+        pos += 12 + int.from_bytes(data[pos:pos + 4], "big")
+    return PngKind(*header, transparency)
+
+
+def _libpng_shape(kind: PngKind) -> tuple[int, ...] | None:
+    """The shape imagecodecs' libpng decoding gives a PNG of ``kind`` where its pixels are OpenCV's
+    (``IMREAD_UNCHANGED``) in RGB(A) order, else ``None``: for grey with alpha (OpenCV gives BGRA
+    of the grey) and grey with a tRNS chunk (OpenCV drops it, imagecodecs makes it alpha).
+
+    Every other kind matches OpenCV's pixels exactly (both are libpng with the same transformations:
+    1-, 2- and 4-bit grey expanded to 8 bits, palettes to RGB, tRNS to alpha, 16 bits in native byte
+    order, interlacing undone, gAMA, sBIT and an EXIF orientation ignored; ``tests/test_png_decoding.py``)."""
+    grey = kind.colour_type == 0
+    if kind.colour_type == 4 or (grey and kind.transparency):
+        return None
+    channels = 1 if grey else 4 if kind.colour_type == 6 or kind.transparency else 3
+    return (kind.height, kind.width) + (() if channels == 1 else (channels,))
+
+
 def read_image(path: Path) -> np.ndarray:
     """Read one image as ``(H, W)`` or ``(H, W, 3)`` RGB in its stored dtype (alpha is dropped).
 
@@ -212,23 +252,17 @@ def read_image(path: Path) -> np.ndarray:
     LightFieldFormatError
         Naming the file: missing, unreadable, larger than :data:`MAX_IMAGE_BYTES`, a damaged PNG
         (checked by :func:`png_problem` before decoding) or one whose header claims more pixels than
-        :func:`check_image_size` allows, or not an image OpenCV can decode (OpenCV itself refuses other
-        formats above :data:`MAX_IMAGE_PIXELS`: ``OPENCV_IO_MAX_IMAGE_PIXELS``).
+        :func:`check_image_size` allows, or whose image data does not decode; or not an image OpenCV
+        can decode (it decodes other formats, and refuses them above :data:`MAX_IMAGE_PIXELS`:
+        ``OPENCV_IO_MAX_IMAGE_PIXELS``).
     """
-    return _to_rgb(_decode(path))
-
-
-def _decode(path: Path, digests: dict[Path, str] | None = None,
-            check: Callable[[Path, str], None] | None = None) -> np.ndarray:
-    """One image as OpenCV decodes it (grey, BGR or BGRA, stored dtype), after :func:`read_image`'s
-    checks (:func:`_read_checked`)."""
-    return _decode_bytes(path, _read_checked(path, digests, check)[0])
+    return np.ascontiguousarray(_decode_bytes(path, *_read_checked(path)))
 
 
 def _read_checked(path: Path, digests: dict[Path, str] | None = None,
-                  check: Callable[[Path, str], None] | None = None) -> tuple[bytes, tuple[int, int, int, int] | None]:
+                  check: Callable[[Path, str], None] | None = None) -> tuple[bytes, PngKind | None]:
     """The bytes of one image file after every check of :func:`read_image` but the decoding, and its
-    PNG header (:func:`png_header`; ``None`` for a file that is not a PNG); with ``digests``, the
+    :class:`PngKind` (``None`` for a file that is not a PNG); with ``digests``, the
     SHA-256 of the bytes as read goes into ``digests[path]``; with ``check``, ``check(path,
     sha256_hex)`` is called first (it raises for a file that must not be used)."""
     raw = read_bytes(path, max_bytes=MAX_IMAGE_BYTES)
@@ -240,35 +274,29 @@ def _read_checked(path: Path, digests: dict[Path, str] | None = None,
             check(path, digest)
     if not raw.startswith(PNG_SIGNATURE):
         return raw, None
-    return raw, checked_png_header(path, raw, advice="; replace or re-capture it")
+    return raw, png_kind(raw, checked_png_header(path, raw, advice="; replace or re-capture it"))
 
 
-def _decode_bytes(path: Path, raw: bytes) -> np.ndarray:
-    """The checked bytes of ``path`` (:func:`_read_checked`) decoded by OpenCV."""
-    data = np.frombuffer(raw, dtype=np.uint8)
-    image = decode_quietly(data) if data.size else None
-    if image is None:
-        raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
-    return image
-
-
-def _rgb_shape(image: np.ndarray) -> tuple[int, ...]:
-    """The shape :func:`_to_rgb` gives a decoded image: ``(H, W)``, or ``(H, W, 3)`` (alpha dropped)."""
-    return image.shape if image.ndim == 2 else image.shape[:2] + (3 if image.shape[2] in (3, 4) else image.shape[2],)
-
-
-def _to_rgb(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """A decoded image (grey, BGR or BGRA) as grey or RGB, into ``out`` (C-contiguous, of
-    :func:`_rgb_shape` and the image's dtype) when given: one pass, no intermediate copy."""
-    if out is None:
-        out = np.empty(_rgb_shape(image), dtype=image.dtype)
-    if image.ndim == 3 and image.shape[2] in (3, 4):  # OpenCV decodes to BGR(A); alpha is dropped
-        cv2.cvtColor(image, cv2.COLOR_BGR2RGB if image.shape[2] == 3 else cv2.COLOR_BGRA2RGB, dst=out)
-    elif image.ndim == 3:
-        out[...] = image[:, :, ::-1]
+def _decode_bytes(path: Path, raw: bytes, kind: PngKind | None, out: np.ndarray | None = None) -> np.ndarray:
+    """The checked bytes of ``path`` (:func:`_read_checked`) decoded as grey or RGB in their stored
+    dtype, alpha dropped (a view of the decoded array). A PNG of a kind that has a
+    :func:`_libpng_shape` is decoded by imagecodecs, with the GIL released, into ``out`` when given
+    (an array of that shape and the stored dtype); any other image by OpenCV."""
+    if kind is not None and _libpng_shape(kind) is not None:
+        try:
+            image = imagecodecs.png_decode(raw, out=out)
+        except (imagecodecs.PngError, ValueError):  # damaged image data (the chunks were checked)
+            image = None
+        rgb = image[:, :, :3] if image is not None and image.ndim == 3 else image
     else:
-        out[...] = image
-    return out
+        image = decode_quietly(np.frombuffer(raw, dtype=np.uint8)) if raw else None
+        if image is None or image.ndim == 2:
+            rgb = image
+        else:  # OpenCV decodes to BGR(A)
+            rgb = image[:, :, 2::-1] if image.shape[2] in (3, 4) else image[:, :, ::-1]
+    if rgb is None:
+        raise LightFieldFormatError(f"{path}: not a readable image (corrupt or not a PNG); replace or re-capture it")
+    return rgb
 
 
 #: Rows of a view :func:`read_images` converts to grey at once: its float32 temporaries (the
@@ -296,9 +324,9 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
 
     ``decode=False``: for a caller that needs only the shape and dtype (``lfrig info``). Every
     image's bytes are read and checked as for decoding (``digests``, ``check``, the PNG's chunks
-    and header), but only the first image is decoded, and any other whose PNG header (size, bit
-    depth, colour type) differs from the first's. The array returned then holds no pixels: every
-    element is 0, read-only, in no memory (``np.broadcast_to``).
+    and header), but only the first image is decoded, and any other whose :class:`PngKind` (size,
+    bit depth, colour type, a tRNS chunk) differs from the first's. The array returned then holds
+    no pixels: every element is 0, read-only, in no memory (``np.broadcast_to``).
 
     Raises
     ------
@@ -310,33 +338,39 @@ def read_images(paths: Sequence[Path], *, digests: dict[Path, str] | None = None
 
     if not paths:
         raise ValueError("read_images needs at least one path")
-    raw, first_header = _read_checked(paths[0], digests, check)
-    decoded = _decode_bytes(paths[0], raw)
-    shape, dtype = _rgb_shape(decoded), decoded.dtype
+    raw, first_kind = _read_checked(paths[0], digests, check)
+    decoded = _decode_bytes(paths[0], raw, first_kind)
+    shape, dtype = decoded.shape, decoded.dtype
     out_shape, out_dtype = ((len(paths),) + shape[:2], np.dtype(np.float32)) if grey else ((len(paths),) + shape, dtype)
     if not decode:
         out = np.broadcast_to(np.zeros((), out_dtype), out_shape)
     else:
         check_total_size(paths[0].parent, math.prod(out_shape) * out_dtype.itemsize)
         out = np.empty(out_shape, dtype=out_dtype)
+    # a PNG of the first one's kind decodes straight into its place where libpng gives the stored shape
+    in_place = not grey and first_kind is not None and _libpng_shape(first_kind) == shape
 
     def place(i: int, image: np.ndarray) -> None:
         if grey:  # by strips of rows (OpenCV converts row by row): no temporary of a whole float view
             for y in range(0, shape[0], GREY_STRIP_ROWS):
-                gray_image(_to_rgb(image[y:y + GREY_STRIP_ROWS]), out=out[i, y:y + GREY_STRIP_ROWS])
+                gray_image(image[y:y + GREY_STRIP_ROWS], out=out[i, y:y + GREY_STRIP_ROWS])
         else:
-            _to_rgb(image, out[i])  # colours swapped on the way into its place
+            out[i] = image
         if keep is not None and i in keep:
-            keep[i] = _to_rgb(image) if grey else out[i]
+            keep[i] = np.ascontiguousarray(image) if grey else out[i]
 
     def load(i: int) -> None:
-        raw, header = _read_checked(paths[i], digests, check)
-        if not decode and header is not None and header == first_header:
-            return  # decoded, it would be of the first image's size, colour and bit depth
-        image = _decode_bytes(paths[i], raw)  # then converted straight into its place in ``out``
-        if _rgb_shape(image) != shape or image.dtype != dtype:
+        raw, kind = _read_checked(paths[i], digests, check)
+        if kind is not None and kind == first_kind:
+            if not decode:
+                return  # decoded, it would be of the first image's size, colour and bit depth
+            if in_place:
+                _decode_bytes(paths[i], raw, kind, out=out[i])
+                return
+        image = _decode_bytes(paths[i], raw, kind)
+        if image.shape != shape or image.dtype != dtype:
             raise LightFieldFormatError(
-                f"{paths[i]}: image is {_describe(_rgb_shape(image), image.dtype)} but {paths[0].name} is "
+                f"{paths[i]}: image is {_describe(image.shape, image.dtype)} but {paths[0].name} is "
                 f"{_describe(shape, dtype)}; all views must have the same size, colour and bit depth"
             )
         if decode:
