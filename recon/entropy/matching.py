@@ -72,14 +72,14 @@ def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
 
 
 @numba.njit(cache=True, inline="always")
-def _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
+def _joint_edge_pixel(x, k, y, ya, yb, ia, ib, s, ra, rb, W, tables, cnt, scale, penalty, every, want, pixel_set,
                       c_best, k_best):
     # _joint_row at a pixel whose window the image's left or right edge clips.
     xa = max(x + ra, 0)
     xb = min(x + rb, W - 1) + 1
-    total = (iyb[xb] - iya[xb] - iyb[xa] + iya[xa]) * FIXED_INV
-    c = scale * total / ((yb - ya) * (xb - xa) * cnt) + pen[x]
-    if (every or occluded[x] == want) and c < c_best[x]:
+    total = (tables[ib, s, xb] - tables[ia, s, xb] - tables[ib, s, xa] + tables[ia, s, xa]) * FIXED_INV
+    c = scale * total / ((yb - ya) * (xb - xa) * cnt) + penalty[y, k, x]
+    if (every or pixel_set[y, x] == want) and c < c_best[x]:
         c_best[x] = c
         k_best[x] = k
 
@@ -92,8 +92,10 @@ def _joint_row(tables, y, pixel_set, rects, window_shape, counts, penalty, run_s
     # summed-area tables' rows, table row r in tables[r % R] (_ring_table_rows); the same float64
     # arithmetic for every pixel and window as the pixelwise twin. For one window the four corners
     # of every pixel's window lie on two rows of one table, contiguous in x: away from the image's
-    # left and right edges the loop over x vectorises (the slices index from 0, so that numba's
-    # negative-index wrap does not turn loads into gathers).
+    # left and right edges the loop over x vectorises. Its loads index the arrays themselves with
+    # unsigned offsets: a signed index would take numba's negative-index wrap (loads turned into
+    # gathers), and a slice a reference count kept twice per run (atomic, on a line that the other
+    # threads' slices of the same arrays share).
     # penalty (H, K, W): inf where the window is not offered; runs[run_start[i]:run_start[i + 1]]
     # with i = (y * K + k) * 2 + pass: column runs [lo, hi) covering the pixels of row y that offer
     # window k, matched over all views (pass 0; every pixel for a square) or over the window's
@@ -106,13 +108,13 @@ def _joint_row(tables, y, pixel_set, rects, window_shape, counts, penalty, run_s
     H, K, W = penalty.shape
     R = tables.shape[0]
     fb = tb.view(np.float64)
-    occluded = pixel_set[y]
     for k in range(K):
         ya = max(y + rects[k, 0], 0)
         yb = min(y + rects[k, 1], H - 1) + 1
+        ia = ya % R
+        ib = yb % R
         ra = rects[k, 2]
         rb = rects[k, 3]
-        pen = penalty[y, k]
         for r in range(run_start[(y * K + k) * 2], run_start[(y * K + k) * 2 + 2]):
             x0 = runs[r, 0]
             x1 = runs[r, 1]
@@ -121,41 +123,37 @@ def _joint_row(tables, y, pixel_set, rects, window_shape, counts, penalty, run_s
             every = window_shape[k] == 0  # a square: the same set for every pixel
             want = pas == 1  # otherwise only pixels whose pixel_set is this pass's
             cnt = counts[s]
-            iya = tables[ya % R, s]
-            iyb = tables[yb % R, s]
             lo = min(max(x0, -ra), x1)  # [lo, hi): the window's columns inside the image
             hi = max(min(x1, W - 1 - rb), lo)
             n = hi - lo
             for x in range(x0, lo):  # left edge: the window clipped
-                _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
-                                  c_best, k_best)
+                _joint_edge_pixel(x, k, y, ya, yb, ia, ib, s, ra, rb, W, tables, cnt, scale, penalty, every, want,
+                                  pixel_set, c_best, k_best)
             if n > 0:
                 denom = (yb - ya) * (rb - ra + 1) * cnt
-                pn = pen[lo:hi]
-                oc = occluded[lo:hi]
-                b1 = iyb[lo + rb + 1:hi + rb + 1]
-                a1 = iya[lo + rb + 1:hi + rb + 1]
-                b0 = iyb[lo + ra:hi + ra]
-                a0 = iya[lo + ra:hi + ra]
+                un = np.uint64(n)
+                u0 = np.uint64(lo)  # the pixels' column
+                u1 = np.uint64(lo + rb + 1)  # their windows' right and left corners' (>= 0)
+                ua = np.uint64(lo + ra)
                 if magic:
-                    for i in range(n):
-                        tb[i] = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS
-                    for i in range(n):
+                    for i in range(un):
+                        tb[i] = (tables[ib, s, u1 + i] - tables[ia, s, u1 + i] - tables[ib, s, ua + i]
+                                 + tables[ia, s, ua + i] + MAGIC_BITS)
+                    for i in range(un):
                         tf[i] = fb[i] - MAGIC_FLOAT
                 else:
-                    for i in range(n):
-                        tf[i] = b1[i] - a1[i] - b0[i] + a0[i]
-                cb = c_best[lo:hi]
-                kb = k_best[lo:hi]
-                for i in range(n):
-                    c = scale * (tf[i] * FIXED_INV) / denom + pn[i]
-                    c = c if (every | (oc[i] == want)) else np.inf
-                    old = cb[i]
-                    kb[i] = k if c < old else kb[i]
-                    cb[i] = min(old, c)
+                    for i in range(un):
+                        tf[i] = (tables[ib, s, u1 + i] - tables[ia, s, u1 + i] - tables[ib, s, ua + i]
+                                 + tables[ia, s, ua + i])
+                for i in range(un):
+                    c = scale * (tf[i] * FIXED_INV) / denom + penalty[y, k, u0 + i]
+                    c = c if (every | (pixel_set[y, u0 + i] == want)) else np.inf
+                    old = c_best[u0 + i]
+                    k_best[u0 + i] = k if c < old else k_best[u0 + i]
+                    c_best[u0 + i] = min(old, c)
             for x in range(hi, x1):  # right edge
-                _joint_edge_pixel(x, k, ya, yb, ra, rb, W, iya, iyb, cnt, scale, pen, every, want, occluded,
-                                  c_best, k_best)
+                _joint_edge_pixel(x, k, y, ya, yb, ia, ib, s, ra, rb, W, tables, cnt, scale, penalty, every, want,
+                                  pixel_set, c_best, k_best)
 
 
 @numba.njit(cache=True, parallel=True)
