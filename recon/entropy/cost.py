@@ -558,8 +558,7 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_bl
         sums = np.empty((S, W), np.float64)
         all_cols = np.empty((G, K, W), np.float64)
         tot = np.empty(W, np.float64)
-        pairs = np.empty(W, np.float64)
-        zero = np.zeros(W, np.float64)
+        everywhere = np.ones(W, np.bool_)
         best = np.empty(W, np.float64)
         nxt = max(c0 - up, 0)  # the next row to put in the ring
         for y in range(c0, c1):
@@ -595,15 +594,20 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_bl
                             f = ring[r % R, s]
                             for x in range(W):
                                 col[x] += f[x]
-                    else:
-                        if y + rects[k, 0] - 1 >= 0:  # the row that left the window, then the new one
-                            f = ring[(y + rects[k, 0] - 1) % R, s]
+                    else:  # the row that left the window taken away, the new one added (in one pass)
+                        gone = y + rects[k, 0] - 1 >= 0
+                        come = y + rects[k, 1] <= H - 1
+                        f = ring[(y + rects[k, 0] - 1) % R, s]
+                        h = ring[(y + rects[k, 1]) % R, s]
+                        if gone and come:
+                            for x in range(W):
+                                col[x] += h[x] - f[x]
+                        elif gone:
                             for x in range(W):
                                 col[x] -= f[x]
-                        if y + rects[k, 1] <= H - 1:
-                            f = ring[(y + rects[k, 1]) % R, s]
+                        elif come:
                             for x in range(W):
-                                col[x] += f[x]
+                                col[x] += h[x]
                     ck = counts[k]
                     ra = rects[k, 2]
                     rb = rects[k, 3]
@@ -624,37 +628,37 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_bl
                         if c < best[x]:
                             best[x] = c
                     n = hi - lo
-                    if n > 0:  # the window's columns as pairs (a, b: the last two; the rest in tot) and one (c)
+                    if n > 0:  # a loop over x per window width (3 and 5: a few slices added, one pass)
                         width = rb - ra + 1
-                        n_pairs = width // 2
-                        a = zero[:n]
-                        b = zero[:n]
-                        c1 = col[lo + rb:hi + rb] if width % 2 else zero[:n]
-                        if n_pairs > 0:
-                            for x in range(W - 1):
-                                pairs[x] = col[x] + col[x + 1]
-                            b = pairs[lo + ra + 2 * (n_pairs - 1):hi + ra + 2 * (n_pairs - 1)]
-                        if n_pairs > 1:
-                            a = pairs[lo + ra:hi + ra]
-                        if n_pairs > 2:
-                            head = tot[:n]
-                            for i in range(n):
-                                head[i] = a[i]
-                            for q in range(1, n_pairs - 1):
-                                nb = pairs[lo + ra + 2 * q:hi + ra + 2 * q]
-                                for i in range(n):
-                                    head[i] += nb[i]
-                            a = head
                         bs = best[lo:hi]
+                        al = allowed[k, y, lo:hi] if per_pixel else everywhere[lo:hi]
                         denom = (yb - ya) * width * ck
-                        if per_pixel:
-                            al = allowed[k, y, lo:hi]
-                            for i in range(n):  # & not and: no branch, the loop vectorises
-                                c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
-                                bs[i] = c if al[i] & (c < bs[i]) else bs[i]
-                        else:
+                        s0 = col[lo + ra:hi + ra]
+                        s1 = col[lo + ra + 1:hi + ra + 1]
+                        s2 = col[lo + ra + 2:hi + ra + 2]
+                        if width == 5:
+                            s3 = col[lo + ra + 3:hi + ra + 3]
+                            s4 = col[lo + ra + 4:hi + ra + 4]
+                            for i in range(n):  # inf where not allowed, then a plain < : the loop vectorises
+                                c = (((s0[i] + s1[i]) + (s2[i] + s3[i])) + s4[i]) * FIXED_INV / denom
+                                c = c if al[i] else np.inf
+                                bs[i] = c if c < bs[i] else bs[i]
+                        elif width == 3:
                             for i in range(n):
-                                c = ((a[i] + b[i]) + c1[i]) * FIXED_INV / denom
+                                c = ((s0[i] + s1[i]) + s2[i]) * FIXED_INV / denom
+                                c = c if al[i] else np.inf
+                                bs[i] = c if c < bs[i] else bs[i]
+                        else:
+                            t = tot[:n]
+                            for i in range(n):
+                                t[i] = s0[i]
+                            for q in range(1, width):
+                                sq = col[lo + ra + q:hi + ra + q]
+                                for i in range(n):
+                                    t[i] += sq[i]
+                            for i in range(n):
+                                c = t[i] * FIXED_INV / denom
+                                c = c if al[i] else np.inf
                                 bs[i] = c if c < bs[i] else bs[i]
                 for x in range(W):
                     out[g, y, x] = best[x]

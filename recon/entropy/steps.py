@@ -62,11 +62,12 @@ def initial_step(s: State) -> None:
 
 
 #: Working memory (MiB) the nine-view initial search may take at once: its cost volume (one
-#: float32 map per candidate), one candidate's block images and summed-area tables, the window
-#: gate and the nine views' rows. An image whose search needs more is searched in bands of rows,
-#: each with a halo of the rows its windows and views reach (the same maps bit for bit, as the
-#: joint search's bands). 512x512 with 52 candidates: 0.2 MB a row, one band; a 1198x906 view
-#: set with 30 candidates: 0.4 MB a row, three bands.
+#: float32 map per candidate), the nine views' rows, the window gate (and its copy window by
+#: window) and the maps it returns; the fused kernel keeps only a few rows per thread besides
+#: (:func:`recon.entropy.cost.min_window_costs`). An image whose search needs more is searched in
+#: bands of rows, each with a halo of the rows its windows and views reach (the same maps bit for
+#: bit, as the joint search's bands). 512x512 with 52 candidates: 0.14 MB a row, one band; a
+#: 1198x906 view set with 36 candidates: 0.26 MB a row, two bands.
 INITIAL_BAND_MIB = 128
 
 
@@ -74,11 +75,11 @@ def initial_band_rows(views_shape: tuple[int, int, int, int], *, n_candidates: i
                       budget_mib: float = INITIAL_BAND_MIB) -> int:
     """How many rows of a ``(U, V, H, W)`` view set one band of the nine-view search
     (:func:`recon.entropy.initial.initial_disparity`) takes within ``budget_mib`` (at least one).
-    Per pixel of a row: the nine float32 view samples, ``n_candidates`` float32 costs, nine float32
-    block images, a int64 summed-area table per window (at most one per shape), the ``n_windows``
-    bool gate and the float32 and int32 maps it returns."""
+    Per pixel of a row: the nine float32 view samples, ``n_candidates`` float32 costs, the
+    ``n_windows`` bool gate twice (as given and window by window) and the float32 disparity and
+    cost and int32 ambiguity it returns."""
     W = views_shape[3]
-    per_row = W * (4 * 9 + 4 * n_candidates + 4 * 9 + 8 * n_windows + n_windows + 16)
+    per_row = W * (4 * 9 + 4 * n_candidates + 2 * n_windows + 12)
     return max(int(budget_mib * 2 ** 20 // per_row), 1)
 
 
