@@ -13,9 +13,9 @@ from kernel_inputs import cost_volume, seeded
 def _block_abs_diff_float32(gray, disparity, view_mask=None):
     """The compiled kernel's float32 arithmetic, written out with numpy (rows first, then x with
     one fraction per view; samples left and right of the image clamped to its first/last)."""
-    from recon.entropy.cost import N_BLOCKS, _view_lists
+    from recon.entropy.cost import N_BLOCKS, view_lists
     U, V, H, W = gray.shape
-    vu, vv, vdu, vdv, vblock = _view_lists((U, V), view_mask)
+    vu, vv, vdu, vdv, vblock = view_lists((U, V), view_mask)
     d = np.float32(disparity)
     out = np.zeros((N_BLOCKS, H, W), np.float32)
     for y in range(H):
@@ -101,7 +101,7 @@ def test_set_integrals_kernel_is_identical_to_reference_for_any_thread_count():
 def test_ring_table_rows_are_the_reference_tables_rows():
     # the joint search's rings of summed-area table rows, a stretch of rows at a time, made in runs
     # of block rows (the ring just long enough, or the whole table)
-    from recon.entropy.cost import N_BLOCKS, _ring_table_rows, _set_sums_plan, _view_lists, block_set_integrals_reference
+    from recon.entropy.cost import N_BLOCKS, ring_table_rows, set_sums_plan, view_lists, block_set_integrals_reference
     from recon.entropy.initial import initial_view_mask
     rng = np.random.default_rng(3)
     for H, W in ((1, 7), (3, 5), (17, 21)):
@@ -117,8 +117,8 @@ def test_ring_table_rows_are_the_reference_tables_rows():
                            np.empty((S, W), np.float64), np.empty(W, np.int64))
                 for y in range(0, H, stretch):
                     y1 = min(y + stretch, H)
-                    _ring_table_rows(gray, *_view_lists((9, 9), mask), np.float32(d), *_set_sums_plan(sets), y, y1,
-                                     ring, *scratch)
+                    ring_table_rows(gray, *view_lists((9, 9), mask), np.float32(d), *set_sums_plan(sets), y, y1,
+                                    ring, *scratch)
                     for r in range(y + 1, y1 + 1):
                         np.testing.assert_array_equal(ring[r % R], ref[:, r])
 

@@ -64,7 +64,7 @@ def _joint_kernels(gray, candidates, rects, shapes, penalty, occluded, counts):
     twin over the summed-area tables of ``block_abs_diff`` and ``set_integrals``, and the
     row-stretch kernel over the views, in groups of one, two and three candidates (the last group
     short) and stretches of one, three and eight rows."""
-    from recon.entropy.cost import _set_sums_plan, _view_lists, block_abs_diff, set_integrals
+    from recon.entropy.cost import set_sums_plan, view_lists, block_abs_diff, set_integrals
     from recon.entropy.layout import offer_runs, row_order
     from recon.entropy.legacy_matching import _joint_cost_pixelwise
     from recon.entropy.matching import _joint_group_kernel
@@ -73,8 +73,8 @@ def _joint_kernels(gray, candidates, rects, shapes, penalty, occluded, counts):
     dense = np.ascontiguousarray(penalty.transpose(0, 2, 1))  # (H, K, W), inf: not offered
     run_start, runs = offer_runs(dense, occluded, shapes)
     order = row_order(H)
-    views = _view_lists((9, 9), None)
-    plan = _set_sums_plan(np.arange(11))
+    views = view_lists((9, 9), None)
+    plan = set_sums_plan(np.arange(11))
     disparities = np.asarray(candidates, np.float32)
     state = {}
     for name, group, rows in (("pixelwise", 1, 0), ("stretch", 1, 1), ("stretch", 3, 3), ("stretch", 2, 8)):

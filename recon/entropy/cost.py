@@ -114,7 +114,7 @@ def _block_view_rows(gray, vu, vv, vdu, vdv, vblock, disparity, y, acc, rv, k):
     # Rows y, y + 1, ... of view k's block, added into acc (rows, n_blocks, W) float32: the view's
     # row (_view_row) sampled along x and its absolute difference added to the row of its block,
     # with view k + 1 in the same pass where it is in the same block (add_two_shifted_row_diffs:
-    # each block's sum adds its views in their order, the same bits as one at a time; _view_lists
+    # each block's sum adds its views in their order, the same bits as one at a time; view_lists
     # puts each block's views together). A view gives all the rows before the next view: its
     # source rows are read in one run. rv: (2, W) float32 scratch. Returns the next view's index.
     U, V = gray.shape[0], gray.shape[1]
@@ -161,7 +161,7 @@ def _block_abs_diff_kernel(gray, vu, vv, vdu, vdv, vblock, disparity, out):
                 out[bb, y, x] = acc[0, bb, x]
 
 
-def _view_lists(grid_shape, view_mask):
+def view_lists(grid_shape, view_mask):
     # (u, v, du, dv, block) of the included views, block by block, each block's views in grid order
     # (the order its sum adds them in; _block_rows takes a block's views two at a time).
     du, dv = view_offsets(grid_shape)
@@ -182,7 +182,7 @@ def block_abs_diff(gray: np.ndarray, disparity: float, *,
     U, V, H, W = gray.shape
     if out is None:
         out = np.empty((N_BLOCKS, H, W), np.float32)
-    _block_abs_diff_kernel(gray, *_view_lists((U, V), view_mask), np.float32(disparity), out)
+    _block_abs_diff_kernel(gray, *view_lists((U, V), view_mask), np.float32(disparity), out)
     return out
 
 
@@ -380,8 +380,8 @@ def _set_integrals_kernel(blocks_ad, set_blocks, set_from, set_order, n_bands, o
 
 
 @numba.njit(cache=True)
-def _ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order, y0, y1,
-                     ring, acc, rv, sums, fixed):
+def ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparity, set_blocks, set_from, set_order, y0, y1,
+                    ring, acc, rv, sums, fixed):
     # Rows y0 + 1..y1 of the sets' summed-area tables at one candidate (block_set_integrals_reference's
     # tables, bit for bit) into the ring (R, S, W + 1): table row r in ring[r % R], made from the
     # one above it, which must be there (row 0, zero, to begin). The block rows of acc.shape[0]
@@ -432,7 +432,7 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
     if out is None:
         out = np.empty((len(sets), H + 1, W + 1), np.int64)
     n_bands = max(1, min(numba.get_num_threads(), H))
-    _set_integrals_kernel(blocks_ad, *_set_sums_plan(np.asarray(sets)), n_bands, out)
+    _set_integrals_kernel(blocks_ad, *set_sums_plan(np.asarray(sets)), n_bands, out)
     _finish_tables(out, n_bands)
     return out
 
@@ -440,7 +440,7 @@ def set_integrals(blocks_ad: np.ndarray, sets: np.ndarray,
 def block_set_integrals_reference(gray: np.ndarray, disparity: float, *, sets: np.ndarray,
                                   view_mask: np.ndarray | None = None) -> np.ndarray:
     """``(S, H + 1, W + 1)`` int64 summed-area tables of the view sets ``sets`` at ``disparity``,
-    step by step (readable twin of the rows the joint search makes, ``_ring_table_rows``): the
+    step by step (readable twin of the rows the joint search makes, ``ring_table_rows``): the
     block images (:func:`block_abs_diff`), then their sets' tables (:func:`set_integrals_reference`)."""
     return set_integrals_reference(block_abs_diff(gray, disparity, view_mask=view_mask), np.asarray(sets))
 
@@ -503,16 +503,8 @@ def min_window_cost_reference(integrals: np.ndarray, window_set: np.ndarray, rec
         return best.astype(np.float32)
 
 
-def window_reach(rects: np.ndarray) -> tuple[int, int]:
-    """``(up, down)``: how many rows above and below its pixel any of the windows ``rects``
-    ``(K, 4)`` reaches; what the kernels count with :func:`_window_reach` (a compiled helper is
-    not called from here: each one the estimate calls is another kernel to load,
-    ``recon/entropy/preload.py``)."""
-    return max(int(-rects[:, 0].min()), 0), max(int(rects[:, 1].max()), 0)
-
-
 @numba.njit(cache=True)
-def _window_reach(rects):
+def compiled_window_reach(rects):
     # window_reach within the kernels.
     up = 0
     down = 0
@@ -520,6 +512,14 @@ def _window_reach(rects):
         up = max(up, -rects[k, 0])
         down = max(down, rects[k, 1])
     return up, down
+
+
+def window_reach(rects: np.ndarray) -> tuple[int, int]:
+    """``(up, down)``: how many rows above and below its pixel any of the windows ``rects``
+    ``(K, 4)`` reaches: :func:`compiled_window_reach`'s count, run as Python (each compiled helper
+    the estimate calls from Python is another kernel to load, ``recon/entropy/preload.py``)."""
+    up, down = compiled_window_reach.py_func(rects)
+    return int(up), int(down)
 
 
 # nogil (here and in the first phase's other kernels): the warm-up's later imports run beside it
@@ -545,7 +545,7 @@ def _min_window_costs_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_bl
     W = gray.shape[3]
     S = set_blocks.shape[0]
     K = rects.shape[0]
-    up, down = _window_reach(rects)
+    up, down = compiled_window_reach(rects)
     R = up + down + 2  # and the row just above the windows, taken away from the column sums
     G = disparities.shape[0]
     per_pixel = allowed.shape[1] > 1 or allowed.shape[2] > 1  # (K, H, W), or (K, 1, 1) for all alike
@@ -696,8 +696,8 @@ def min_window_costs(gray: np.ndarray, disparities: np.ndarray, *, sets: np.ndar
     if out is None:
         out = np.empty((len(disparities), H, W), np.float32)
     n_chunks = max(1, min(numba.get_num_threads(), H))
-    _min_window_costs_kernel(gray, *_view_lists((U, V), view_mask), disparities,
-                             *_set_sums_plan(np.asarray(sets)), window_set, rects, counts, allowed,
+    _min_window_costs_kernel(gray, *view_lists((U, V), view_mask), disparities,
+                             *set_sums_plan(np.asarray(sets)), window_set, rects, counts, allowed,
                              n_chunks, out)
     return out
 
@@ -719,7 +719,7 @@ def min_window_group(width: int, *, n_sets: int, n_windows: int, rects: np.ndarr
     return max(MIN_WINDOW_GROUP_BYTES // per_candidate, 1)
 
 
-def _set_sums_plan(sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def set_sums_plan(sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(set_blocks, set_from, set_order)`` of :func:`_min_window_costs_kernel`: the blocks of
     each set (:func:`_set_block_lists`), per set the longest other set whose blocks begin its own
     (``-1``: none), whose sum it continues, and the order that makes each set after that one

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
-                                WindowCost, _ring_table_rows, _set_sums_plan, _view_lists, _window_reach,
+                                WindowCost, ring_table_rows, set_sums_plan, view_lists, compiled_window_reach,
                                 block_abs_diff, block_abs_diff_reference, cost_ambiguity, min_window_costs,
                                 min_window_costs_reference, min_window_group, set_view_counts, window_reach,
                                 window_sum_bound)
@@ -89,7 +89,7 @@ def _joint_row(tables, y, pixel_set, rects, window_shape, counts, penalty, run_s
                c_best, k_best, tb, tf):
     # One candidate's objective at the pixels of row y, the least over the windows (ascending, strict
     # <) folded into c_best / k_best ((W,) float64 and int64). tables (R, S, W + 1): the candidate's
-    # summed-area tables' rows, table row r in tables[r % R] (_ring_table_rows); the same float64
+    # summed-area tables' rows, table row r in tables[r % R] (ring_table_rows); the same float64
     # arithmetic for every pixel and window as the pixelwise twin. For one window the four corners
     # of every pixel's window lie on two rows of one table, contiguous in x: away from the image's
     # left and right edges the loop over x vectorises. Its loads index the arrays themselves with
@@ -162,7 +162,7 @@ def _joint_group_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks,
                         best, best_k):
     # The joint search for a group of G candidates (disparities (G,) float32, out (G, H, W)), down
     # the image `rows` rows at a time. For each stretch of rows the candidates, in parallel, extend
-    # their rings of summed-area table rows (_ring_table_rows: the stretch's rows and the rows its
+    # their rings of summed-area table rows (ring_table_rows: the stretch's rows and the rows its
     # windows reach below; the ring holds the rows they reach above as well) and evaluate its rows
     # (_joint_row), so that the stretch's penalty rows and the views' source rows, the search's
     # largest reads, come from memory once for the group and from cache for every candidate; then
@@ -172,7 +172,7 @@ def _joint_group_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks,
     H, K, W = penalty.shape
     S = set_blocks.shape[0]
     G = disparities.shape[0]
-    up, down = _window_reach(rects)
+    up, down = compiled_window_reach(rects)
     R = rows + up + down + 1
     tables = np.empty((G, R, S, W + 1), np.int64)
     tables[:, 0] = 0  # table row 0
@@ -190,8 +190,8 @@ def _joint_group_kernel(gray, vu, vv, vdu, vdv, vblock, disparities, set_blocks,
         need = min(y1 + down, H)
         for g in numba.prange(G):
             ring = tables[g]
-            _ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], set_blocks, set_from, set_order,
-                             made, need, ring, acc[g], rv[g], sums[g], fixed[g])
+            ring_table_rows(gray, vu, vv, vdu, vdv, vblock, disparities[g], set_blocks, set_from, set_order,
+                            made, need, ring, acc[g], rv[g], sums[g], fixed[g])
             # no window total of the stretch exceeds its rows' total (the set values are >= 0)
             top = ring[max(y0 - up, 0) % R]
             bottom = ring[need % R]
@@ -301,8 +301,8 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty = np.ascontiguousarray(penalty, dtype=np.float32)
     run_start, runs = offer_runs(penalty, pixel_set, shapes)
-    views = _view_lists((U, V), view_mask)
-    plan = _set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
+    views = view_lists((U, V), view_mask)
+    plan = set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
     D = len(candidates)
     ring_rows = JOINT_ROWS + sum(window_reach(rects)) + 1  # as the kernel's rings
     group = max(JOINT_TABLES * (H + 1) // ring_rows, numba.get_num_threads(), 1)
