@@ -107,11 +107,11 @@ def _landing(y, x, m, du, dv):
 
 
 @numba.njit(cache=True, parallel=True)
-def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_start, cols, neg, pos):
+def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_start, runs, neg, pos):
     # The rows in bands of band_rows, run in parallel, every view of a band in turn (the band's
-    # pixels stay in the cache from view to view); of each row only the pixels cols[row_start[y]:
-    # row_start[y + 1]] (the others are neither occluded nor occluding nor the top or bottom
-    # layer that decides another pixel's test: occlusion_diffs). In view k a pixel lands between
+    # pixels stay in the cache from view to view); of each row only the runs of pixels
+    # runs[row_start[y]:row_start[y + 1]] (x0, x1) (the others are neither occluded nor occluding
+    # nor the top or bottom layer that decides another pixel's test: occlusion_diffs). In view k a pixel lands between
     # row_shift[k, 0] and row_shift[k, 1] rows from its own, so a band's pixels read the top and
     # bottom layers of the rows that far from the band, and only pixels that far from those land
     # there: each band forward-warps those into its own copy of that stretch of rows (a spot
@@ -124,7 +124,7 @@ def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_star
         lo, hi = b * band_rows, min((b + 1) * band_rows, H)
         top = np.empty((hi - lo + span, W), np.float32)
         bottom = np.empty((hi - lo + span, W), np.float32)
-        view = np.full((hi - lo + span, W), -1, np.int64)  # the view whose pixels a spot holds
+        view = np.full((hi - lo + span, W), -1, np.int32)  # the view whose pixels a spot holds
         for k in range(offsets.shape[0]):
             du = offsets[k, 0]
             dv = offsets[k, 1]
@@ -133,27 +133,27 @@ def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_star
             s0, s1 = max(t0 - c, 0), min(t1 - 1 - a, H - 1) + 1  # the rows that land there
             for y in range(s0, s1):
                 for i in range(row_start[y], row_start[y + 1]):
-                    x = cols[i]
-                    m = layers[y, x]
-                    ly, lx = _landing(y, x, m, du, dv)
-                    if t0 <= ly < t1 and 0 <= lx < W:  # selects, not branches: both ways are common
-                        first = view[ly - t0, lx] != k  # the first pixel of this view there
-                        view[ly - t0, lx] = k
-                        t = top[ly - t0, lx]
-                        top[ly - t0, lx] = m if first or m > t else t
-                        d = bottom[ly - t0, lx]
-                        bottom[ly - t0, lx] = m if first or m < d else d
+                    for x in range(runs[i, 0], runs[i, 1]):
+                        m = layers[y, x]
+                        ly, lx = _landing(y, x, m, du, dv)
+                        if t0 <= ly < t1 and 0 <= lx < W:  # selects, not branches: both ways are common
+                            first = view[ly - t0, lx] != k  # the first pixel of this view there
+                            view[ly - t0, lx] = k
+                            t = top[ly - t0, lx]
+                            top[ly - t0, lx] = m if first or m > t else t
+                            d = bottom[ly - t0, lx]
+                            bottom[ly - t0, lx] = m if first or m < d else d
             for y in range(lo, hi):
                 for i in range(row_start[y], row_start[y + 1]):
-                    x = cols[i]
-                    m = layers[y, x]
-                    ly, lx = _landing(y, x, m, du, dv)
-                    if t0 <= ly < t1 and 0 <= lx < W:
-                        # adding +0.0 leaves a sum of differences of one sign (never -0.0) as it is
-                        t = top[ly - t0, lx]
-                        neg[y, x] += m - t if t - m > layer_gap else np.float32(0)
-                        d = bottom[ly - t0, lx]
-                        pos[y, x] += m - d if m - d > layer_gap else np.float32(0)
+                    for x in range(runs[i, 0], runs[i, 1]):
+                        m = layers[y, x]
+                        ly, lx = _landing(y, x, m, du, dv)
+                        if t0 <= ly < t1 and 0 <= lx < W:
+                            # adding +0.0 leaves a sum of differences of one sign (never -0.0) as it is
+                            t = top[ly - t0, lx]
+                            neg[y, x] += m - t if t - m > layer_gap else np.float32(0)
+                            d = bottom[ly - t0, lx]
+                            pos[y, x] += m - d if m - d > layer_gap else np.float32(0)
 
 
 #: Rows of the occlusion test's bands (:func:`occlusion_diffs`).
@@ -194,11 +194,14 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     highest = ndimage.maximum_filter(np.where(finite, layers, np.float32(-np.inf)), box, mode="nearest")
     lowest = ndimage.minimum_filter(np.where(finite, layers, np.float32(np.inf)), box, mode="nearest")
     tested = (highest - layers > gap) | (layers - lowest > gap)
-    ys, cols = np.nonzero(tested)
+    # the tested pixels as runs along the rows: (x0, x1) in row order, row y's from row_start[y]
+    edges = np.diff(np.pad(tested, ((0, 0), (1, 1))).view(np.int8), axis=1)
+    ys, starts = np.nonzero(edges == 1)
+    ends = np.nonzero(edges == -1)[1]
     row_start = np.zeros(H + 1, np.int64)
     np.cumsum(np.bincount(ys, minlength=H), out=row_start[1:])
-    _occlusion_kernel(layers, offsets, gap, row_shift, OCCLUSION_BAND_ROWS, row_start, cols.astype(np.int64),
-                      neg, pos)
+    _occlusion_kernel(layers, offsets, gap, row_shift, OCCLUSION_BAND_ROWS, row_start,
+                      np.stack([starts, ends], axis=1).astype(np.int64), neg, pos)
     return neg, pos
 
 
