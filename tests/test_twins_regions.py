@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
+
+from recon.entropy import regions
 
 from recon.entropy.regions import (different_neighbours, noise_sigma, noise_sigma_reference, occlusion_diffs,
                                    occlusion_diffs_reference)
@@ -61,3 +64,22 @@ def test_noise_sigma_is_scipys_convolution_bit_for_bit():
     for image in images:
         assert np.float64(noise_sigma(image)).tobytes() == np.float64(noise_sigma_reference(image)).tobytes()
     assert noise_sigma(images[0]) == 0.0 and noise_sigma(images[1]) == 0.0
+
+
+@pytest.mark.parametrize("band_rows", [5, 64])
+def test_occlusion_diffs_of_far_layers_with_few_edges_are_the_references_bit_for_bit(monkeypatch, band_rows):
+    # layers far from 0 (every pixel lands rows away) with a small spread, most pixels far from
+    # an edge (the compiled twin leaves those out), in bands of rows thinner than the shifts; values
+    # in steps of 1/128, so that the reference's float64 sums and the twin's float32 ones are exact
+    monkeypatch.setattr(regions, "OCCLUSION_BAND_ROWS", band_rows)
+    rng = seeded()
+    y, x = np.mgrid[0:70, 0:53]
+    layers = (3.0 + (x // 9) / 64 + (y // 11) / 128).astype(np.float32)  # a slant in exact steps
+    layers[20:34, 12:30] = 4.25  # a closer square
+    layers[45:70, 40:42] = 3.625  # a thin bar reaching the bottom
+    layers[rng.random(layers.shape) < 0.01] = 4.5  # specks
+    offsets = [(du, dv) for du in range(-3, 4) for dv in range(-3, 4) if (du, dv) != (0, 0)]
+    neg_r, pos_r = occlusion_diffs_reference(layers, offsets, layer_gap=0.25)
+    neg_f, pos_f = occlusion_diffs(layers, offsets, layer_gap=0.25)
+    assert (neg_r < 0).sum() > 100 and (pos_r > 0).sum() > 100
+    assert neg_f.tobytes() == neg_r.tobytes() and pos_f.tobytes() == pos_r.tobytes()

@@ -107,60 +107,101 @@ def _landing(y, x, m, du, dv):
 
 
 @numba.njit(cache=True, parallel=True)
-def _occlusion_kernel(layers, offsets, layer_gap, reach, n_bands, neg, pos):
-    # The rows in n_bands bands, one per thread. A pixel lands at most `reach` rows from its own in
-    # any view, so a band's pixels read the top and bottom layers of the rows within `reach` of the
-    # band, and only pixels within 2 * reach rows land there: each band forward-warps those into
-    # its own copy of that stretch of rows. A maximum and a minimum do not depend on the order of
-    # their values, and each pixel sums its views in their order: the serial kernel's maps.
+def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_start, runs, neg, pos):
+    # The rows in bands of band_rows, run in parallel, every view of a band in turn (the band's
+    # pixels stay in the cache from view to view); of each row only the runs of pixels
+    # runs[row_start[y]:row_start[y + 1]] (x0, x1) (the others are neither occluded nor occluding
+    # nor the top or bottom layer that decides another pixel's test: occlusion_diffs). In view k a pixel lands between
+    # row_shift[k, 0] and row_shift[k, 1] rows from its own, so a band's pixels read the top and
+    # bottom layers of the rows that far from the band, and only pixels that far from those land
+    # there: each band forward-warps those into its own copy of that stretch of rows (a spot
+    # that holds another view's layers starts again). A maximum and a minimum do not depend on the
+    # order of their values, and each pixel sums its views in their order: the serial kernel's
+    # maps.
     H, W = layers.shape
-    edges = np.linspace(0, H, n_bands + 1).astype(np.int64)
-    for b in numba.prange(n_bands):
-        lo, hi = edges[b], edges[b + 1]
-        t0, t1 = max(lo - reach, 0), min(hi + reach, H)  # the rows the band reads
-        s0, s1 = max(lo - 2 * reach, 0), min(hi + 2 * reach, H)  # the rows that land there
-        top = np.empty((t1 - t0, W), np.float32)
-        bottom = np.empty((t1 - t0, W), np.float32)
+    span = np.max(row_shift[:, 1] - row_shift[:, 0])
+    for b in numba.prange((H + band_rows - 1) // band_rows):
+        lo, hi = b * band_rows, min((b + 1) * band_rows, H)
+        top = np.empty((hi - lo + span, W), np.float32)
+        bottom = np.empty((hi - lo + span, W), np.float32)
+        view = np.full((hi - lo + span, W), -1, np.int32)  # the view whose pixels a spot holds
         for k in range(offsets.shape[0]):
             du = offsets[k, 0]
             dv = offsets[k, 1]
-            top[:] = -np.inf
-            bottom[:] = np.inf
+            a, c = row_shift[k, 0], row_shift[k, 1]
+            t0, t1 = max(lo + a, 0), min(hi - 1 + c, H - 1) + 1  # the rows the band reads
+            s0, s1 = max(t0 - c, 0), min(t1 - 1 - a, H - 1) + 1  # the rows that land there
             for y in range(s0, s1):
-                for x in range(W):
-                    m = layers[y, x]
-                    ly, lx = _landing(y, x, m, du, dv)
-                    if t0 <= ly < t1 and 0 <= lx < W:
-                        if m > top[ly - t0, lx]:
-                            top[ly - t0, lx] = m
-                        if m < bottom[ly - t0, lx]:
-                            bottom[ly - t0, lx] = m
+                for i in range(row_start[y], row_start[y + 1]):
+                    for x in range(runs[i, 0], runs[i, 1]):
+                        m = layers[y, x]
+                        ly, lx = _landing(y, x, m, du, dv)
+                        if t0 <= ly < t1 and 0 <= lx < W:  # selects, not branches: both ways are common
+                            first = view[ly - t0, lx] != k  # the first pixel of this view there
+                            view[ly - t0, lx] = k
+                            t = top[ly - t0, lx]
+                            top[ly - t0, lx] = m if first or m > t else t
+                            d = bottom[ly - t0, lx]
+                            bottom[ly - t0, lx] = m if first or m < d else d
             for y in range(lo, hi):
-                for x in range(W):
-                    m = layers[y, x]
-                    ly, lx = _landing(y, x, m, du, dv)
-                    if t0 <= ly < t1 and 0 <= lx < W:
-                        t = top[ly - t0, lx]
-                        if t - m > layer_gap:
-                            neg[y, x] += m - t
-                        d = bottom[ly - t0, lx]
-                        if m - d > layer_gap:
-                            pos[y, x] += m - d
+                for i in range(row_start[y], row_start[y + 1]):
+                    for x in range(runs[i, 0], runs[i, 1]):
+                        m = layers[y, x]
+                        ly, lx = _landing(y, x, m, du, dv)
+                        if t0 <= ly < t1 and 0 <= lx < W:
+                            # adding +0.0 leaves a sum of differences of one sign (never -0.0) as it is
+                            t = top[ly - t0, lx]
+                            neg[y, x] += m - t if t - m > layer_gap else np.float32(0)
+                            d = bottom[ly - t0, lx]
+                            pos[y, x] += m - d if m - d > layer_gap else np.float32(0)
+
+
+#: Rows of the occlusion test's bands (:func:`occlusion_diffs`).
+OCCLUSION_BAND_ROWS = 64
 
 
 def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
                     layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
-    """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel."""
+    """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel.
+
+    Two pixels that land on one spot of a view lie at most ``1 + |du| (M_max - M_min)`` rows
+    (``|dv|`` columns) apart, so a pixel whose layer is within ``layer_gap`` of every layer in that
+    box around it (most of a surface away from its depth edges) is neither occluded nor
+    occluding, and where it is the top or bottom layer of a spot, no pixel landing there is told
+    apart from it either: the test leaves such pixels out (their differences are 0). The rows a
+    band reads around it follow from the spread of the layers' shifts, not from their size."""
+    from scipy import ndimage
+
     layers = np.ascontiguousarray(layers, np.float32)
     offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
     H, W = layers.shape
     neg = np.zeros((H, W), np.float32)
     pos = np.zeros((H, W), np.float32)
-    finite = np.abs(layers[np.isfinite(layers)])
-    shift = float(np.abs(offsets[:, 0]).max(initial=0)) * float(finite.max(initial=0))
-    reach = min(int(np.ceil(shift)) + 1, H)  # rows between a pixel and where it lands, at most
-    n_bands = max(1, min(numba.get_num_threads(), H // (4 * reach)))
-    _occlusion_kernel(layers, offsets, np.float32(layer_gap), reach, n_bands, neg, pos)
+    finite = np.isfinite(layers)
+    if offsets.shape[0] == 0 or not finite.any():  # no view, or no pixel lands anywhere
+        return neg, pos
+    m_lo, m_hi = float(layers[finite].min()), float(layers[finite].max())
+    # rows between a pixel and where it lands, least and most, per view (one more each side for
+    # the rounding of y - du m + 0.5)
+    shifts = np.stack([-offsets[:, 0] * m_lo, -offsets[:, 0] * m_hi], axis=1)
+    row_shift = np.stack([np.floor(shifts.min(axis=1) + 0.5) - 1,
+                          np.floor(shifts.max(axis=1) + 0.5) + 1], axis=1).astype(np.int64)
+    # the box within which two pixels landing on one spot lie
+    reach = [int(np.ceil(np.abs(offsets[:, j]).max() * (m_hi - m_lo))) + 2 for j in (0, 1)]
+    box = (2 * reach[0] + 1, 2 * reach[1] + 1)
+    gap = np.float32(layer_gap)
+    # float32 differences, as the kernel's test takes them (a pixel that is not finite lands nowhere)
+    highest = ndimage.maximum_filter(np.where(finite, layers, np.float32(-np.inf)), box, mode="nearest")
+    lowest = ndimage.minimum_filter(np.where(finite, layers, np.float32(np.inf)), box, mode="nearest")
+    tested = (highest - layers > gap) | (layers - lowest > gap)
+    # the tested pixels as runs along the rows: (x0, x1) in row order, row y's from row_start[y]
+    edges = np.diff(np.pad(tested, ((0, 0), (1, 1))).view(np.int8), axis=1)
+    ys, starts = np.nonzero(edges == 1)
+    ends = np.nonzero(edges == -1)[1]
+    row_start = np.zeros(H + 1, np.int64)
+    np.cumsum(np.bincount(ys, minlength=H), out=row_start[1:])
+    _occlusion_kernel(layers, offsets, gap, row_shift, OCCLUSION_BAND_ROWS, row_start,
+                      np.stack([starts, ends], axis=1).astype(np.int64), neg, pos)
     return neg, pos
 
 
