@@ -29,7 +29,8 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.cost", "_cost_ambiguity_kernel", "float32:3 float32 int32:2"),
     # the first phase (the nine-view search) calls the kernels above, the later phases those below
     ("recon.entropy.median", "_median_kernel", "float32:2 int64:1 int64:1 int64:2 int64 float32:2"),
-    ("recon.entropy.regions", "_occlusion_kernel", "float32:2 float64:2 float32 int64 int64 float32:2 float32:2"),
+    ("recon.entropy.regions", "_occlusion_kernel",
+     "float32:2 float64:2 float32 int64:2 int64 int64:1 int64:2 float32:2 float32:2"),
     ("recon.entropy.entropy", "_select_kernel",
      "uint16:1 uint8:2 int64:3 int64:1 float64 float64 float64 int64 int64 float64:1 int64:2:ro float32:2 "
      "float64 int64:2:ro int64:1 int64 uint64:2 int64:2 bool:1 int64:2 int64:2 float32:2 float32:3 bool float32:1 int64 "

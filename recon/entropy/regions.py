@@ -108,16 +108,15 @@ def _landing(y, x, m, du, dv):
 
 @numba.njit(cache=True, parallel=True)
 def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_start, runs, neg, pos):
-    # The rows in bands of band_rows, run in parallel, every view of a band in turn (the band's
-    # pixels stay in the cache from view to view); of each row only the runs of pixels
-    # runs[row_start[y]:row_start[y + 1]] (x0, x1) (the others are neither occluded nor occluding
-    # nor the top or bottom layer that decides another pixel's test: occlusion_diffs). In view k a pixel lands between
-    # row_shift[k, 0] and row_shift[k, 1] rows from its own, so a band's pixels read the top and
-    # bottom layers of the rows that far from the band, and only pixels that far from those land
-    # there: each band forward-warps those into its own copy of that stretch of rows (a spot
-    # that holds another view's layers starts again). A maximum and a minimum do not depend on the
-    # order of their values, and each pixel sums its views in their order: the serial kernel's
-    # maps.
+    # The rows in bands of band_rows, run in parallel, every view of a band in turn (the band's pixels
+    # stay in the cache from view to view); of each row only the runs of pixels
+    # runs[row_start[y]:row_start[y + 1]] (x0, x1) (the others are neither occluded nor occluding nor
+    # the top or bottom layer that decides another pixel's test: occlusion_diffs). In view k a pixel
+    # lands between row_shift[k, 0] and row_shift[k, 1] rows from its own, so a band's pixels read the
+    # top and bottom layers of the rows that far from the band, and only pixels that far from those
+    # land there: each band forward-warps those into its own copy of that stretch of rows (a spot that
+    # holds another view's layers starts again). A maximum and a minimum do not depend on the order of
+    # their values, and each pixel sums its views in their order: the serial kernel's maps.
     H, W = layers.shape
     span = np.max(row_shift[:, 1] - row_shift[:, 0])
     for b in numba.prange((H + band_rows - 1) // band_rows):
