@@ -10,6 +10,7 @@ reads the views only as grey (:meth:`recon.lf.lightfield.LightField.gray`), so
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import gc
@@ -83,7 +84,8 @@ def _warm_entropy() -> None:
 
     with _blas_check_skipped():  # the first phase uses no scipy
         start_numba()
-        load_kernels(KERNELS[:FIRST_PHASE_KERNELS])  # the nine-view search's kernels, with their argument types
+        # the nine-view search's kernels, with their argument types
+        load_kernels(KERNELS[:FIRST_PHASE_KERNELS], stop=_EXITING)
 
 
 def _warm_entropy_later() -> None:
@@ -91,8 +93,9 @@ def _warm_entropy_later() -> None:
 
     from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
 
-    load_kernels(KERNELS[FIRST_PHASE_KERNELS:])  # the later steps' kernels
-    import scipy.ndimage  # noqa: F401  first used by the region types (the matching phase)
+    load_kernels(KERNELS[FIRST_PHASE_KERNELS:], stop=_EXITING)  # the later steps' kernels
+    if not _EXITING.is_set():
+        import scipy.ndimage  # noqa: F401  first used by the region types (the matching phase)
 
 
 def _check_baseline(options: dict[str, Any]) -> None:
@@ -147,6 +150,21 @@ def check_method_options(name: str, options: dict[str, Any]) -> None:
 
 
 _FROZE: list[str] = []  # the first warm-up of this process (it freezes: see below)
+#: Set when the process exits: a warm-up loads no further kernel (:func:`_finish_warm_ups`).
+_EXITING = threading.Event()
+_WARM_UPS: list[threading.Thread] = []
+
+
+def _finish_warm_ups() -> None:
+    """At the process's exit (``atexit``): let each running warm-up finish the kernel it is loading,
+    start no other, and end. A kernel that numba compiles (the cache has none for it: a new
+    machine, an edited module) spends seconds in LLVM without the interpreter lock; a process that
+    exited meanwhile would tear LLVM down under it and end in a segmentation fault or one of LLVM's
+    assertions instead of its own exit status, whatever the command had done. Exit then waits for
+    at most that one kernel, which its next run then loads from the cache."""
+    _EXITING.set()
+    for thread in _WARM_UPS:
+        thread.join()
 
 
 @dataclass(frozen=True)
@@ -185,6 +203,9 @@ def warm_in_background(name: str) -> Warming | None:
     Frozen objects are still freed when their last reference goes; only a reference cycle that is
     already garbage at that moment stays. ``warm_later()`` runs with the collector as it was (the
     method's call runs meanwhile), so scipy's ~3x10^4 objects are not frozen.
+
+    The process's exit waits for a running warm-up to finish the kernel it is loading; it loads no
+    other (:func:`_finish_warm_ups`).
     """
     method = METHODS.get(name)
     if method is None or method.warm is None:
@@ -193,6 +214,7 @@ def warm_in_background(name: str) -> Warming | None:
     first = not _FROZE
     if first:
         _FROZE.append(name)
+        atexit.register(_finish_warm_ups)
     ready = threading.Event()
 
     def warm() -> None:
@@ -209,11 +231,12 @@ def warm_in_background(name: str) -> Warming | None:
                 if collecting:
                     gc.enable()
             ready.set()
-        if method.warm_later is not None:
+        if method.warm_later is not None and not _EXITING.is_set():
             with contextlib.suppress(Exception):  # as above
                 method.warm_later()
 
     thread = threading.Thread(target=warm, name=f"lfrig-warm-{name}", daemon=True)
+    _WARM_UPS[:] = [*(t for t in _WARM_UPS if t.is_alive()), thread]
     thread.start()
     return Warming(thread, ready)
 

@@ -82,3 +82,51 @@ def test_the_warm_up_before_the_estimate_loads_the_first_phase_without_scipy():
              "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules]))")
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 0, 0, True]
+
+
+# Kernels that take a while to "compile" and log when they start and end (the probe's LOG).
+SLOW_KERNELS = """
+import time
+LOG = None
+
+class Slow:
+    def __init__(self, name, seconds):
+        self.name, self.seconds, self.overloads = name, seconds, {}
+
+    def compile(self, signature):
+        with open(LOG, "a") as log:
+            log.write(f"start {self.name}\\n")
+        time.sleep(self.seconds)
+        with open(LOG, "a") as log:
+            log.write(f"end {self.name}\\n")
+        self.overloads[signature] = None
+
+first, second, third = Slow("first", 0.0), Slow("second", 0.0), Slow("third", 0.0)
+later, last = Slow("later", 1.5), Slow("last", 1.5)
+"""
+
+
+def test_the_exit_waits_for_the_kernel_the_warm_up_is_loading_and_loads_no_other(tmp_path):
+    # recon.methods._finish_warm_ups. A kernel that numba compiles (none in its cache: a new machine)
+    # spends seconds in LLVM without the interpreter lock; a process that exited meanwhile tore LLVM
+    # down under it: `lfrig reconstruct` wrote its result, then died of a segmentation fault or an
+    # LLVM assertion. Here the command's work ends while the warm-up loads `later`.
+    (tmp_path / "slow_kernels.py").write_text(SLOW_KERNELS)
+    log = tmp_path / "log.txt"
+    probe = ("import sys, time\n"
+             f"sys.path.insert(0, {str(tmp_path)!r})\n"
+             "import slow_kernels\n"
+             f"slow_kernels.LOG = {str(log)!r}\n"
+             "import recon.entropy.preload as preload\n"
+             "preload.KERNELS = tuple(('slow_kernels', name, 'int64') for name in "
+             "('first', 'second', 'third', 'later', 'last'))\n"
+             "preload.FIRST_PHASE_KERNELS = 3\n"
+             "from recon.methods import warm_in_background\n"
+             "warming = warm_in_background('entropy')\n"
+             "warming.wait()\n"
+             "while 'start later' not in open(slow_kernels.LOG).read():\n"
+             "    time.sleep(0.01)\n"
+             "print('done')\n")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert (out.returncode, out.stdout.strip()) == (0, "done"), out.stderr
+    assert log.read_text().split("\n")[-3:] == ["start later", "end later", ""]

@@ -19,6 +19,7 @@ estimate in a fresh process after :func:`load_kernels` and checks that it adds n
 from __future__ import annotations
 
 import importlib
+import threading
 
 #: (module, kernel, argument types), in the order of the estimate's first calls.
 KERNELS: tuple[tuple[str, str, str], ...] = (
@@ -69,11 +70,14 @@ def argument_types(tokens: str) -> tuple:
     return tuple(one(token) for token in tokens.split())
 
 
-def load_kernels(kernels: tuple[tuple[str, str, str], ...] = KERNELS) -> int:
+def load_kernels(kernels: tuple[tuple[str, str, str], ...] = KERNELS, *, stop: threading.Event | None = None) -> int:
     """Load every kernel of ``kernels`` (default :data:`KERNELS`) with its signature (from numba's
-    cache, or compile it where the cache has none); return how many were not loaded yet."""
+    cache, or compile it where the cache has none), or only those before ``stop`` is set (checked
+    before each kernel); return how many were not loaded yet."""
     loaded = 0
     for module, name, tokens in kernels:
+        if stop is not None and stop.is_set():
+            break
         kernel = getattr(importlib.import_module(module), name)
         signature = argument_types(tokens)
         if signature not in kernel.overloads:
