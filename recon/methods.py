@@ -167,6 +167,13 @@ def _finish_warm_ups() -> None:
         thread.join()
 
 
+#: What a wait for the warm-up longer than :data:`SLOW_WARM_UP_S` says (:meth:`Warming.wait`): a
+#: first run after ``./setup.sh`` compiles the entropy method's kernels (~20 s before its first
+#: step, ~70 s for backgammon in all on 2 cores), and until then its bar would stand at 0 %.
+SLOW_WARM_UP = "compiling the estimator's kernels into numba's cache (a first run: a minute or two, once)"
+SLOW_WARM_UP_S = 3.0
+
+
 @dataclass(frozen=True)
 class Warming:
     """A method's warm-up running in a thread (:func:`warm_in_background`)."""
@@ -175,8 +182,15 @@ class Warming:
     #: Set when ``warm()`` has ended (or failed): the method's call may start.
     ready: threading.Event
 
-    def wait(self) -> None:
-        """Block until the method's call may start; ``warm_later()`` may still run."""
+    def wait(self, progress: Any = None, *, note_after_s: float | None = None) -> None:
+        """Block until the method's call may start; ``warm_later()`` may still run. With a
+        ``progress(fraction, message)`` callback, a wait longer than ``note_after_s`` (default
+        :data:`SLOW_WARM_UP_S`) says what it waits for (:data:`SLOW_WARM_UP`): on a warm cache the
+        warm-up is ready within a second of the views being read; past that it is most likely
+        compiling."""
+        after = SLOW_WARM_UP_S if note_after_s is None else note_after_s
+        if progress is not None and not self.ready.wait(after):
+            progress(0.0, SLOW_WARM_UP)
         self.ready.wait()
 
     def join(self) -> None:

@@ -262,7 +262,8 @@ def _reconstruct_locked(lf: LightField, out: Path, *, method: str, opts: dict[st
         version = beside.submit(lfrig_version)  # cached: provenance() below takes it from there
         started = time.perf_counter()
         if warming is not None:
-            warming.wait()  # what the estimate's first steps need; the rest loads beside them
+            # what the estimate's first steps need (a long wait says why); the rest loads beside them
+            warming.wait(progress)
         method_result = (estimate or run_in_process)(lf, method, opts, progress)
         seconds = time.perf_counter() - started
     centre.result()  # its error (a full disk) is raised here

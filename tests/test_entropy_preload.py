@@ -130,3 +130,18 @@ def test_the_exit_waits_for_the_kernel_the_warm_up_is_loading_and_loads_no_other
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert (out.returncode, out.stdout.strip()) == (0, "done"), out.stderr
     assert log.read_text().split("\n")[-3:] == ["start later", "end later", ""]
+
+
+def test_a_long_wait_for_the_warm_up_says_what_it_waits_for_and_a_short_one_says_nothing():
+    import threading
+
+    from recon.methods import SLOW_WARM_UP, Warming
+
+    for ready_after, expected in ((0.0, []), (0.5, [(0.0, SLOW_WARM_UP)])):
+        ready = threading.Event()
+        thread = threading.Timer(ready_after, ready.set)
+        thread.start()
+        said = []
+        Warming(thread, ready).wait(lambda fraction, message="": said.append((fraction, message)), note_after_s=0.2)
+        assert ready.is_set() and said == expected
+    Warming(thread, ready).wait()  # no callback: nothing to say
