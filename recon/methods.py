@@ -14,6 +14,7 @@ import atexit
 import contextlib
 import dataclasses
 import gc
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -164,7 +165,12 @@ def _finish_warm_ups() -> None:
     at most that one kernel, which its next run then loads from the cache."""
     _EXITING.set()
     for thread in _WARM_UPS:
-        thread.join()
+        thread.join(1.0)
+        if thread.is_alive():  # a compile: say why the exit waits
+            with contextlib.suppress(Exception):
+                print("lfrig: waiting for numba to finish compiling a kernel into its cache before exiting "
+                      "(seconds; once)", file=sys.stderr, flush=True)
+            thread.join()
 
 
 #: What a wait for the warm-up longer than :data:`SLOW_WARM_UP_S` says (:meth:`Warming.wait`): a

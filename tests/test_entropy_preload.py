@@ -102,7 +102,7 @@ class Slow:
         self.overloads[signature] = None
 
 first, second, third = Slow("first", 0.0), Slow("second", 0.0), Slow("third", 0.0)
-later, last = Slow("later", 1.5), Slow("last", 1.5)
+later, last = Slow("later", 2.0), Slow("last", 2.0)
 """
 
 
@@ -130,6 +130,7 @@ def test_the_exit_waits_for_the_kernel_the_warm_up_is_loading_and_loads_no_other
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert (out.returncode, out.stdout.strip()) == (0, "done"), out.stderr
     assert log.read_text().split("\n")[-3:] == ["start later", "end later", ""]
+    assert "waiting for numba to finish compiling" in out.stderr  # a wait of over a second says why
 
 
 def test_a_long_wait_for_the_warm_up_says_what_it_waits_for_and_a_short_one_says_nothing():
