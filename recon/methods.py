@@ -173,10 +173,11 @@ def _finish_warm_ups() -> None:
             thread.join()
 
 
-#: What a wait for the warm-up longer than :data:`SLOW_WARM_UP_S` says (:meth:`Warming.wait`): a
-#: first run after ``./setup.sh`` compiles the entropy method's kernels (~20 s before its first
-#: step, ~70 s for backgammon in all on 2 cores), and until then its bar would stand at 0 %.
-SLOW_WARM_UP = "compiling the estimator's kernels into numba's cache (a first run: a minute or two, once)"
+#: What a wait for the warm-up longer than :data:`SLOW_WARM_UP_S` says (:meth:`Warming.wait`): where
+#: numba's cache lacks the entropy method's kernels (``./setup.sh`` fills it; a module edited since,
+#: a cache that could not be written) a run compiles them (~15 s before its first step, ~70 s for
+#: backgammon in all on 2 cores), and until then its bar would stand at 0 %.
+SLOW_WARM_UP = "compiling the estimator's kernels into numba's cache (a minute or two, once)"
 SLOW_WARM_UP_S = 3.0
 
 
