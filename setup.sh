@@ -129,9 +129,9 @@ export UV_PYTHON_DOWNLOADS=never
 .venv/bin/python -m compileall -qq "$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
   rig recon calib >/dev/null || say "warning: some modules did not compile to bytecode (imports are slower, nothing else)"
 # numba compiles a kernel at its first call and caches it beside the sources (recon/**/__pycache__):
-# a first `lfrig reconstruct` on a new machine spent ~70 s compiling before its estimate ran. The
-# estimators' kernels (recon/entropy/preload.py, the baseline's sweep) compile here instead, once;
-# with the cache current this takes ~1.5 s.
+# without this, the first `lfrig reconstruct` on a machine compiles for ~70 s before and during its
+# estimate. The estimators' kernels (recon/entropy/preload.py, the baseline's sweep) compile here
+# instead, once; with the cache current this takes ~1.4 s.
 say "compiling the estimators' kernels into numba's cache (a minute or two the first time)"
 .venv/bin/python -c 'from recon.entropy.preload import load_kernels; from recon.baseline import load_kernels as sweep; load_kernels(); sweep()' \
   || say "warning: the estimators' kernels did not compile here; the first reconstruction compiles them (slower, nothing else)"
