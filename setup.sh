@@ -130,9 +130,10 @@ export UV_PYTHON_DOWNLOADS=never
   rig recon calib >/dev/null || say "warning: some modules did not compile to bytecode (imports are slower, nothing else)"
 # numba compiles a kernel at its first call and caches it beside the sources (recon/**/__pycache__):
 # without this, the first `lfrig reconstruct` on a machine compiles for ~70 s before and during its
-# estimate. The estimators' kernels (recon/entropy/preload.py, the baseline's sweep) compile here
-# instead, once; with the cache current this takes ~1.4 s.
+# estimate. Every method's warm-up (recon.methods.warm_every_method: the entropy method's
+# recon/entropy/preload.py, the baseline's sweep) compiles them here instead, once; with the cache
+# current this takes ~1.4 s.
 say "compiling the estimators' kernels into numba's cache (a minute or two the first time)"
-.venv/bin/python -c 'from recon.entropy.preload import load_kernels; from recon.baseline import load_kernels as sweep; load_kernels(); sweep()' \
+.venv/bin/python -c 'from recon.methods import warm_every_method; warm_every_method()' \
   || say "warning: the estimators' kernels did not compile here; the first reconstruction compiles them (slower, nothing else)"
 say "environment ready: .venv/bin/lfrig"

@@ -108,9 +108,9 @@ later, last = Slow("later", 2.0), Slow("last", 2.0)
 
 def test_the_exit_waits_for_the_kernel_the_warm_up_is_loading_and_loads_no_other(tmp_path):
     # recon.methods._finish_warm_ups. A kernel that numba compiles (none in its cache: a new machine)
-    # spends seconds in LLVM without the interpreter lock; a process that exited meanwhile tore LLVM
-    # down under it: `lfrig reconstruct` wrote its result, then died of a segmentation fault or an
-    # LLVM assertion. Here the command's work ends while the warm-up loads `later`.
+    # spends seconds in LLVM without the interpreter lock; a process that exited meanwhile would tear
+    # LLVM down under it: `lfrig reconstruct` would write its result, then die of a segmentation
+    # fault or an LLVM assertion. Here the command's work ends while the warm-up loads `later`.
     (tmp_path / "slow_kernels.py").write_text(SLOW_KERNELS)
     log = tmp_path / "log.txt"
     probe = ("import sys, time\n"
