@@ -24,6 +24,8 @@ import threading
 
 #: (module, kernel, argument types), in the order of the estimate's first calls.
 KERNELS: tuple[tuple[str, str, str], ...] = (
+    # the coarse search for a range nobody gave (a lab capture's) downsamples the views first
+    ("recon.entropy.initial", "_downsample_kernel", "float32:4 int64 float32:4"),
     ("recon.entropy.cost", "_min_window_costs_kernel",
      "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32:1 int64:2 int64:1 int64:1 int64:1 int64:2 "
      "float64:1 bool:3 int64 float32:3"),
@@ -54,7 +56,7 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
      "uint64:1 uint64:1"),
 )
 #: How many of :data:`KERNELS` the estimate's first phase calls (the first ones).
-FIRST_PHASE_KERNELS = 3
+FIRST_PHASE_KERNELS = 4
 
 
 def argument_types(tokens: str) -> tuple:
