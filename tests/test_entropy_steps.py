@@ -231,4 +231,9 @@ def test_sparse_volume_gives_back_the_dense_one_bit_for_bit():
     index[5, 5] = 2
     expected = np.take_along_axis(dense, index[..., None], 2)[..., 0]
     np.testing.assert_array_equal(packed.take(index).view(np.uint32), expected.view(np.uint32))
+    np.testing.assert_array_equal(packed.take_reference(index).view(np.uint32), expected.view(np.uint32))
+    empty = SparseVolume.pack(np.full((2, 3, K), -np.inf, np.float32))
+    assert (empty.take(np.zeros((2, 3), np.int64)) == -np.inf).all()
+    with pytest.raises(ValueError, match="index must be"):
+        packed.take(np.full((H, W), K))
     assert volume.CHUNK_ROWS < H

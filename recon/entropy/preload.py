@@ -44,6 +44,7 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
     ("recon.entropy.matching", "_joint_group_kernel",
      "float32:4 int64:1 int64:1 float32:1 float32:1 int64:1 float32:1 int64:2 int64:1 int64:1 bool:2 int64:2 int64:1 "
      "float64:1 float32:3 int64:1 int32:2 float64 int64 float32:3 float32:2 int64:2"),
+    ("recon.entropy.volume", "_take_kernel", "uint8:3 int64:1 float32:1 int64:2 int64 float32 float32:2"),
     ("recon.entropy.refine", "_centroid_kernel", "float64:2 int64:3 float64 float64 float64:2"),
     ("recon.entropy.boundary", "_snap_kernel",
      "float32:4 float32:2 float32:2 float32:2 int64 int64:1 int64:1 float64:1 float64:1 float64 int64 float64 "

@@ -75,11 +75,18 @@ class SparseVolume:
 
     def take(self, index: np.ndarray) -> np.ndarray:
         """``(H, W)`` float32: each pixel's entry at its ``index`` ``(H, W)`` in ``-K..K-1``
-        (negative from the end), as ``np.take_along_axis(dense, index[..., None], 2)[..., 0]``."""
-        H, W, K = self.shape
-        index = np.asarray(index)
-        if index.shape != (H, W) or (index.size and (index.min() < -K or index.max() >= K)):
-            raise ValueError(f"index must be ({H}, {W}) in {-K}..{K - 1}")
+        (negative from the end), as ``np.take_along_axis(dense, index[..., None], 2)[..., 0]``
+        (:meth:`take_reference`, the readable twin: the same entries)."""
+        H, W, K = self._checked_index(index)
+        out = np.empty((H, W), np.float32)
+        _take_kernel(self.mask, self.start, self.values, np.ascontiguousarray(index, dtype=np.int64), K,
+                     np.float32(self.fill), out)
+        return out
+
+    def take_reference(self, index: np.ndarray) -> np.ndarray:
+        """:meth:`take` in numpy, a chunk of rows at a time: each pixel's entry is the one whose
+        rank among the pixel's kept entries is the count of kept entries up to its ``index``."""
+        H, W, K = self._checked_index(index)
         index = np.where(index < 0, index + K, index)
         out = np.full((H, W), np.float32(self.fill), np.float32)
         if self.values.size == 0:
@@ -93,6 +100,34 @@ class SparseVolume:
             first = self.start[y * W:(y + keep.shape[0]) * W].reshape(keep.shape[:2])
             out[y:y + CHUNK_ROWS] = np.where(kept, self.values[np.where(kept, first + rank, 0)], np.float32(self.fill))
         return out
+
+    def _checked_index(self, index: np.ndarray) -> tuple[int, int, int]:
+        H, W, K = self.shape
+        index = np.asarray(index)
+        if index.shape != (H, W) or (index.size and (index.min() < -K or index.max() >= K)):
+            raise ValueError(f"index must be ({H}, {W}) in {-K}..{K - 1}")
+        return H, W, K
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _take_kernel(mask, start, values, index, K, fill, out):
+    # Twin of SparseVolume.take_reference, rows in parallel: a pixel's entry at k (index, -K..K-1)
+    # is kept when bit k of its mask is set, and is then its entry after the kept ones below k.
+    H, W = out.shape
+    for y in numba.prange(H):
+        for x in range(W):
+            k = index[y, x]
+            if k < 0:
+                k += K
+            bits = mask[y, x]
+            if not bits[k >> 3] & (128 >> (k & 7)):
+                out[y, x] = fill
+                continue
+            rank = 0
+            for j in range(k):
+                if bits[j >> 3] & (128 >> (j & 7)):
+                    rank += 1
+            out[y, x] = values[start[y * W + x] + rank]
 
 
 @numba.njit(cache=True, parallel=True)
