@@ -174,6 +174,11 @@ def test_soften_views_filters_only_where_asked_and_is_local():
     np.testing.assert_array_equal(out[1, 2][far], views[1, 2][far])
     assert out[1, 2, 12:18, 12:18].std() < 0.7 * views[1, 2, 12:18, 12:18].std()  # filtered inside
     assert soften_views(views, sigma_px=0.0, where=where) is views
+    band = np.full((3, 3, 8, 40), np.nan, np.float32)  # rows 14..21 only, each view filtered whole
+    assert soften_views(views, sigma_px=0.6, where=where, out=band, rows=slice(14, 22)) is band
+    np.testing.assert_array_equal(band.view(np.uint32), out[:, :, 14:22].view(np.uint32))
+    with pytest.raises(ValueError, match="subset of the rows"):
+        soften_views(views, sigma_px=0.6, where=where, out=views, rows=slice(14, 22))
     np.testing.assert_array_equal(weak_texture_pixels(np.array([1.0, 15.9, 16.0, 40.0]), texture_ratio=16.0),
                                   [True, True, False, False])
 

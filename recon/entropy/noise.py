@@ -166,7 +166,7 @@ def _blend_filtered(view: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.n
 
 
 def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray,
-                 out: np.ndarray | None = None) -> np.ndarray:
+                 out: np.ndarray | None = None, rows: slice = slice(None)) -> np.ndarray:
     """``(U, V, H, W)`` float32 views Gaussian filtered with ``sigma_px`` where ``where``
     (``(U, V, H, W)`` bool, e.g. :func:`warp_mask_to_views` of the weak-texture pixels), blended in
     with a 1-px soft mask; views without a pixel of ``where`` are passed through.
@@ -175,20 +175,25 @@ def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray,
     by default) whose job is not to lower the noise but to correlate it over neighbouring pixels, so
     that a bilinear sample between pixels averages it little more than a sample at a pixel.
     ``out``: a float32 array of the same shape to write to (may be ``gray`` itself, to save a copy of
-    the light field); default a new one."""
+    the light field); default a new one. ``rows``: the image rows of the result to keep (``out``
+    then holds only those, ``(U, V, len(rows), W)``; each view is filtered whole): a band's core
+    rows written straight to their place, without a copy of the halo'd band."""
     if sigma_px <= 0:
         return gray
+    U, V, H = gray.shape[:3]
+    kept = range(H)[rows]
     if out is None:
-        out = np.empty_like(gray, dtype=np.float32)
-    U, V = gray.shape[:2]
+        out = np.empty((U, V, len(kept)) + gray.shape[3:], dtype=np.float32)
+    if out is gray and len(kept) != H:
+        raise ValueError("soften_views writes a subset of the rows only into another array")
 
     def one(k: int) -> None:  # OpenCV releases the GIL: the views run on every core
         u, v = divmod(k, V)
         view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
         if where[u, v].any():
-            out[u, v] = _blend_filtered(view, where[u, v], sigma_px)
+            out[u, v] = _blend_filtered(view, where[u, v], sigma_px)[rows]
         elif out is not gray:
-            out[u, v] = view
+            out[u, v] = view[rows]
 
     with ThreadPoolExecutor(max_workers=max(1, min(U * V, cv2.getNumThreads()))) as pool:
         list(pool.map(one, range(U * V)))

@@ -220,12 +220,13 @@ def filtered_views(s: State, a: int, b: int) -> np.ndarray:
                                                                image_rows=rows),
                                       texture_ratio=o.noise_texture_ratio if o.noise_gate == "texture" else None,
                                       radius_px=o.windows.largest_radius_px)
-        if weak is not None:
-            views = soften_views(views, sigma_px=o.weak_texture_filter,
-                                 where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1),
-                                                          image_rows=rows),
-                                 out=None if views is row else views)
-        out[u] = views[0, :, a - top:b - top]
+        core = slice(a - top, b - top)
+        if weak is not None:  # the band's rows straight into their place
+            soften_views(views, sigma_px=o.weak_texture_filter,
+                         where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1), image_rows=rows),
+                         out=out[u:u + 1], rows=core)
+        else:
+            out[u] = views[0, :, core]
     return out
 
 
