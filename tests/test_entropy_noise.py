@@ -157,6 +157,9 @@ def test_warp_mask_to_views_by_rows_is_the_whole_grid_s_rows():
     for u in range(5):
         assert np.array_equal(warp_mask_to_views(mask, disparity, (5, 3), rows=range(u, u + 1)), whole[u:u + 1])
     assert np.array_equal(warp_mask_to_views(mask, disparity, (5, 3), rows=range(1, 4)), whole[1:4])
+    largest = float(np.abs(disparity).max())  # given by a caller: the same rows
+    assert np.array_equal(warp_mask_to_views(mask, disparity, (5, 3), rows=range(4, 5), image_rows=range(7, 19),
+                                             max_disparity=largest), whole[4:5, :, 7:19])
 
 
 def test_soften_views_filters_only_where_asked_and_is_local():

@@ -72,13 +72,15 @@ def soften_reach_px(sigma_px: float) -> int:
 
 
 def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
-                       rows: range | None = None, image_rows: range | None = None) -> np.ndarray:
+                       rows: range | None = None, image_rows: range | None = None,
+                       max_disparity: float | None = None) -> np.ndarray:
     """``(len(rows), V, len(image_rows), W)`` bool: where the centre-view pixels of ``mask`` land in
     the views of the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
     (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel to close the
     gaps of the forward warp; the image rows ``image_rows`` of each view (default all ``H``: the
     same bits as those rows of the whole view's mask), from the mask's pixels that can land within
-    a row of them."""
+    a row of them. ``max_disparity``: ``nanmax |disparity|``, for a caller that warps several
+    masks or grid rows with one disparity map (made from the map otherwise: a pass over it)."""
     U, V = grid_shape
     rows = range(U) if rows is None else rows
     H, W = mask.shape
@@ -86,7 +88,8 @@ def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tupl
     a, b = max(top - 1, 0), min(bottom + 1, H)  # the rows the one-pixel growth reads
     lo, hi = 0, H  # the centre rows whose pixels can land there
     if (a, b) != (0, H):
-        reach = np.ceil(max(abs(u - U // 2) for u in rows) * float(np.nanmax(np.abs(disparity)))) + 1
+        largest = float(np.nanmax(np.abs(disparity))) if max_disparity is None else max_disparity
+        reach = np.ceil(max(abs(u - U // 2) for u in rows) * largest) + 1
         lo, hi = int(max(a - reach, 0)), int(min(b + reach, H))
     ys, xs = np.nonzero(mask[lo:hi])
     ys += lo

@@ -210,6 +210,7 @@ def filtered_views(s: State, a: int, b: int) -> np.ndarray:
     reach = view_filter_rows(o)
     top, bottom = max(a - reach, 0), min(b + reach, H)
     rows = range(top, bottom)
+    largest = float(np.nanmax(np.abs(s.d0)))  # for every warp of the band
     out = np.empty((U, V, b - a, W), np.float32)
     for u in range(U):
         views = row = s.raw[u:u + 1, :, top:bottom]
@@ -217,13 +218,14 @@ def filtered_views(s: State, a: int, b: int) -> np.ndarray:
             views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
                                       size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
                                       where=warp_mask_to_views(noise, s.d0, (U, V), rows=range(u, u + 1),
-                                                               image_rows=rows),
+                                                               image_rows=rows, max_disparity=largest),
                                       texture_ratio=o.noise_texture_ratio if o.noise_gate == "texture" else None,
                                       radius_px=o.windows.largest_radius_px)
         core = slice(a - top, b - top)
         if weak is not None:  # the band's rows straight into their place
             soften_views(views, sigma_px=o.weak_texture_filter,
-                         where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1), image_rows=rows),
+                         where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1), image_rows=rows,
+                                                  max_disparity=largest),
                          out=out[u:u + 1], rows=core)
         else:
             out[u] = views[0, :, core]
