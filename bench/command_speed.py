@@ -1,7 +1,7 @@
 """Benchmark: the ``lfrig`` command end to end, as a user runs it, and the docs' speed table.
 
     .venv/bin/python bench/command_speed.py [--cases help backgammon ...] [--runs 3] [--work DIR]
-        [--json OUT.json] [--update-docs]
+        [--json OUT.json] [--update-docs] [--against TREE]
 
 Each run is a fresh process of ``.venv/bin/lfrig`` (imports, reading, the estimate, every output
 file and the exit included), timed from outside: wall seconds, CPU seconds (user + sys of the child,
@@ -22,6 +22,13 @@ Cases (``--cases``, default all but ``capture``, which needs the demo capture; `
 - ``capture``: ``lfrig reconstruct`` on the 1198x906 rectified demo capture that
   ``bench/capture_speed.py`` makes (``lfrig demo --binning 1``; made once into
   ``--capture-work`` when missing, which takes minutes).
+
+``--against TREE`` compares this checkout with another one of lfrig (e.g. ``git worktree add
+/tmp/before HEAD~3``; both run on this checkout's ``.venv``, each with its own sources: ``python -c``
+in the tree's folder with it on ``PYTHONPATH``): after a warm-up of each, the runs of a case
+alternate between the two (this, other, other, this, ...), so that a machine whose speed drifts
+between hours touches both alike, and the table gives both medians and their ratio. The other
+tree's numba cache is its own (its first warm-up compiles).
 
 ``--json OUT.json`` writes every run's numbers; ``--update-docs`` rewrites the table between the
 ``<!-- speed-table -->`` markers of ``docs/entropy-results.md`` (:data:`DOC`), so the docs' figures
@@ -105,11 +112,42 @@ def _lines(path: str) -> list[str]:
         return []
 
 
-def run_once(argv: list[str], *, env: dict[str, str]) -> dict:
+#: ``lfrig`` as a module of the tree ``python -c`` runs it in (:func:`tree_side`).
+TREE_MAIN = "import sys; from rig.main import main; sys.exit(main())"
+
+
+@dataclass(frozen=True)
+class Side:
+    """How to start ``lfrig``: the command before its arguments, the folder it runs in and the
+    environment's additions."""
+
+    command: tuple[str, ...]
+    cwd: Path
+    env: tuple[tuple[str, str], ...] = ()
+
+
+#: The installed ``lfrig`` of this checkout, as a user runs it.
+INSTALLED = Side((str(LFRIG),), ROOT)
+
+
+def tree_side(tree: Path) -> Side:
+    """``lfrig`` from the sources of ``tree`` (a checkout of lfrig) on this interpreter: ``python -c``
+    run in ``tree``, which is also first on ``PYTHONPATH`` (``-c`` puts the folder it runs in first
+    on ``sys.path``, before any editable install). Bytecode is written (``PYTHONDONTWRITEBYTECODE``
+    off), so that the warm-up leaves both trees' imports reading ``.pyc`` files, as numba's cache
+    is written into each tree's ``__pycache__`` too."""
+    tree = tree.resolve()
+    if not (tree / "rig" / "main.py").is_file() or not (tree / "recon").is_dir():
+        raise SystemExit(f"--against {tree}: not a checkout of lfrig (no rig/main.py and recon/)")
+    return Side((sys.executable, "-c", TREE_MAIN), tree, (("PYTHONPATH", str(tree)), ("PYTHONDONTWRITEBYTECODE", "")))
+
+
+def run_once(argv: list[str], *, env: dict[str, str], side: Side = INSTALLED) -> dict:
     """One fresh ``lfrig`` process: wall seconds, its CPU seconds and peak RSS (MiB), from ``wait4``."""
+    env = {**env, **dict(side.env)}
     with open(os.devnull, "wb") as null:
         started = time.perf_counter()
-        child = subprocess.Popen([str(LFRIG), *argv], cwd=ROOT, env=env, stdout=null, stderr=subprocess.PIPE)
+        child = subprocess.Popen([*side.command, *argv], cwd=side.cwd, env=env, stdout=null, stderr=subprocess.PIPE)
         err = child.stderr.read()
         _, status, usage = os.wait4(child.pid, 0)
         wall = time.perf_counter() - started
@@ -130,6 +168,30 @@ def measure(case: Case, *, runs: int, work: Path, capture: Path, env: dict[str, 
             "wall_s": statistics.median(r["wall_s"] for r in timed),
             "cpu_s": statistics.median(r["cpu_s"] for r in timed),
             "peak_mib": max(r["peak_mib"] for r in timed),
+            "load_before": [round(v, 2) for v in load_before], "load_after": [round(v, 2) for v in load_after]}
+
+
+def _summary(timed: list[dict]) -> dict:
+    return {"runs": timed, "wall_s": statistics.median(r["wall_s"] for r in timed),
+            "cpu_s": statistics.median(r["cpu_s"] for r in timed), "peak_mib": max(r["peak_mib"] for r in timed)}
+
+
+def compare(case: Case, *, runs: int, work: Path, capture: Path, env: dict[str, str], against: Side) -> dict:
+    """A warm-up of each side, then ``runs`` runs of ``case`` on each, alternating (this checkout
+    first in even rounds, the other first in odd ones): each side's medians and largest peak."""
+    argv = [a.format(work=work, bg=BACKGAMMON, capture=capture) for a in case.argv]
+    here = tree_side(ROOT)  # the same way of starting as the other side's
+    load_before = os.getloadavg()
+    for side in (here, against):
+        run_once(argv, env=env, side=side)
+    timed: dict[str, list[dict]] = {"this": [], "against": []}
+    for i in range(runs):
+        for name, side in ((("this", here), ("against", against)) if i % 2 == 0 else
+                           (("against", against), ("this", here))):
+            timed[name].append(run_once(argv, env=env, side=side))
+    load_after = os.getloadavg()
+    return {"case": case.name, "command": case.shown, "argv": argv, "against_tree": str(against.cwd),
+            "this": _summary(timed["this"]), "against": _summary(timed["against"]),
             "load_before": [round(v, 2) for v in load_before], "load_after": [round(v, 2) for v in load_after]}
 
 
@@ -200,9 +262,14 @@ def main() -> None:
     parser.add_argument("--update-docs", action="store_true", help=f"rewrite the speed table in {DOC.relative_to(ROOT)}")
     parser.add_argument("--from-json", type=Path, nargs="+", metavar="REPORT.json",
                         help="run nothing: join these --json reports (in this order) for --update-docs")
+    parser.add_argument("--against", type=Path, metavar="TREE",
+                        help="another checkout of lfrig to compare with, the runs alternating between the two")
     args = parser.parse_args()
     if args.runs < 1:
         raise SystemExit(f"--runs {args.runs}: give at least 1")
+    if args.against is not None and (args.update_docs or args.from_json):
+        raise SystemExit("--against compares two checkouts; the docs' table is of one (leave out --update-docs)")
+    against = tree_side(args.against) if args.against is not None else None
     if args.from_json:
         reports = [json.loads(path.read_text(encoding="utf-8")) for path in args.from_json]
         report = dict(reports[0], results=[r for rep in reports for r in rep["results"]])
@@ -234,6 +301,21 @@ def main() -> None:
               "results": []}
     print(f"median of {args.runs} runs after a warm-up; {report['machine']['cores']} cores; "
           f"load {os.getloadavg()[0]:.1f} at start")
+    if against is not None:
+        report["against"] = str(against.cwd)
+        print(f"this checkout ({ROOT}) against {against.cwd}, alternating; wall / CPU s")
+        print(f"{'case':<11} {'this':>13} {'against':>13} {'wall ratio':>10} {'load':>9}")
+        for name in names:
+            result = compare(CASES[name], runs=args.runs, work=work, capture=args.capture_work.resolve(), env=env,
+                             against=against)
+            report["results"].append(result)
+            a, b = result["this"], result["against"]
+            print(f"{name:<11} {a['wall_s']:6.2f}/{a['cpu_s']:6.2f} {b['wall_s']:6.2f}/{b['cpu_s']:6.2f} "
+                  f"{a['wall_s'] / b['wall_s']:10.3f} {result['load_before'][0]:4.1f}-{result['load_after'][0]:<4.1f}",
+                  flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        return
     print(f"{'case':<11} {'wall s':>7} {'cpu s':>7} {'peak MiB':>9} {'load':>9}")
     for name in names:
         result = measure(CASES[name], runs=args.runs, work=work, capture=args.capture_work.resolve(), env=env)

@@ -104,3 +104,28 @@ def test_the_block_is_rewritten_in_place_and_a_hand_edit_is_caught(tmp_path):
     assert bench.check_block(block.replace("| wall s |", "| seconds |")) != []
     with pytest.raises(ValueError):
         bench.table_block(text.replace(bench.END, ""))
+
+
+def _run_bench(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "command_speed.py"), *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_against_another_checkout_alternates_the_runs_and_reports_both_sides(tmp_path):
+    # this checkout against itself (a tree of lfrig's sources): both sides timed, as many runs each
+    report = tmp_path / "ab.json"
+    done = _run_bench("--cases", "help", "--runs", "2", "--work", str(tmp_path / "work"), "--against", str(ROOT),
+                      "--json", str(report))
+    assert done.returncode == 0, done.stderr
+    assert "wall ratio" in done.stdout
+    (result,) = json.loads(report.read_text(encoding="utf-8"))["results"]
+    assert result["case"] == "help" and result["against_tree"] == str(ROOT)
+    for side in ("this", "against"):
+        assert len(result[side]["runs"]) == 2 and result[side]["wall_s"] > 0 and result[side]["peak_mib"] > 0
+
+
+def test_against_refuses_a_folder_that_is_no_checkout_and_the_docs_table(tmp_path):
+    done = _run_bench("--cases", "help", "--work", str(tmp_path / "work"), "--against", str(tmp_path))
+    assert done.returncode != 0 and "not a checkout of lfrig" in done.stderr
+    done = _run_bench("--cases", "help", "--work", str(tmp_path / "work"), "--against", str(ROOT), "--update-docs")
+    assert done.returncode != 0 and "leave out --update-docs" in done.stderr
