@@ -157,42 +157,43 @@ def run_once(argv: list[str], *, env: dict[str, str], side: Side = INSTALLED) ->
     return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_mib": usage.ru_maxrss / 1024}
 
 
-def measure(case: Case, *, runs: int, work: Path, capture: Path, env: dict[str, str]) -> dict:
-    """Warm-up, then ``runs`` timed runs of ``case``; medians, the largest peak and the load around them."""
-    argv = [a.format(work=work, bg=BACKGAMMON, capture=capture) for a in case.argv]
-    load_before = os.getloadavg()
-    run_once(argv, env=env)  # warm-up: numba compiles into its cache, the files are in the page cache
-    timed = [run_once(argv, env=env) for _ in range(runs)]
-    load_after = os.getloadavg()
-    return {"case": case.name, "command": case.shown, "argv": argv, "runs": timed,
-            "wall_s": statistics.median(r["wall_s"] for r in timed),
-            "cpu_s": statistics.median(r["cpu_s"] for r in timed),
-            "peak_mib": max(r["peak_mib"] for r in timed),
-            "load_before": [round(v, 2) for v in load_before], "load_after": [round(v, 2) for v in load_after]}
+def _argv(case: Case, work: Path, capture: Path) -> list[str]:
+    return [a.format(work=work, bg=BACKGAMMON, capture=capture) for a in case.argv]
 
 
 def _summary(timed: list[dict]) -> dict:
+    """The runs of one side: every run, the medians of wall and CPU seconds, the largest peak."""
     return {"runs": timed, "wall_s": statistics.median(r["wall_s"] for r in timed),
             "cpu_s": statistics.median(r["cpu_s"] for r in timed), "peak_mib": max(r["peak_mib"] for r in timed)}
 
 
+def _loads(before: tuple[float, ...]) -> dict:
+    return {"load_before": [round(v, 2) for v in before], "load_after": [round(v, 2) for v in os.getloadavg()]}
+
+
+def measure(case: Case, *, runs: int, work: Path, capture: Path, env: dict[str, str]) -> dict:
+    """Warm-up, then ``runs`` timed runs of ``case``; medians, the largest peak and the load around them."""
+    argv = _argv(case, work, capture)
+    load_before = os.getloadavg()
+    run_once(argv, env=env)  # warm-up: numba compiles into its cache, the files are in the page cache
+    timed = [run_once(argv, env=env) for _ in range(runs)]
+    return {"case": case.name, "command": case.shown, "argv": argv, **_summary(timed), **_loads(load_before)}
+
+
 def compare(case: Case, *, runs: int, work: Path, capture: Path, env: dict[str, str], against: Side) -> dict:
     """A warm-up of each side, then ``runs`` runs of ``case`` on each, alternating (this checkout
-    first in even rounds, the other first in odd ones): each side's medians and largest peak."""
-    argv = [a.format(work=work, bg=BACKGAMMON, capture=capture) for a in case.argv]
-    here = tree_side(ROOT)  # the same way of starting as the other side's
+    first in even rounds, the other first in odd ones): each side's :func:`_summary`."""
+    argv = _argv(case, work, capture)
+    sides = {"this": tree_side(ROOT), "against": against}  # both started the same way
     load_before = os.getloadavg()
-    for side in (here, against):
+    for side in sides.values():
         run_once(argv, env=env, side=side)
-    timed: dict[str, list[dict]] = {"this": [], "against": []}
+    timed: dict[str, list[dict]] = {name: [] for name in sides}
     for i in range(runs):
-        for name, side in ((("this", here), ("against", against)) if i % 2 == 0 else
-                           (("against", against), ("this", here))):
-            timed[name].append(run_once(argv, env=env, side=side))
-    load_after = os.getloadavg()
+        for name in (("this", "against") if i % 2 == 0 else ("against", "this")):
+            timed[name].append(run_once(argv, env=env, side=sides[name]))
     return {"case": case.name, "command": case.shown, "argv": argv, "against_tree": str(against.cwd),
-            "this": _summary(timed["this"]), "against": _summary(timed["against"]),
-            "load_before": [round(v, 2) for v in load_before], "load_after": [round(v, 2) for v in load_after]}
+            **{name: _summary(t) for name, t in timed.items()}, **_loads(load_before)}
 
 
 def render_table(report: dict) -> str:
@@ -305,23 +306,20 @@ def main() -> None:
         report["against"] = str(against.cwd)
         print(f"this checkout ({ROOT}) against {against.cwd}, alternating; wall / CPU s")
         print(f"{'case':<11} {'this':>13} {'against':>13} {'wall ratio':>10} {'load':>9}")
-        for name in names:
-            result = compare(CASES[name], runs=args.runs, work=work, capture=args.capture_work.resolve(), env=env,
-                             against=against)
-            report["results"].append(result)
-            a, b = result["this"], result["against"]
-            print(f"{name:<11} {a['wall_s']:6.2f}/{a['cpu_s']:6.2f} {b['wall_s']:6.2f}/{b['cpu_s']:6.2f} "
-                  f"{a['wall_s'] / b['wall_s']:10.3f} {result['load_before'][0]:4.1f}-{result['load_after'][0]:<4.1f}",
-                  flush=True)
-        if args.json:
-            args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        return
-    print(f"{'case':<11} {'wall s':>7} {'cpu s':>7} {'peak MiB':>9} {'load':>9}")
+    else:
+        print(f"{'case':<11} {'wall s':>7} {'cpu s':>7} {'peak MiB':>9} {'load':>9}")
     for name in names:
-        result = measure(CASES[name], runs=args.runs, work=work, capture=args.capture_work.resolve(), env=env)
+        kwargs = {"runs": args.runs, "work": work, "capture": args.capture_work.resolve(), "env": env}
+        if against is not None:
+            result = compare(CASES[name], **kwargs, against=against)
+            a, b = result["this"], result["against"]
+            numbers = (f"{a['wall_s']:6.2f}/{a['cpu_s']:6.2f} {b['wall_s']:6.2f}/{b['cpu_s']:6.2f} "
+                       f"{a['wall_s'] / b['wall_s']:10.3f}")
+        else:
+            result = measure(CASES[name], **kwargs)
+            numbers = f"{result['wall_s']:7.2f} {result['cpu_s']:7.2f} {result['peak_mib']:9.0f}"
         report["results"].append(result)
-        print(f"{name:<11} {result['wall_s']:7.2f} {result['cpu_s']:7.2f} {result['peak_mib']:9.0f} "
-              f"{result['load_before'][0]:4.1f}-{result['load_after'][0]:<4.1f}", flush=True)
+        print(f"{name:<11} {numbers} {result['load_before'][0]:4.1f}-{result['load_after'][0]:<4.1f}", flush=True)
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     if args.update_docs:
