@@ -269,7 +269,7 @@ def main() -> None:
     if args.runs < 1:
         raise SystemExit(f"--runs {args.runs}: give at least 1")
     if args.against is not None and (args.update_docs or args.from_json):
-        raise SystemExit("--against compares two checkouts; the docs' table is of one (leave out --update-docs)")
+        raise SystemExit("--against compares two checkouts; the docs' table is of one (leave out --update-docs and --from-json)")
     against = tree_side(args.against) if args.against is not None else None
     if args.from_json:
         reports = [json.loads(path.read_text(encoding="utf-8")) for path in args.from_json]
