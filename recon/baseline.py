@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon.progress import ProgressCallback, report
-from recon.costvolume import sweep_least_cost, view_offsets
+from recon.sweep import sweep_least_cost, view_offsets
 from recon.lf.lightfield import LightField
 
 #: Most candidates per call of the sweep kernel; the calls take nearly equal shares and progress is
@@ -91,13 +91,16 @@ def check_options(*, window: int = 7, step: float = 0.02, disparity_range: tuple
             raise ValueError(f"disparity_range must be finite (min, max) with min < max; got {tuple(disparity_range)}")
 
 
-def load_kernels() -> None:
-    """Load the sweep's compiled kernel (numba's cache) by running it on a tiny light field, so that
-    a caller can do numba's start-up (its imports and its first cache load) while it reads the
-    views (:func:`recon.methods.warm_in_background`); :func:`estimate_baseline` does not need it."""
+def load_kernels(kernel: str = "auto") -> None:
+    """Load the sweep's compiled kernel by running it on a tiny light field, so that a caller can
+    load it while it reads the views (:func:`recon.methods.warm_in_background`);
+    :func:`estimate_baseline` does not need it. The C kernel (:mod:`recon.sweep`) loads in
+    milliseconds (it is built here the first time); numba's, where the C one cannot be had, brings
+    numba's start-up (its imports and its first cache load). ``kernel`` as
+    :func:`recon.sweep.sweep_least_cost`'s."""
     offsets = view_offsets((3, 3))
     sweep_least_cost(np.zeros((3, 3, 4, 4), np.float32), np.zeros(1), offsets=offsets,
-                     indices=(offsets + 1).astype(np.int64), window=1)
+                     indices=(offsets + 1).astype(np.int64), window=1, kernel=kernel)
 
 
 def estimate_baseline(
@@ -134,7 +137,7 @@ def estimate_baseline(
     gray = np.ascontiguousarray(lf.gray(), dtype=np.float32)
     offsets = view_offsets(lf.grid_shape)
     indices = (offsets + np.array(lf.centre_index)).astype(np.int64)
-    # One plane sweep (recon.costvolume.sweep_least_cost): each candidate's window cost is compared
+    # One plane sweep (recon.sweep.sweep_least_cost): each candidate's window cost is compared
     # with the least so far; the volume of every candidate's cost is never held (what
     # parabolic_refine would read of it is kept). In a few calls of nearly equal size, for the progress.
     calls = -(-len(candidates) // SWEEP_CHUNK)

@@ -7,7 +7,9 @@ afterwards with box filters.
 
 Sampling is bilinear with edge replication (coordinates are clamped into the image). Two
 implementations compute the same numbers: :func:`pixel_cost_reference` is plain numpy and easy to
-read; :func:`pixel_cost` is a numba kernel, parallel over rows, that the estimators use.
+read; :func:`pixel_cost` is a numba kernel, parallel over rows, that the estimators use. The
+baseline's plane sweep (:func:`recon.sweep.sweep_least_cost`) runs :func:`_sweep_kernel` from here,
+or its C twin (``recon/native/sweep.c``), which mirrors it and the row helpers it calls line for line.
 """
 
 from __future__ import annotations
@@ -15,18 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-
-def view_offsets(grid_shape: tuple[int, int], views: np.ndarray | None = None) -> np.ndarray:
-    """``(N, 2)`` float64 ``(u - u0, v - v0)`` of the views to match (all but the centre by default).
-
-    ``views`` is an optional ``(N, 2)`` integer array of ``(u, v)`` grid positions to use instead.
-    """
-    rows, cols = grid_shape
-    u0, v0 = rows // 2, cols // 2
-    if views is None:
-        views = np.array([(u, v) for u in range(rows) for v in range(cols) if (u, v) != (u0, v0)])
-    views = np.asarray(views, dtype=np.int64).reshape(-1, 2)
-    return (views - np.array([u0, v0])).astype(np.float64)
+from recon.shifts import split_shift, view_offsets  # noqa: F401  view_offsets: the views to match
 
 
 def sample_shifted(image: np.ndarray, dy: float, dx: float) -> np.ndarray:
@@ -218,12 +209,6 @@ def _pixel_cost_kernel(gray, vu, vv, oy, fy, ox, fx, out):
             out[y, x] = acc[x] * inv
 
 
-def _split_shift(shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    # A shift in pixels as its integer part (floor) and its fraction in [0, 1), float32.
-    whole = np.floor(shift)
-    return whole.astype(np.int64), (shift - whole).astype(np.float32)
-
-
 def pixel_cost(gray: np.ndarray, disparity: float, *, offsets: np.ndarray, indices: np.ndarray) -> np.ndarray:
     """Fast twin of :func:`pixel_cost_reference` (same arguments, same result to float32 rounding).
 
@@ -233,8 +218,8 @@ def pixel_cost(gray: np.ndarray, disparity: float, *, offsets: np.ndarray, indic
     """
     offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
     indices = np.ascontiguousarray(indices, dtype=np.int64).reshape(-1, 2)
-    oy, fy = _split_shift(-offsets[:, 0] * float(disparity))
-    ox, fx = _split_shift(-offsets[:, 1] * float(disparity))
+    oy, fy = split_shift(-offsets[:, 0] * float(disparity))
+    ox, fx = split_shift(-offsets[:, 1] * float(disparity))
     out = np.empty(gray.shape[2:], dtype=np.float32)
     _pixel_cost_kernel(np.ascontiguousarray(gray, dtype=np.float32), indices[:, 0].copy(), indices[:, 1].copy(),
                        oy, fy, ox, fx, out)
@@ -385,44 +370,3 @@ def box_mean(image: np.ndarray, window: int) -> np.ndarray:
     out = np.empty(image.shape, dtype=np.float32)
     _box_mean_kernel(np.ascontiguousarray(image, dtype=np.float32), int(window), out)
     return out
-
-
-def shift_parts(offsets: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``(oy, fy, ox, fx)``, each ``(D, N)``: the integer parts (int64) and fractions (float32) of
-    the shifts ``-(u - u0) d``, ``-(v - v0) d`` at which the ``N`` views of ``offsets`` are sampled
-    for each of the ``D`` candidate disparities ``d``."""
-    offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
-    d = np.asarray(candidates, dtype=np.float64).reshape(-1, 1)
-    oy, fy = _split_shift(-offsets[:, 0] * d)
-    ox, fx = _split_shift(-offsets[:, 1] * d)
-    return oy, fy, ox, fx
-
-
-def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.ndarray, indices: np.ndarray,
-                     window: int, state: dict[str, np.ndarray] | None = None, first: int = 0,
-                     bands: int | None = None) -> dict[str, np.ndarray]:
-    """The plane sweep over ``candidates`` (the ones numbered ``first ..`` of a longer sweep when
-    ``state`` holds the earlier ones' result): per pixel of the centre view, the least
-    ``box_mean(pixel_cost(gray, d, ...), window)`` over ``d`` and its two neighbours' means.
-
-    Returns (and updates) ``state``: ``best`` ``(H, W)`` float32 least mean, ``best_index`` int64
-    its candidate's number (the first least, as ``np.argmin``), ``c_minus``, ``c_plus`` float32 the
-    means at the candidates before and after it (where they exist), ``previous`` the last
-    candidate's means. The same numbers as those functions give, bit for bit, without holding a
-    cost volume; rows are dealt to the threads in bands, so no thread waits for another between
-    candidates (``bands``: how many; default one per numba thread; the result is the same).
-    """
-    H, W = gray.shape[2:]
-    if window < 1 or window % 2 == 0 or window // 2 >= min(H, W):
-        raise ValueError(f"window must be odd, >= 1 and smaller than the {W}x{H} image; got {window}")
-    if state is None:
-        state = {"best": np.empty((H, W), np.float32), "best_index": np.full((H, W), -2, np.int64),
-                 "c_minus": np.zeros((H, W), np.float32), "c_plus": np.zeros((H, W), np.float32),
-                 "previous": np.zeros((H, W), np.float32)}
-    indices = np.ascontiguousarray(indices, dtype=np.int64).reshape(-1, 2)
-    bands = max(1, min(numba.get_num_threads() if bands is None else int(bands), H))
-    edges = np.linspace(0, H, bands + 1).astype(np.int64)
-    _sweep_kernel(np.ascontiguousarray(gray, dtype=np.float32), indices[:, 0].copy(), indices[:, 1].copy(),
-                  *shift_parts(offsets, candidates), int(first), int(window), edges, state["previous"],
-                  state["best"], state["best_index"], state["c_minus"], state["c_plus"])
-    return state

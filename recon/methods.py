@@ -72,9 +72,13 @@ def _blas_check_skipped() -> Iterator[None]:
 
 def _warm_baseline() -> None:
     from recon.baseline import load_kernels
+    from recon.sweep import native_library
 
+    if native_library() is not None:  # the C sweep: no numba in the process
+        load_kernels(kernel="native")
+        return
     with _blas_check_skipped():  # the baseline uses no scipy
-        load_kernels()
+        load_kernels(kernel="numba")
 
 
 def _warm_entropy() -> None:

@@ -138,11 +138,9 @@ def input_identity(path: str | os.PathLike | None, *, kind: str | None = None,
 def machine() -> dict[str, Any]:
     """``{"python", "platform", "cpus", "numba_threads"}`` of this process (numba's threads as its
     configuration says, without importing numba's compiler when it is not loaded yet)."""
-    numba = sys.modules.get("numba")
-    if numba is not None:
-        threads = int(numba.get_num_threads())
-    else:
-        threads = int(os.environ.get("NUMBA_NUM_THREADS") or (os.cpu_count() or 1))
+    from recon.native import thread_count
+
+    threads = thread_count()
     return {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count() or 1,
             "numba_threads": threads}
 

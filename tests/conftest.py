@@ -35,6 +35,19 @@ def require_hci_scene(path: Path = HCI_BACKGAMMON) -> Path:
     pytest.skip(message)
 
 
+def require_native(name: str) -> None:
+    """Fail under CI / skip elsewhere when the C kernels of ``recon/native/NAME.c`` cannot be built
+    or loaded here (:func:`recon.native.library` says why)."""
+    from recon.native import library, unavailable
+
+    if library(name) is not None:
+        return
+    message = f"the compiled kernels of recon/native/{name}.c are not available: {unavailable(name)}"
+    if os.environ.get("CI"):
+        pytest.fail(message)
+    pytest.skip(message)
+
+
 @pytest.fixture
 def hci_scene_dir() -> Path:
     return require_hci_scene()

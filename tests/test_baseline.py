@@ -71,18 +71,30 @@ def test_sweep_gives_what_the_cost_volume_gives():
     np.testing.assert_array_equal(result.cost, cost)
 
 
+@pytest.fixture(params=["native", "numba"])
+def sweep_kernel(request):
+    """Each of the sweep's two kernels (recon.sweep); the C one fails, not skips, under CI."""
+    from tests.conftest import require_native
+
+    if request.param == "native":
+        require_native("sweep")
+    return request.param
+
+
 @pytest.mark.parametrize("bands", [1, 3, 7, 23])  # 23: one row each, fewer than the window's radius
-def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
-    from recon.costvolume import box_mean, sweep_least_cost
+def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands, sweep_kernel):
+    from recon.costvolume import box_mean
+    from recon.sweep import sweep_least_cost
 
     gray = np.random.default_rng(5).random((5, 5, 23, 19)).astype(np.float32)
     offsets = view_offsets((5, 5))
     indices = (offsets + 2).astype(np.int64)
     candidates = np.linspace(-1.3, 1.1, 9)
     volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 5) for d in candidates])
-    state = sweep_least_cost(gray, candidates[:4], offsets=offsets, indices=indices, window=5, bands=bands)
+    state = sweep_least_cost(gray, candidates[:4], offsets=offsets, indices=indices, window=5, bands=bands,
+                             kernel=sweep_kernel)
     state = sweep_least_cost(gray, candidates[4:], offsets=offsets, indices=indices, window=5, bands=bands,
-                             state=state, first=4)
+                             state=state, first=4, kernel=sweep_kernel)
     best = np.argmin(volume, axis=0)
     rows, cols = np.indices(best.shape)
     np.testing.assert_array_equal(state["best_index"], best)
@@ -93,17 +105,19 @@ def test_sweep_in_bands_of_rows_gives_the_same_numbers(bands):
 
 
 @pytest.mark.parametrize("grid", [(3, 4), (1, 2), (5, 5)])  # 11 views, 1 view: the last of an odd number alone
-def test_sweep_adds_the_views_in_pairs_as_one_at_a_time(grid):
+def test_sweep_adds_the_views_in_pairs_as_one_at_a_time(grid, sweep_kernel):
     # The sweep adds two views in one pass (recon.costvolume.add_two_shifted_row_diffs); the cost
     # volume's pixel_cost adds one at a time. Shifts of several pixels beyond both borders occur.
-    from recon.costvolume import box_mean, sweep_least_cost
+    from recon.costvolume import box_mean
+    from recon.sweep import sweep_least_cost
 
     gray = np.random.default_rng(7).random(grid + (13, 11)).astype(np.float32)
     offsets = view_offsets(grid)
     indices = (offsets + np.array([grid[0] // 2, grid[1] // 2])).astype(np.int64)
     candidates = np.linspace(-6.3, 5.9, 11)
     volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 3) for d in candidates])
-    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2)
+    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2,
+                             kernel=sweep_kernel)
     best = np.argmin(volume, axis=0)
     rows, cols = np.indices(best.shape)
     np.testing.assert_array_equal(state["best_index"], best)
@@ -111,8 +125,9 @@ def test_sweep_adds_the_views_in_pairs_as_one_at_a_time(grid):
     np.testing.assert_array_equal(state["previous"], volume[-1])
 
 
-def test_sweep_takes_the_first_nan_as_argmin_does():
-    from recon.costvolume import box_mean, sweep_least_cost
+def test_sweep_takes_the_first_nan_as_argmin_does(sweep_kernel):
+    from recon.costvolume import box_mean
+    from recon.sweep import sweep_least_cost
 
     gray = np.random.default_rng(6).random((3, 3, 12, 14)).astype(np.float32)
     gray[0, 0, 5:8, 6:9] = np.nan  # a corner view's hole: NaN costs at some candidates only
@@ -120,7 +135,8 @@ def test_sweep_takes_the_first_nan_as_argmin_does():
     indices = (offsets + 1).astype(np.int64)
     candidates = np.linspace(-1.0, 1.0, 7)
     volume = np.stack([box_mean(pixel_cost(gray, d, offsets=offsets, indices=indices), 3) for d in candidates])
-    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2)
+    state = sweep_least_cost(gray, candidates, offsets=offsets, indices=indices, window=3, bands=2,
+                             kernel=sweep_kernel)
     first_nan = np.isnan(volume).any(axis=0) & ~np.isnan(volume[0])
     assert first_nan.any()
     np.testing.assert_array_equal(state["best_index"], np.argmin(volume, axis=0))
@@ -160,12 +176,15 @@ def test_box_mean_agrees_with_reference_and_does_not_depend_on_the_crop(window):
                                   full[4 + r:20 - r, 5 + r:27 - r])
 
 
-def test_the_warm_up_loads_the_kernel_the_estimate_calls():
-    # recon.methods.warm_in_background("baseline") (run while the views are read) loads the sweep's
-    # kernel with the argument types the estimate passes: the estimate adds no second signature,
-    # which would mean a compilation at run time.
+def test_the_warm_up_loads_the_kernel_the_estimate_calls(monkeypatch):
+    # recon.methods.warm_in_background("baseline") (run while the views are read) loads numba's
+    # sweep kernel, where the C one cannot be had, with the argument types the estimate passes: the
+    # estimate adds no second signature, which would mean a compilation at run time.
+    import recon.sweep
     from recon.costvolume import _sweep_kernel
     from recon.methods import warm_in_background
+
+    monkeypatch.setattr(recon.sweep, "native_library", lambda: None)
 
     warm_in_background("baseline").join()
     loaded = list(_sweep_kernel.signatures)
@@ -176,18 +195,30 @@ def test_the_warm_up_loads_the_kernel_the_estimate_calls():
 
 
 def test_the_warm_up_does_not_import_scipy_linalg():
-    # numba's start-up checks for BLAS by importing scipy.linalg; the baseline's warm-up skips that
-    # check (recon.methods._warm_baseline) and puts numba's own check back afterwards.
+    # numba's start-up checks for BLAS by importing scipy.linalg; the baseline's warm-up of numba's
+    # kernel (LFRIG_NATIVE=0: no C kernel) skips that check (recon.methods._warm_baseline) and puts
+    # numba's own check back afterwards. With the C kernel, neither numba nor scipy loads.
+    import os
     import subprocess
     import sys
+
+    from tests.conftest import require_native
 
     code = ("import sys, numba.np.linalg as L; check = L.ensure_blas\n"
             "from recon.methods import warm_in_background\n"
             "warm_in_background('baseline').join()\n"
             "from recon.costvolume import _sweep_kernel\n"
             "print(len(_sweep_kernel.signatures), 'scipy.linalg' in sys.modules, L.ensure_blas is check)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "LFRIG_NATIVE": "0"})
     assert out.stdout.split() == ["1", "False", "True"]
+    require_native("sweep")
+    code = ("import sys\n"
+            "from recon.methods import warm_in_background\n"
+            "warm_in_background('baseline').join()\n"
+            "print('numba' in sys.modules, 'scipy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
 
 
 def test_the_baseline_command_loads_none_of_the_entropy_estimator(tmp_path):

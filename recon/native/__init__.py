@@ -1,0 +1,134 @@
+"""Kernels compiled ahead of time with the system's C compiler, loaded without numba.
+
+A process that loads a numba kernel pays numba's start first: its import and its typing and target
+registries, 0.7-0.8 s of one core, held under the interpreter lock, on the 2-core machines lfrig is
+measured on (``docs/entropy-results.md``, "Speed and memory"). A kernel here is C source beside this
+file, built once into a shared library and called through :mod:`ctypes`: loading it takes
+milliseconds. Each one mirrors a numba kernel operation for operation, on the same types in the same
+order (no fused multiply-add, no fast math), so it gives the same bits; the numba kernel stays as
+its fallback and its twin in the tests.
+
+:func:`library` builds a library the first time it is asked for (``./setup.sh`` asks, through the
+baseline's warm-up) into ``build/`` beside the sources, named by a digest of its source, the
+compiler flags and this CPU's model and features (it is built for this CPU: ``-march=native``), and
+loads it. Where no compiler is found, or the build fails, it returns ``None`` and says why once
+(:func:`unavailable`); callers then use the numba kernel, which gives the same result. A build
+writes the library to a temporary name and renames it, so that two processes building at once leave
+one whole file, and removes the library of an earlier source. A kernel starts its threads and joins
+them within each call (pthreads, no pool): a process may fork after it, as the fault tests' runner
+does. ``LFRIG_NATIVE=0`` turns the compiled kernels off (the numba ones run instead).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+#: Where the built libraries go (ignored by git; one file per source digest).
+BUILD = HERE / "build"
+#: The compiler's flags. ``-ffp-contract=off``: C allows ``a * b + c`` to become one fused
+#: multiply-add, rounded once; numba's kernels round twice, and so must these.
+CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-pthread", "-fPIC", "-shared",
+          "-std=c11", "-Wall", "-Werror")
+
+_lock = threading.Lock()
+_loaded: dict[str, ctypes.CDLL | None] = {}
+_why: dict[str, str] = {}
+
+
+def _cpu() -> str:
+    """This CPU's model and instruction-set features (the library is built for them)."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+            lines = [line for line in info if line.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def compiler() -> str | None:
+    """The C compiler to build with: ``$CC``, else ``cc`` or ``gcc`` on the PATH (``None``: none)."""
+    named = os.environ.get("CC")
+    if named:
+        return shutil.which(named)
+    return shutil.which("cc") or shutil.which("gcc")
+
+
+def library_path(name: str, cc: str) -> Path:
+    """Where the library of ``name.c`` built by ``cc`` for this CPU goes."""
+    source = (HERE / f"{name}.c").read_bytes()
+    digest = hashlib.sha256(b"\0".join([source, " ".join(CFLAGS).encode(), cc.encode(), _cpu().encode(),
+                                        platform.machine().encode()])).hexdigest()[:16]
+    return BUILD / f"{name}-{digest}.so"
+
+
+def _build(name: str, cc: str, target: Path) -> None:
+    BUILD.mkdir(exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=BUILD, prefix=f".{name}-", suffix=".so")
+    os.close(fd)
+    try:
+        run = subprocess.run([cc, *CFLAGS, "-o", tmp, str(HERE / f"{name}.c")], capture_output=True, text=True,
+                             timeout=120)
+        if run.returncode != 0:
+            raise RuntimeError(f"{cc} failed: {(run.stderr or run.stdout).strip()[:400]}")
+        os.replace(tmp, target)
+        for old in BUILD.glob(f"{name}-*.so"):  # earlier builds of the same kernels (another source)
+            if old.name != target.name:
+                old.unlink(missing_ok=True)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def library(name: str) -> ctypes.CDLL | None:
+    """The loaded library of ``name.c`` (built first if needed), or ``None`` where it cannot be had:
+    ``LFRIG_NATIVE=0``, no compiler, a failed build or load (:func:`unavailable` says which)."""
+    with _lock:
+        if name in _loaded:
+            return _loaded[name]
+        lib = None
+        if os.environ.get("LFRIG_NATIVE", "1") == "0":
+            _why[name] = "LFRIG_NATIVE=0"
+        else:
+            cc = compiler()
+            if cc is None:
+                _why[name] = "no C compiler (cc or gcc) on the PATH"
+            else:
+                try:
+                    path = library_path(name, cc)
+                    if not path.exists():
+                        _build(name, cc, path)
+                    lib = ctypes.CDLL(str(path))
+                except (OSError, RuntimeError, subprocess.SubprocessError) as error:
+                    _why[name] = f"{name}.c could not be built or loaded: {error}"
+        _loaded[name] = lib
+        return lib
+
+
+def thread_count() -> int:
+    """The threads a kernel runs on: numba's setting where numba is loaded, else what numba would
+    take (``NUMBA_NUM_THREADS``, else the CPUs this process may run on)."""
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        return int(numba.get_num_threads())
+    named = os.environ.get("NUMBA_NUM_THREADS", "").strip()
+    if named.isdigit() and int(named) > 0:
+        return int(named)
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def unavailable(name: str) -> str | None:
+    """Why :func:`library` gave ``None`` for ``name`` (``None``: it was not asked, or it loaded)."""
+    return _why.get(name)

@@ -1,0 +1,172 @@
+"""The kernels compiled ahead of time (recon/native): the C plane sweep gives numba's bits, builds
+once per source and CPU, and leaves the numba kernel to run where it cannot be had."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import require_hci_scene, require_native
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _sweep(gray, candidates, kernel, *, window, chunks=1, bands=None):
+    from recon.sweep import sweep_least_cost, view_offsets
+
+    offsets = view_offsets(gray.shape[:2])
+    indices = (offsets + np.array([gray.shape[0] // 2, gray.shape[1] // 2])).astype(np.int64)
+    bounds = [len(candidates) * i // chunks for i in range(chunks + 1)]
+    state = None
+    for first, stop in zip(bounds, bounds[1:]):
+        state = sweep_least_cost(gray, candidates[first:stop], offsets=offsets, indices=indices, window=window,
+                                 state=state, first=first, bands=bands, kernel=kernel)
+    return state
+
+
+def _same_bits(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for name in a:
+        assert a[name].dtype == b[name].dtype, name
+        assert np.array_equal(a[name].view(np.uint8), b[name].view(np.uint8)), name
+
+
+def test_the_c_sweep_gives_numbas_bits_on_random_light_fields():
+    # Shapes, grids (odd and even view counts), windows, whole-pixel shifts (no blend), shifts beyond
+    # the image, chunks continued through the state, and bands of one row: every branch of the kernel.
+    require_native("sweep")
+    rng = np.random.default_rng(11)
+    for trial in range(24):
+        grid = [(3, 3), (5, 5), (3, 4), (1, 2), (2, 3), (9, 9)][trial % 6]
+        H, W = int(rng.integers(6, 30)), int(rng.integers(6, 30))
+        window = int(rng.choice([w for w in (1, 3, 5, 7) if w // 2 < min(H, W)]))
+        gray = rng.random(grid + (H, W)).astype(np.float32)
+        if trial % 4 == 0:  # whole-pixel candidates: the rows are taken as they are
+            candidates = np.arange(-3.0, 3.5, 1.0)
+        else:
+            candidates = np.sort(rng.uniform(-4.5, 4.5, int(rng.integers(1, 14))))
+        chunks = int(rng.integers(1, min(len(candidates), 4) + 1))
+        bands = None if trial % 3 else int(rng.integers(1, H + 1))
+        _same_bits(_sweep(gray, candidates, "native", window=window, chunks=chunks, bands=bands),
+                   _sweep(gray, candidates, "numba", window=window, chunks=chunks, bands=bands))
+
+
+def test_the_c_sweep_keeps_numbas_nan_rule():
+    require_native("sweep")
+    gray = np.random.default_rng(6).random((3, 3, 12, 14)).astype(np.float32)
+    gray[0, 0, 5:8, 6:9] = np.nan
+    gray[2, 1, 0:2, :] = np.inf
+    candidates = np.linspace(-1.0, 1.0, 7)
+    _same_bits(_sweep(gray, candidates, "native", window=3), _sweep(gray, candidates, "numba", window=3))
+
+
+@pytest.mark.hci
+def test_the_c_sweep_gives_numbas_bits_on_backgammon():
+    from recon.lf.benchmark import read_benchmark
+
+    require_native("sweep")
+    lf = read_benchmark(require_hci_scene(), grey=True)
+    gray = np.ascontiguousarray(lf.gray(), np.float32)
+    candidates = -3.0 + 0.02 * np.arange(121)  # the baseline's defaults on backgammon
+    _same_bits(_sweep(gray, candidates, "native", window=7, chunks=4),
+               _sweep(gray, candidates, "numba", window=7, chunks=4))
+
+
+def test_the_sweep_checks_what_the_c_kernel_reads():
+    from recon.sweep import sweep_least_cost, view_offsets
+
+    require_native("sweep")
+    gray = np.zeros((3, 3, 8, 8), np.float32)
+    offsets = view_offsets((3, 3))
+    with pytest.raises(ValueError, match="within the 3x3 grid"):
+        sweep_least_cost(gray, np.zeros(2), offsets=offsets, indices=(offsets + 2).astype(np.int64), window=3,
+                         kernel="native")
+    state = _sweep(gray, np.zeros(2), "native", window=3)
+    state["best"] = state["best"][:, ::2]
+    with pytest.raises(ValueError, match="state\\['best'\\]"):
+        sweep_least_cost(gray, np.zeros(2), offsets=offsets, indices=(offsets + 1).astype(np.int64), window=3,
+                         state=state, kernel="native")
+    with pytest.raises(ValueError, match="kernel must be"):
+        sweep_least_cost(gray, np.zeros(2), offsets=offsets, indices=(offsets + 1).astype(np.int64), window=3,
+                         kernel="fortran")
+
+
+def test_the_library_is_named_by_its_source_and_built_whole(tmp_path, monkeypatch):
+    import recon.native as native
+
+    require_native("sweep")
+    cc = native.compiler()
+    source = tmp_path / "sweep.c"
+    source.write_bytes((native.HERE / "sweep.c").read_bytes())
+    monkeypatch.setattr(native, "HERE", tmp_path)
+    monkeypatch.setattr(native, "BUILD", tmp_path / "build")
+    monkeypatch.setattr(native, "_loaded", {})
+    first = native.library_path("sweep", cc)
+    assert native.library("sweep") is not None and first.is_file()
+    assert [p.name for p in (tmp_path / "build").iterdir()] == [first.name]  # no temporary file left
+    source.write_text(source.read_text() + "\n/* changed */\n")
+    assert native.library_path("sweep", cc) != first  # an edited source builds anew
+
+
+def _run(code: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), **env})
+
+
+BASELINE_IN_A_PROCESS = """
+import json, sys
+import numpy as np
+from recon.baseline import estimate_baseline
+from recon.native import unavailable
+from recon.synthetic import occluding_square_scene
+lf, _ = occluding_square_scene(24, back=-0.5, front=1.0)
+d = estimate_baseline(lf, window=5, step=0.1, disparity_range=(-1.0, 1.5)).disparity
+print(json.dumps({"why": unavailable("sweep"), "numba": "numba" in sys.modules, "digest": d.tobytes().hex()}))
+"""
+
+
+def test_without_the_c_kernel_the_baseline_runs_numbas_with_the_same_result():
+    require_native("sweep")
+    native = json.loads(_run(BASELINE_IN_A_PROCESS).stdout)
+    assert native["why"] is None and not native["numba"]  # the C sweep: numba is never loaded
+    for env, why in (({"LFRIG_NATIVE": "0"}, "LFRIG_NATIVE=0"), ({"CC": "false"}, "could not be built")):
+        # CC=false: a compiler that fails; the build goes to a temporary folder of its own
+        run = _run(BASELINE_IN_A_PROCESS.replace("from recon.native import unavailable",
+                                                 "import recon.native, tempfile\n"
+                                                 "recon.native.BUILD = recon.native.Path(tempfile.mkdtemp())\n"
+                                                 "from recon.native import unavailable"), **env)
+        other = json.loads(run.stdout)
+        assert why in other["why"] and other["numba"]
+        assert other["digest"] == native["digest"]
+
+
+def test_the_c_kernel_that_cannot_be_had_says_why():
+    run = _run("from recon.sweep import sweep_least_cost, view_offsets\n"
+               "import numpy as np\n"
+               "o = view_offsets((3, 3))\n"
+               "sweep_least_cost(np.zeros((3, 3, 6, 6), np.float32), np.zeros(1), offsets=o,\n"
+               "                 indices=(o + 1).astype(np.int64), window=1, kernel='native')", LFRIG_NATIVE="0")
+    assert run.returncode != 0 and "the C sweep is not available: LFRIG_NATIVE=0" in run.stderr
+
+
+def test_a_process_forks_after_the_c_sweep_and_the_child_sweeps_too():
+    # The C sweep's threads live for one call: a child forked after it (the fault tests' runner,
+    # multiprocessing's fork) runs it again. A thread pool kept by the parent (OpenMP's) hangs there.
+    require_native("sweep")
+    code = ("import os, sys, numpy as np\n"
+            "from recon.sweep import sweep_least_cost, view_offsets\n"
+            "o = view_offsets((3, 3)); g = np.random.default_rng(1).random((3, 3, 40, 40)).astype(np.float32)\n"
+            "run = lambda: sweep_least_cost(g, np.linspace(-1, 1, 5), offsets=o, indices=(o + 1).astype(np.int64),\n"
+            "                              window=3, bands=4, kernel='native')['best'].sum()\n"
+            "parent = run()\n"
+            "pid = os.fork()\n"
+            "if pid == 0:\n"
+            "    os._exit(0 if run() == parent else 3)\n"
+            "print(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))")
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert run.stdout.split() == ["0"], run.stderr
