@@ -8,7 +8,8 @@ batch summary and the PLY header carry::
      "started_utc": "2026-11-27T16:30:17+00:00",
      "input": {"kind": "capture", "path": "/abs/LF_DIR", "journal_sha256": "..."},
      "timings_s": {"read": 0.4, "estimate": 12.1, "write": 0.3},
-     "machine": {"python": "3.12.7", "platform": "Linux-...", "cpus": 2, "numba_threads": 2}}
+     "machine": {"python": "3.12.7", "platform": "Linux-...", "cpus": 2, "numba_threads": 2,
+                 "kernels": {"sweep": "C"}}}
 
 ``input.kind`` is ``"capture"`` (lfrig's capture layout: the SHA-256 of its journal
 ``manifest.jsonl``, which itself holds every view's checksum), ``"benchmark"`` (the 4D Light Field
@@ -136,13 +137,15 @@ def input_identity(path: str | os.PathLike | None, *, kind: str | None = None,
 
 
 def machine() -> dict[str, Any]:
-    """``{"python", "platform", "cpus", "numba_threads"}`` of this process (numba's threads as its
-    configuration says, without importing numba's compiler when it is not loaded yet)."""
-    from recon.native import thread_count
+    """``{"python", "platform", "cpus", "numba_threads", "kernels"}`` of this process: numba's
+    threads as its configuration says (without importing numba's compiler when it is not loaded
+    yet), and how each kernel compiled ahead of time that this process asked for ran
+    (:func:`recon.native.status`: ``{"sweep": "C"}``, or ``"numba: WHY"`` where the C one could not
+    be had; empty when none was asked for)."""
+    from recon.native import status, thread_count
 
-    threads = thread_count()
     return {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count() or 1,
-            "numba_threads": threads}
+            "numba_threads": thread_count(), "kernels": status()}
 
 
 def provenance(

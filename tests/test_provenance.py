@@ -28,8 +28,9 @@ def check_shape(made: dict) -> None:
     assert {"kind", "path"} <= set(made["input"])
     assert all(isinstance(v, float) and v >= 0 for v in made["timings_s"].values())
     machine = made["machine"]
-    assert set(machine) == {"python", "platform", "cpus", "numba_threads"}
+    assert set(machine) == {"python", "platform", "cpus", "numba_threads", "kernels"}
     assert isinstance(machine["cpus"], int) and machine["cpus"] >= 1 and machine["numba_threads"] >= 1
+    assert all(v == "C" or v.startswith("numba: ") for v in machine["kernels"].values())
 
 
 def test_version_comes_from_the_package_metadata(capsys):
@@ -57,6 +58,9 @@ def test_reconstruct_records_version_command_input_timings_and_machine(tmp_path)
     assert made["input"] == {"kind": "capture", "path": str(TINY.resolve()), "journal_sha256": journal}
     assert set(made["timings_s"]) == {"read", "estimate", "write"}
     assert record["options"]["window"] == 5  # the options stay where they were
+    from recon.native import library, unavailable  # the baseline's sweep: which kernel ran
+
+    assert made["machine"]["kernels"] == {"sweep": "C" if library("sweep") else f"numba: {unavailable('sweep')}"}
 
     # the PLY the same command wrote says the same, and where it is and in which unit
     comments = ply_header(out / "model.ply")["comments"]

@@ -129,6 +129,15 @@ def thread_count() -> int:
         return os.cpu_count() or 1
 
 
+def status() -> dict[str, str]:
+    """How each C kernel asked for in this process runs: ``"C"`` (its library loaded), else
+    ``"numba: WHY"`` (its numba twin, and why, :func:`unavailable`). Results record it
+    (:func:`recon.provenance.machine`)."""
+    with _lock:
+        return {name: "C" if lib is not None else f"numba: {_why.get(name, 'not loaded')}"
+                for name, lib in sorted(_loaded.items())}
+
+
 def unavailable(name: str) -> str | None:
     """Why :func:`library` gave ``None`` for ``name`` (``None``: it was not asked, or it loaded)."""
     return _why.get(name)

@@ -105,6 +105,8 @@ def _format(value: Any) -> str:
         return f"{value:.4g}" if abs(value) < 1e5 else f"{value:.6g}"
     if isinstance(value, (list, tuple)):
         return ", ".join(_format(v) for v in value)
+    if isinstance(value, dict):
+        return ", ".join(f"{html.escape(str(k))} {_format(v)}" for k, v in value.items()) or "–"
     return html.escape(str(value))
 
 
