@@ -110,6 +110,25 @@ def test_the_library_is_named_by_its_source_and_built_whole(tmp_path, monkeypatc
     assert [p.name for p in (tmp_path / "build").iterdir()] == [first.name]  # no temporary file left
     source.write_text(source.read_text() + "\n/* changed */\n")
     assert native.library_path("sweep", cc) != first  # an edited source builds anew
+    monkeypatch.setattr(native, "_loaded", {})
+    assert native.library("sweep") is not None
+    assert [p.name for p in (tmp_path / "build").iterdir()] == [native.library_path("sweep", cc).name]
+
+
+def test_a_link_where_the_build_folder_goes_is_not_followed(tmp_path, monkeypatch):
+    import recon.native as native
+
+    if native.compiler() is None:
+        pytest.skip("no C compiler here")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / "build").symlink_to(elsewhere)
+    monkeypatch.setattr(native, "BUILD", tmp_path / "build")
+    monkeypatch.setattr(native, "_loaded", {})
+    monkeypatch.setattr(native, "_why", {})
+    assert native.library("sweep") is None
+    assert "symbolic link" in native.unavailable("sweep")
+    assert list(elsewhere.iterdir()) == []
 
 
 def _run(code: str, **env) -> subprocess.CompletedProcess:

@@ -72,6 +72,8 @@ def library_path(name: str, cc: str) -> Path:
 
 
 def _build(name: str, cc: str, target: Path) -> None:
+    if BUILD.is_symlink():  # lfrig makes a folder here, never a link: build nowhere else
+        raise RuntimeError(f"{BUILD} is a symbolic link, not the folder lfrig builds into; remove it")
     BUILD.mkdir(exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=BUILD, prefix=f".{name}-", suffix=".so")
     os.close(fd)
