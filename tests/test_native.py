@@ -189,3 +189,14 @@ def test_a_process_forks_after_the_c_sweep_and_the_child_sweeps_too():
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert run.stdout.split() == ["0"], run.stderr
+
+
+@pytest.mark.hci
+def test_the_benchmark_times_both_kernels_and_finds_the_same_bits():
+    scene = require_hci_scene()
+    require_native("sweep")
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "native_kernels.py"), "--scene", str(scene),
+                          "--runs", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "121 candidates" in run.stdout and "the same bits: True" in run.stdout
+    assert "C (recon/native/sweep.c)" in run.stdout and "numba (costvolume._sweep_kernel)" in run.stdout
