@@ -266,13 +266,17 @@ def warm_in_background(name: str) -> Warming | None:
 
 
 def warm_every_method() -> None:
-    """Every method's ``warm()`` and ``warm_later()`` in this thread, one after the other: numba's
+    """Every method's ``warm()`` and ``warm_later()`` in this thread, one after the other, and the
+    numba twin of the baseline's C sweep (which its warm-up skips where the C one loads): numba's
     cache then holds every kernel they load (``./setup.sh`` runs it, so that no reconstruction
-    compiles them; with the cache current it takes ~1.4 s)."""
+    compiles them, with ``LFRIG_NATIVE=0`` neither; with the cache current it takes ~1.4 s)."""
     for method in METHODS.values():
         for warm in (method.warm, method.warm_later):
             if warm is not None:
                 warm()
+    from recon.baseline import load_kernels
+
+    load_kernels(kernel="numba")
 
 
 def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:
