@@ -61,6 +61,10 @@ def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.nd
                  "c_minus": np.zeros((H, W), np.float32), "c_plus": np.zeros((H, W), np.float32),
                  "previous": np.zeros((H, W), np.float32)}
     indices = np.ascontiguousarray(indices, dtype=np.int64).reshape(-1, 2)
+    if len(indices) == 0 or len(indices) != len(np.asarray(offsets).reshape(-1, 2)):
+        raise ValueError(f"offsets and indices must name the same views, at least one; got {len(indices)} indices")
+    if len(candidates) == 0:  # nothing to sweep
+        return state
     threads = thread_count()
     bands = max(1, min(threads if bands is None else int(bands), H))
     edges = np.linspace(0, H, bands + 1).astype(np.int64)

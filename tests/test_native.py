@@ -90,6 +90,13 @@ def test_the_sweep_checks_what_the_c_kernel_reads():
     with pytest.raises(ValueError, match="state\\['best'\\]"):
         sweep_least_cost(gray, np.zeros(2), offsets=offsets, indices=(offsets + 1).astype(np.int64), window=3,
                          state=state, kernel="native")
+    for kernel in ("native", "numba"):
+        with pytest.raises(ValueError, match="the same views, at least one"):
+            sweep_least_cost(gray, np.zeros(2), offsets=offsets[:0], indices=np.zeros((0, 2), np.int64), window=3,
+                             kernel=kernel)
+        empty = sweep_least_cost(gray, np.zeros(0), offsets=offsets, indices=(offsets + 1).astype(np.int64),
+                                 window=3, kernel=kernel)
+        assert (empty["best_index"] == -2).all()  # no candidate swept
     with pytest.raises(ValueError, match="kernel must be"):
         sweep_least_cost(gray, np.zeros(2), offsets=offsets, indices=(offsets + 1).astype(np.int64), window=3,
                          kernel="fortran")
@@ -161,6 +168,17 @@ def test_without_the_c_kernel_the_baseline_runs_numbas_with_the_same_result():
         other = json.loads(run.stdout)
         assert why in other["why"] and other["numba"]
         assert other["digest"] == native["digest"]
+
+
+def test_a_compiler_that_is_not_there_is_named(monkeypatch):
+    import recon.native as native
+
+    monkeypatch.setattr(native, "_loaded", {})
+    monkeypatch.setattr(native, "_why", {})
+    monkeypatch.setenv("CC", "no-such-compiler-here")
+    assert native.library("sweep") is None
+    assert native.unavailable("sweep") == "no C compiler: CC=no-such-compiler-here is not on the PATH"
+    assert native.status() == {"sweep": "numba: no C compiler: CC=no-such-compiler-here is not on the PATH"}
 
 
 def test_the_c_kernel_that_cannot_be_had_says_why():

@@ -103,7 +103,8 @@ def library(name: str) -> ctypes.CDLL | None:
         else:
             cc = compiler()
             if cc is None:
-                _why[name] = "no C compiler (cc or gcc) on the PATH"
+                _why[name] = (f"no C compiler: CC={os.environ['CC']} is not on the PATH" if os.environ.get("CC")
+                              else "no C compiler (cc or gcc) on the PATH")
             else:
                 try:
                     path = library_path(name, cc)
@@ -119,9 +120,9 @@ def library(name: str) -> ctypes.CDLL | None:
 def thread_count() -> int:
     """The threads a kernel runs on: numba's setting where numba is loaded, else what numba would
     take (``NUMBA_NUM_THREADS``, else the CPUs this process may run on)."""
-    numba = sys.modules.get("numba")
-    if numba is not None:
-        return int(numba.get_num_threads())
+    numba_threads = getattr(sys.modules.get("numba"), "get_num_threads", None)  # None: numba not (yet) loaded
+    if numba_threads is not None:
+        return int(numba_threads())
     named = os.environ.get("NUMBA_NUM_THREADS", "").strip()
     if named.isdigit() and int(named) > 0:
         return int(named)
