@@ -129,3 +129,20 @@ def test_against_refuses_a_folder_that_is_no_checkout_and_the_docs_table(tmp_pat
     assert done.returncode != 0 and "not a checkout of lfrig" in done.stderr
     done = _run_bench("--cases", "help", "--work", str(tmp_path / "work"), "--against", str(ROOT), "--update-docs")
     assert done.returncode != 0 and "leave out --update-docs" in done.stderr
+
+
+def test_the_timeline_marks_each_part_of_a_fresh_reconstruction_in_order():
+    # bench/command_timeline.py on the tiny capture with the baseline: every mark, in the order the
+    # command passes them (the warm-up's readiness only after it started; the estimate after both
+    # the views and the warm-up).
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "command_timeline.py"), str(ROOT / "fixtures" / "tiny_capture"),
+                          "--runs", "1", "--", "--method", "baseline", "--window", "3"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    marks = dict(line.rsplit(None, 1) for line in run.stdout.splitlines()[2:])
+    marks = {name.strip(): float(value) for name, value in marks.items()}
+    order = ["imports done", "command starts", "reading starts", "views read", "estimate starts", "estimate done",
+             "result folder written", "main returned"]
+    assert [marks[name] for name in order] == sorted(marks[name] for name in order)
+    assert marks["warm-up starts"] <= marks["warm-up ready"] <= marks["estimate starts"]
+    assert marks["process, from outside"] >= marks["main returned"]
