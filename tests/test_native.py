@@ -107,6 +107,8 @@ def test_the_library_is_named_by_its_source_and_built_whole(tmp_path, monkeypatc
 
     require_native("sweep")
     cc = native.compiler()
+    for header in native.HERE.glob("*.h"):
+        (tmp_path / header.name).write_bytes(header.read_bytes())
     source = tmp_path / "sweep.c"
     source.write_bytes((native.HERE / "sweep.c").read_bytes())
     monkeypatch.setattr(native, "HERE", tmp_path)
@@ -120,6 +122,8 @@ def test_the_library_is_named_by_its_source_and_built_whole(tmp_path, monkeypatc
     monkeypatch.setattr(native, "_loaded", {})
     assert native.library("sweep") is not None
     assert [p.name for p in (tmp_path / "build").iterdir()] == [native.library_path("sweep", cc).name]
+    (tmp_path / "rows.h").write_text((tmp_path / "rows.h").read_text() + "\n/* changed */\n")
+    assert native.library_path("sweep", cc).name not in [p.name for p in (tmp_path / "build").iterdir()]  # a header too
 
 
 def test_a_link_where_the_build_folder_goes_is_not_followed(tmp_path, monkeypatch):

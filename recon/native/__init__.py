@@ -64,8 +64,8 @@ def compiler() -> str | None:
 
 
 def library_path(name: str, cc: str) -> Path:
-    """Where the library of ``name.c`` built by ``cc`` for this CPU goes."""
-    source = (HERE / f"{name}.c").read_bytes()
+    """Where the library of ``name.c`` (with the headers beside it) built by ``cc`` for this CPU goes."""
+    source = b"".join([(HERE / f"{name}.c").read_bytes(), *(h.read_bytes() for h in sorted(HERE.glob("*.h")))])
     digest = hashlib.sha256(b"\0".join([source, " ".join(CFLAGS).encode(), cc.encode(), _cpu().encode(),
                                         platform.machine().encode()])).hexdigest()[:16]
     return BUILD / f"{name}-{digest}.so"

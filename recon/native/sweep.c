@@ -8,78 +8,12 @@
  * oy, ox (D, N) int64 and fy, fx (D, N) float32, the shifts' integer parts and fractions;
  * edges (bands + 1,) int64; previous, best, c_minus, c_plus (H, W) float32; best_index (H, W) int64.
  */
-#include <math.h>
-#include <pthread.h>
-#include <stdint.h>
-#include <stdlib.h>
-#include <string.h>
+#include "rows.h"
 
 static inline int64_t reflect(int64_t i, int64_t n) {  /* _reflect */
     if (i < 0) return -i - 1;
     if (i >= n) return 2 * n - i - 1;
     return i;
-}
-
-static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
-static inline int64_t max64(int64_t a, int64_t b) { return a > b ? a : b; }
-
-/* _view_row: the view's row at y + oy + fy, blended into rv, or a source row itself. */
-static const float *view_row(const float *img, int64_t H, int64_t W, int64_t y, int64_t oy, float fy,
-                             float *restrict rv) {
-    int64_t y0 = y + oy;
-    if (y0 < 0) return img;
-    if (y0 >= H - 1) return img + (H - 1) * W;
-    if (fy == 0.0f) return img + y0 * W;
-    const float *restrict a = img + y0 * W;
-    const float *restrict b = a + W;
-    float g = 1.0f - fy;
-    for (int64_t x = 0; x < W; x++) rv[x] = g * a[x] + fy * b[x];
-    return rv;
-}
-
-/* _sample */
-static inline float sample(const float *row, int64_t W, int64_t x, int64_t ox, float fx) {
-    int64_t i = x + ox;
-    if (i < 0) return row[0];
-    if (i >= W - 1) return row[W - 1];
-    return (1.0f - fx) * row[i] + fx * row[i + 1];
-}
-
-/* add_shifted_row_diff */
-static void add_shifted_row_diff(float *restrict acc, const float *restrict c_row, const float *restrict row,
-                                 int64_t W, int64_t ox, float fx) {
-    float g = 1.0f - fx;
-    int64_t lo = min64(max64(-ox, 0), W);
-    int64_t hi = min64(max64(W - 1 - ox, lo), W);
-    for (int64_t x = 0; x < lo; x++) acc[x] += fabsf(c_row[x] - row[0]);
-    const float *restrict r0 = row + lo + ox;
-    const float *restrict r1 = row + lo + ox + 1;
-    const float *restrict c = c_row + lo;
-    float *restrict s = acc + lo;
-    for (int64_t i = 0; i < hi - lo; i++) s[i] += fabsf(c[i] - (g * r0[i] + fx * r1[i]));
-    for (int64_t x = hi; x < W; x++) acc[x] += fabsf(c_row[x] - row[W - 1]);
-}
-
-/* add_two_shifted_row_diffs */
-static void add_two_shifted_row_diffs(float *restrict acc, const float *restrict c_row, int64_t W,
-                                      const float *restrict p, int64_t ox_p, float fx_p,
-                                      const float *restrict q, int64_t ox_q, float fx_q) {
-    float gp = 1.0f - fx_p;
-    float gq = 1.0f - fx_q;
-    int64_t lo = min64(max64(max64(-ox_p, -ox_q), 0), W);
-    int64_t hi = min64(max64(min64(W - 1 - ox_p, W - 1 - ox_q), lo), W);
-    for (int64_t x = 0; x < lo; x++)
-        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
-    const float *restrict p0 = p + lo + ox_p;
-    const float *restrict p1 = p + lo + ox_p + 1;
-    const float *restrict q0 = q + lo + ox_q;
-    const float *restrict q1 = q + lo + ox_q + 1;
-    const float *restrict c = c_row + lo;
-    float *restrict s = acc + lo;
-    for (int64_t i = 0; i < hi - lo; i++)
-        s[i] = (s[i] + fabsf(c[i] - (gp * p0[i] + fx_p * p1[i]))) + fabsf(c[i] - (gq * q0[i] + fx_q * q1[i]));
-    for (int64_t x = hi; x < W; x++)
-        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
 }
 
 /* _cost_rows: the summed absolute differences of row y for the D candidates into accs (D, W). */
@@ -132,21 +66,15 @@ struct sweep_args {
     const float *fy, *fx;
     int64_t D, first, window;
     const int64_t *edges;
-    int64_t bands, threads;
+    int64_t bands;
     float *previous, *best, *c_minus, *c_plus;
     int64_t *best_index;
 };
 
-struct sweep_thread {
-    const struct sweep_args *a;
-    int64_t t;  /* this thread's number: it takes bands t, t + threads, ... */
-    int failed;
-    pthread_t id;
-};
-
 /* One band of rows of _sweep_kernel. Returns 0, or -1 when its scratch memory could not be had
  * (nothing of the band written). */
-static int sweep_band(const struct sweep_args *a, int64_t b) {
+static int sweep_band(void *ctx, int64_t b) {
+    const struct sweep_args *a = ctx;
     const int64_t H = a->H, W = a->W, D = a->D;
     const int64_t r = a->window / 2;
     const int64_t n = 2 * r + 1;
@@ -209,48 +137,17 @@ done:
     return status;
 }
 
-static void *sweep_thread_run(void *arg) {
-    struct sweep_thread *t = arg;
-    for (int64_t b = t->t; b < t->a->bands; b += t->a->threads)
-        if (sweep_band(t->a, b) != 0) t->failed = 1;
-    return NULL;
-}
-
 /* _sweep_kernel: candidates first .. first + D - 1 of the plane sweep, in bands of rows (edges) dealt
  * to `threads` threads, made for this call and joined before it returns: no pool outlives the call,
- * so a process may fork after it (an OpenMP pool does not survive a fork). Returns 0, -1 when a
- * band's scratch memory could not be had, -2 when a thread could not be started (nothing written
- * then). */
+ * so a process may fork after it (an OpenMP pool does not survive a fork). Returns run_items'
+ * status: 0, -1 when a band's scratch memory could not be had, -2 when a thread could not be
+ * started. */
 int lfrig_sweep(const float *gray, int64_t U, int64_t V, int64_t H, int64_t W, const int64_t *vu,
                 const int64_t *vv, int64_t N, const int64_t *oy, const float *fy, const int64_t *ox,
                 const float *fx, int64_t D, int64_t first, int64_t window, const int64_t *edges,
                 int64_t bands, int64_t threads, float *previous, float *best, int64_t *best_index,
                 float *c_minus, float *c_plus) {
-    if (threads < 1) threads = 1;
-    if (threads > bands) threads = bands;
-    struct sweep_args a = {gray, U, V, H, W, vu, vv, N, oy, ox, fy, fx, D, first, window, edges, bands, threads,
-                           previous, best, c_minus, c_plus, best_index};
-    struct sweep_thread *pool = calloc((size_t)threads, sizeof(struct sweep_thread));
-    if (!pool) return -1;
-    int64_t started = 0;
-    int status = 0;
-    for (int64_t t = 1; t < threads; t++) {  /* this thread is number 0 */
-        pool[t].a = &a;
-        pool[t].t = t;
-        if (pthread_create(&pool[t].id, NULL, sweep_thread_run, &pool[t]) != 0) {
-            status = -2;
-            break;
-        }
-        started = t;
-    }
-    if (status == 0) {
-        pool[0].a = &a;
-        pool[0].t = 0;
-        sweep_thread_run(&pool[0]);
-    }
-    for (int64_t t = 1; t <= started; t++) pthread_join(pool[t].id, NULL);
-    for (int64_t t = 0; t < threads && status == 0; t++)
-        if (pool[t].failed) status = -1;
-    free(pool);
-    return status;
+    struct sweep_args a = {gray, U, V, H, W, vu, vv, N, oy, ox, fy, fx, D, first, window, edges, bands, previous,
+                           best, c_minus, c_plus, best_index};
+    return run_items(sweep_band, &a, bands, threads);
 }

@@ -1,0 +1,125 @@
+/* Row helpers shared by the kernels of recon/native: each mirrors the numba function of the same
+ * name in recon/costvolume.py (the same float32 operations in the same order), and a runner that
+ * deals items to threads started and joined within one call (no pool outlives it: a process may
+ * fork afterwards, which an OpenMP pool does not survive). */
+#ifndef LFRIG_ROWS_H
+#define LFRIG_ROWS_H
+
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
+static inline int64_t max64(int64_t a, int64_t b) { return a > b ? a : b; }
+
+/* _view_row: the view's row at y + oy + fy, blended into rv, or a source row itself. */
+static inline const float *view_row(const float *img, int64_t H, int64_t W, int64_t y, int64_t oy, float fy,
+                             float *restrict rv) {
+    int64_t y0 = y + oy;
+    if (y0 < 0) return img;
+    if (y0 >= H - 1) return img + (H - 1) * W;
+    if (fy == 0.0f) return img + y0 * W;
+    const float *restrict a = img + y0 * W;
+    const float *restrict b = a + W;
+    float g = 1.0f - fy;
+    for (int64_t x = 0; x < W; x++) rv[x] = g * a[x] + fy * b[x];
+    return rv;
+}
+
+/* _sample */
+static inline float sample(const float *row, int64_t W, int64_t x, int64_t ox, float fx) {
+    int64_t i = x + ox;
+    if (i < 0) return row[0];
+    if (i >= W - 1) return row[W - 1];
+    return (1.0f - fx) * row[i] + fx * row[i + 1];
+}
+
+/* add_shifted_row_diff */
+static inline void add_shifted_row_diff(float *restrict acc, const float *restrict c_row, const float *restrict row,
+                                 int64_t W, int64_t ox, float fx) {
+    float g = 1.0f - fx;
+    int64_t lo = min64(max64(-ox, 0), W);
+    int64_t hi = min64(max64(W - 1 - ox, lo), W);
+    for (int64_t x = 0; x < lo; x++) acc[x] += fabsf(c_row[x] - row[0]);
+    const float *restrict r0 = row + lo + ox;
+    const float *restrict r1 = row + lo + ox + 1;
+    const float *restrict c = c_row + lo;
+    float *restrict s = acc + lo;
+    for (int64_t i = 0; i < hi - lo; i++) s[i] += fabsf(c[i] - (g * r0[i] + fx * r1[i]));
+    for (int64_t x = hi; x < W; x++) acc[x] += fabsf(c_row[x] - row[W - 1]);
+}
+
+/* add_two_shifted_row_diffs */
+static inline void add_two_shifted_row_diffs(float *restrict acc, const float *restrict c_row, int64_t W,
+                                      const float *restrict p, int64_t ox_p, float fx_p,
+                                      const float *restrict q, int64_t ox_q, float fx_q) {
+    float gp = 1.0f - fx_p;
+    float gq = 1.0f - fx_q;
+    int64_t lo = min64(max64(max64(-ox_p, -ox_q), 0), W);
+    int64_t hi = min64(max64(min64(W - 1 - ox_p, W - 1 - ox_q), lo), W);
+    for (int64_t x = 0; x < lo; x++)
+        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
+    const float *restrict p0 = p + lo + ox_p;
+    const float *restrict p1 = p + lo + ox_p + 1;
+    const float *restrict q0 = q + lo + ox_q;
+    const float *restrict q1 = q + lo + ox_q + 1;
+    const float *restrict c = c_row + lo;
+    float *restrict s = acc + lo;
+    for (int64_t i = 0; i < hi - lo; i++)
+        s[i] = (s[i] + fabsf(c[i] - (gp * p0[i] + fx_p * p1[i]))) + fabsf(c[i] - (gq * q0[i] + fx_q * q1[i]));
+    for (int64_t x = hi; x < W; x++)
+        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
+}
+
+/* What run_items calls for each item: 0, or nonzero when the item failed (its memory). */
+typedef int (*item_fn)(void *ctx, int64_t item);
+
+struct runner {
+    item_fn fn;
+    void *ctx;
+    int64_t n, step, first;
+    int failed;
+    pthread_t id;
+};
+
+static void *runner_main(void *arg) {
+    struct runner *r = arg;
+    for (int64_t i = r->first; i < r->n; i += r->step)
+        if (r->fn(r->ctx, i) != 0) r->failed = 1;
+    return NULL;
+}
+
+/* fn(ctx, i) for i = 0 .. n - 1 on `threads` threads (this one among them), thread t taking items
+ * t, t + threads, ... as numba's prange deals them to its threads when there are as many items as
+ * threads. Returns 0, -1 when an item failed or no memory, -2 when a thread could not be started
+ * (items of the threads not started are not done). */
+static int run_items(item_fn fn, void *ctx, int64_t n, int64_t threads) {
+    if (n <= 0) return 0;
+    if (threads > n) threads = n;
+    if (threads < 1) threads = 1;
+    struct runner *pool = calloc((size_t)threads, sizeof(struct runner));
+    if (!pool) return -1;
+    int64_t started = 0;
+    int status = 0;
+    for (int64_t t = 1; t < threads; t++) {
+        pool[t] = (struct runner){fn, ctx, n, threads, t, 0, 0};
+        if (pthread_create(&pool[t].id, NULL, runner_main, &pool[t]) != 0) {
+            status = -2;
+            break;
+        }
+        started = t;
+    }
+    if (status == 0) {
+        pool[0] = (struct runner){fn, ctx, n, threads, 0, 0, 0};
+        runner_main(&pool[0]);
+    }
+    for (int64_t t = 1; t <= started; t++) pthread_join(pool[t].id, NULL);
+    for (int64_t t = 0; t < threads && status == 0; t++)
+        if (pool[t].failed) status = -1;
+    free(pool);
+    return status;
+}
+
+#endif
