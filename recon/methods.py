@@ -86,7 +86,10 @@ def _warm_entropy() -> None:
     import recon.entropy.outputs  # noqa: F401
     from recon.costvolume import start_numba
     from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
+    from recon.native import library
 
+    if library("initial") is not None:  # the first phase's C kernels: numba starts beside that phase
+        return
     with _blas_check_skipped():  # the first phase uses no scipy
         start_numba()
         # the nine-view search's kernels, with their argument types
@@ -94,6 +97,7 @@ def _warm_entropy() -> None:
 
 
 def _warm_entropy_later() -> None:
+    # (with the first phase's C kernels, numba's start-up comes with the first kernel loaded here)
     import scipy.sparse.linalg  # noqa: F401  the hole fill's solver, the first step after the first phase
 
     from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels

@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from recon.native import library, thread_count
+from recon.native import call, library, thread_count
 from recon.shifts import shift_parts, view_offsets  # noqa: F401  view_offsets: the views to match
 
 #: Which kernel :func:`sweep_least_cost` runs: ``"auto"`` the C one where it loads, else numba's.
@@ -22,16 +22,7 @@ Kernel = Literal["auto", "native", "numba"]
 
 def native_library():
     """The C sweep's library (:func:`recon.native.library`), or ``None`` where it cannot be had."""
-    lib = library("sweep")
-    if lib is not None and not hasattr(lib, "_lfrig_typed"):
-        import ctypes
-
-        p, i64 = ctypes.c_void_p, ctypes.c_int64
-        lib.lfrig_sweep.argtypes = [p, i64, i64, i64, i64, p, p, i64, p, p, p, p, i64, i64, i64, p, i64, i64,
-                                    p, p, p, p, p]
-        lib.lfrig_sweep.restype = ctypes.c_int
-        lib._lfrig_typed = True
-    return lib
+    return library("sweep")
 
 
 def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.ndarray, indices: np.ndarray,
@@ -90,14 +81,8 @@ def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.nd
     U, V = gray.shape[:2]
     if len(vu) and not (0 <= vu.min() and vu.max() < U and 0 <= vv.min() and vv.max() < V):
         raise ValueError(f"view indices must lie within the {U}x{V} grid")
-    arrays = (gray, vu, vv, oy, fy, ox, fx, edges, state["previous"], state["best"], state["best_index"],
-              state["c_minus"], state["c_plus"])
-    ptr = [a.ctypes.data for a in arrays]
-    status = lib.lfrig_sweep(ptr[0], U, V, H, W, ptr[1], ptr[2], len(vu), ptr[3], ptr[4], ptr[5], ptr[6],
-                             len(oy), int(first), int(window), ptr[7], bands, min(threads, bands),
-                             *ptr[8:])
-    if status == -1:
-        raise MemoryError("the plane sweep could not allocate its rows' scratch memory")
-    if status != 0:
-        raise RuntimeError(f"the plane sweep could not start its {min(threads, bands)} threads")
+    call("sweep", "lfrig_sweep", gray, U, V, H, W, vu, vv, len(vu), np.ascontiguousarray(oy), np.ascontiguousarray(fy),
+         np.ascontiguousarray(ox), np.ascontiguousarray(fx), len(oy), int(first), int(window), edges, bands,
+         min(threads, bands), state["previous"], state["best"], state["best_index"], state["c_minus"],
+         state["c_plus"])
     return state

@@ -41,8 +41,12 @@ def test_the_estimate_adds_no_kernel_signature_after_the_warm_up():
     seen = json.loads(out.stdout.strip().splitlines()[-1])
     added = {name: sorted(set(sigs) - set(seen["warmed"].get(name, []))) for name, sigs in seen["after"].items()}
     assert {name: sigs for name, sigs in added.items() if sigs} == {}
-    # and the warm-up loaded each listed kernel with the listed types
-    for module, name, tokens in KERNELS:
+    # and the warm-up loaded each listed kernel with the listed types (the first phase's only
+    # where their C twins do not load: the estimate does not call them)
+    from recon.entropy.preload import FIRST_PHASE_KERNELS
+    from recon.native import library
+
+    for module, name, tokens in KERNELS[FIRST_PHASE_KERNELS if library("initial") else 0:]:
         assert str(argument_types(tokens)) in seen["warmed"][f"{module}.{name}"]
 
 
@@ -69,19 +73,36 @@ def test_the_first_warm_up_freezes_what_its_imports_made_without_collecting_mean
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [0, True, True]
 
 
+PHASES_PROBE = ("import json, sys\n"
+                "from recon.methods import METHODS\n"
+                "from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels\n"
+                "METHODS['entropy'].warm()\n"
+                "scipy = sorted(m for m in ('scipy.ndimage', 'scipy.sparse', 'scipy.linalg') if m in sys.modules)\n"
+                "first = load_kernels(KERNELS[:FIRST_PHASE_KERNELS])\n"
+                "METHODS['entropy'].warm_later()\n"
+                "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules]))")
+
+
 def test_the_warm_up_before_the_estimate_loads_the_first_phase_without_scipy():
     # What the estimate waits for (Method.warm) loads numba, the estimator's modules and the first
     # phase's kernels, not scipy; scipy and the later kernels load beside the estimate (warm_later).
-    probe = ("import json, sys\n"
-             "from recon.methods import METHODS\n"
-             "from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels\n"
-             "METHODS['entropy'].warm()\n"
-             "scipy = sorted(m for m in ('scipy.ndimage', 'scipy.sparse', 'scipy.linalg') if m in sys.modules)\n"
-             "first = load_kernels(KERNELS[:FIRST_PHASE_KERNELS])\n"
-             "METHODS['entropy'].warm_later()\n"
-             "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules]))")
-    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True)
+    # Here without the C kernels (LFRIG_NATIVE=0), whose first phase is numba's.
+    import os
+
+    out = subprocess.run([sys.executable, "-c", PHASES_PROBE], cwd=ROOT, capture_output=True, text=True, check=True,
+                         env={**os.environ, "LFRIG_NATIVE": "0"})
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 0, 0, True]
+
+
+def test_with_the_first_phases_c_kernels_the_warm_up_before_the_estimate_loads_no_numba_kernel():
+    # With them (recon/native/initial.c), what the estimate waits for is the estimator's modules:
+    # none of the first phase's four numba kernels is loaded (the estimate calls their C twins), so
+    # numba's start-up comes with the later kernels, beside the first phase.
+    from tests.conftest import require_native
+
+    require_native("initial")
+    out = subprocess.run([sys.executable, "-c", PHASES_PROBE], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 4, 0, True]
 
 
 # Kernels that take a while to "compile" and log when they start and end (the probe's LOG).
@@ -124,7 +145,8 @@ def test_the_exit_waits_for_the_kernel_the_warm_up_is_loading_and_loads_no_other
              "from recon.methods import warm_in_background\n"
              "warming = warm_in_background('entropy')\n"
              "warming.wait()\n"
-             "while 'start later' not in open(slow_kernels.LOG).read():\n"
+             "import os\n"
+             "while not os.path.exists(slow_kernels.LOG) or 'start later' not in open(slow_kernels.LOG).read():\n"
              "    time.sleep(0.01)\n"
              "print('done')\n")
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=120)

@@ -222,3 +222,83 @@ def test_the_benchmark_times_both_kernels_and_finds_the_same_bits():
     assert run.returncode == 0, run.stderr
     assert "121 candidates" in run.stdout and "the same bits: True" in run.stdout
     assert "C (recon/native/sweep.c)" in run.stdout and "numba (costvolume._sweep_kernel)" in run.stdout
+
+
+def _window_inputs(rng, grid, H, W, trial):
+    from recon.entropy.cost import set_view_counts
+    from recon.entropy.initial import initial_view_mask
+    from recon.entropy.windows import window_rect
+
+    mask = initial_view_mask(grid) if trial % 2 else None
+    counts = set_view_counts(grid, mask)
+    windows = [(s, int(rng.choice([3, 5, 7])), s) for s in (range(9) if trial % 3 else [0])]
+    sets = np.unique([w[2] for w in windows])
+    lookup = {int(s): i for i, s in enumerate(sets)}
+    if trial % 4 == 3:  # a window gate per pixel, the square everywhere
+        allowed = rng.random((len(windows), H, W)) < 0.7
+        allowed[0] = True
+    else:
+        allowed = np.ones((len(windows), 1, 1), np.bool_)
+        allowed[1:2] = trial % 5 != 0  # a window offered nowhere
+    return dict(sets=sets, window_set=np.array([lookup[w[2]] for w in windows], np.int64),
+                rects=np.array([window_rect(w[0], w[1]) for w in windows], np.int64),
+                counts=np.array([counts[w[2]] for w in windows], np.float64), allowed=allowed, view_mask=mask)
+
+
+def test_the_first_phases_c_kernels_give_numbas_bits_on_random_inputs():
+    # recon/native/initial.c: the nine-view search's window costs (square and shaped windows, view
+    # masks, a gate per pixel or a window offered nowhere), the sub-step arg-min and the ambiguity
+    # count (NaN costs among them), the range discovery's downsampling (factors 1-7).
+    from recon.entropy.cost import cost_ambiguity, min_window_costs
+    from recon.entropy.initial import downsample_views
+    from recon.entropy.matching import subpixel_argmin
+
+    require_native("initial")
+    rng = np.random.default_rng(3)
+    for trial in range(24):
+        grid = [(9, 9), (5, 5), (3, 4), (7, 7)][trial % 4]
+        H, W = int(rng.integers(8, 40)), int(rng.integers(8, 40))
+        gray = rng.random(grid + (H, W)).astype(np.float32)
+        inputs = _window_inputs(rng, grid, H, W, trial)
+        candidates = np.sort(rng.uniform(-3, 3, int(rng.integers(1, 6)))).astype(np.float32)
+        native = min_window_costs(gray, candidates, **inputs, kernel="native")
+        twin = min_window_costs(gray, candidates, **inputs, kernel="numba")
+        assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
+        costs = rng.random((int(rng.integers(1, 9)), H, W)).astype(np.float32)
+        if trial % 3 == 0:
+            costs[rng.integers(0, len(costs)), 2:4, 3:5] = np.nan
+        values = np.sort(rng.uniform(-2, 2, len(costs)))
+        for a, b in zip(subpixel_argmin(costs, values, kernel="native"),
+                        subpixel_argmin(costs, values, kernel="numba")):
+            assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+        assert np.array_equal(cost_ambiguity(costs, 0.05, kernel="native"), cost_ambiguity(costs, 0.05, kernel="numba"))
+        factor = int(rng.integers(1, 8))
+        if W // factor >= 2:
+            assert np.array_equal(downsample_views(gray, factor, kernel="native").view(np.uint32),
+                                  downsample_views(gray, factor, kernel="numba").view(np.uint32))
+
+
+ESTIMATE_IN_A_PROCESS = """
+import hashlib, json
+import numpy as np
+from recon.entropy import estimate_disparity
+from recon.lf.lightfield import LightField
+from recon.native import status
+from recon.synthetic import occluding_square_scene
+lf, _ = occluding_square_scene(48, seed=4, back=-0.7, front=0.9)
+found = LightField(views=lf.views)  # no range: the coarse search finds it (the downsampling)
+out = {}
+for name, field in (("known", lf), ("found", found)):
+    r = estimate_disparity(field)
+    out[name] = {k: hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()
+                 for k, v in vars(r).items() if isinstance(v, np.ndarray)}
+print(json.dumps({"maps": out, "kernels": status()}))
+"""
+
+
+def test_an_estimate_with_the_first_phases_c_kernels_makes_the_same_maps():
+    require_native("initial")
+    native = json.loads(_run(ESTIMATE_IN_A_PROCESS).stdout.strip().splitlines()[-1])
+    twins = json.loads(_run(ESTIMATE_IN_A_PROCESS, LFRIG_NATIVE="0").stdout.strip().splitlines()[-1])
+    assert native["kernels"] == {"initial": "C"} and twins["kernels"] == {"initial": "numba: LFRIG_NATIVE=0"}
+    assert native["maps"] == twins["maps"] and len(native["maps"]["found"]) >= 8

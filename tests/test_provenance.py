@@ -60,7 +60,7 @@ def test_reconstruct_records_version_command_input_timings_and_machine(tmp_path)
     assert record["options"]["window"] == 5  # the options stay where they were
     from recon.native import library, unavailable  # the baseline's sweep: which kernel ran
 
-    assert made["machine"]["kernels"] == {"sweep": "C" if library("sweep") else f"numba: {unavailable('sweep')}"}
+    assert made["machine"]["kernels"]["sweep"] == ("C" if library("sweep") else f"numba: {unavailable('sweep')}")
 
     # the PLY the same command wrote says the same, and where it is and in which unit
     comments = ply_header(out / "model.ply")["comments"]

@@ -20,6 +20,7 @@ import numba
 import numpy as np
 
 from recon.costvolume import add_shifted_row_diff, add_two_shifted_row_diffs
+from recon.native import call, chosen, thread_count
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 N_BLOCKS = 9
@@ -685,20 +686,34 @@ def min_window_costs_reference(gray: np.ndarray, disparity: float, *, sets: np.n
 
 def min_window_costs(gray: np.ndarray, disparities: np.ndarray, *, sets: np.ndarray, window_set: np.ndarray,
                      rects: np.ndarray, counts: np.ndarray, allowed: np.ndarray,
-                     view_mask: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+                     view_mask: np.ndarray | None = None, out: np.ndarray | None = None,
+                     kernel: str = "auto") -> np.ndarray:
     """``(G, H, W)`` float32: :func:`min_window_costs_reference`'s map at each of the ``G``
     ``disparities`` (compiled twin, bit for bit; ``gray`` contiguous float32, ``counts`` float64,
     ``allowed`` a contiguous bool array), written into ``out`` when given. One pass over the rows
     for the group, with none of the ``(9, H, W)`` block images or ``(S, H + 1, W + 1)`` tables in
-    memory; groups of :func:`min_window_group` candidates read the views' rows once for all."""
+    memory; groups of :func:`min_window_group` candidates read the views' rows once for all.
+    ``kernel`` (:func:`recon.native.chosen`): by default the C twin of the kernel
+    (``recon/native/initial.c``, no numba start-up needed) where it loads, else numba's."""
     U, V, H, W = gray.shape
-    disparities = np.asarray(disparities, np.float32)
+    disparities = np.ascontiguousarray(disparities, np.float32)
     if out is None:
         out = np.empty((len(disparities), H, W), np.float32)
+    views = view_lists((U, V), view_mask)
+    plan = set_sums_plan(np.asarray(sets))
+    if chosen("initial", kernel):
+        threads = thread_count()
+        n_chunks = max(1, min(threads, H))
+        window_set, rects = np.ascontiguousarray(window_set, np.int64), np.ascontiguousarray(rects, np.int64)
+        counts, allowed = np.ascontiguousarray(counts, np.float64), np.ascontiguousarray(allowed, np.bool_)
+        if allowed.ndim != 3 or allowed.shape[0] != len(rects) or out.shape != (len(disparities), H, W):
+            raise ValueError("allowed must be (K, H, W) or (K, 1, 1) and out (G, H, W)")
+        call("initial", "lfrig_min_window_costs", np.ascontiguousarray(gray, np.float32), U, V, H, W, *views[:4],
+             views[4], len(views[0]), disparities, len(disparities), *plan[:3], len(plan[0]), window_set, rects,
+             len(rects), counts, allowed, allowed.shape[1], allowed.shape[2], n_chunks, threads, out)
+        return out
     n_chunks = max(1, min(numba.get_num_threads(), H))
-    _min_window_costs_kernel(gray, *view_lists((U, V), view_mask), disparities,
-                             *set_sums_plan(np.asarray(sets)), window_set, rects, counts, allowed,
-                             n_chunks, out)
+    _min_window_costs_kernel(gray, *views, disparities, *plan, window_set, rects, counts, allowed, n_chunks, out)
     return out
 
 
@@ -788,14 +803,18 @@ def _cost_ambiguity_kernel(costs, delta, out):
                     out[y, x] += 1
 
 
-def cost_ambiguity(costs: np.ndarray, delta: float) -> np.ndarray:
+def cost_ambiguity(costs: np.ndarray, delta: float, *, kernel: str = "auto") -> np.ndarray:
     """``(H, W)`` int32: how many of the ``D`` candidates of a ``(D, H, W)`` cost volume come
     within ``delta`` of the pixel's least cost. A few (a narrow valley) where the matching tells
     disparities apart; many (a plateau) where it has no information, e.g. inside a textureless
     patch, where the window matches itself at every small shift. Compiled twin of
-    :func:`cost_ambiguity_reference` (same map)."""
-    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3:
+    :func:`cost_ambiguity_reference` (same map): C (``recon/native/initial.c``) where it loads,
+    else numba's (``kernel``: :func:`recon.native.chosen`)."""
+    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3 or costs.shape[0] == 0:
         return cost_ambiguity_reference(costs, delta)
     out = np.empty(costs.shape[1:], np.int32)
+    if chosen("initial", kernel):
+        call("initial", "lfrig_cost_ambiguity", costs, *costs.shape, float(np.float32(delta)), out, thread_count())
+        return out
     _cost_ambiguity_kernel(costs, np.float32(delta), out)
     return out

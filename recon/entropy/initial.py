@@ -16,6 +16,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from recon.native import call, chosen, thread_count
+
 from recon.entropy.matching import disparity_candidates, min_window_line_search
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES
 
@@ -140,16 +142,21 @@ def _downsample_kernel(gray, factor, out):
             out[u, v, y, x] = acc / count
 
 
-def downsample_views(gray: np.ndarray, factor: int) -> np.ndarray:
+def downsample_views(gray: np.ndarray, factor: int, *, kernel: str = "auto") -> np.ndarray:
     """``(U, V, H // factor, W // factor)`` float32: every view box-averaged over ``factor`` x
     ``factor`` blocks (the last rows/columns that do not fill a block are left out). A disparity of
     ``d`` pixels per view step in ``gray`` is ``d / factor`` in the result. Compiled twin of
     :func:`downsample_views_reference`, the same values; by the twin itself where numpy sums in
-    another order: factors of 8 and more (their rows summed pairwise) and results one pixel wide."""
+    another order: factors of 8 and more (their rows summed pairwise) and results one pixel wide.
+    C (``recon/native/initial.c``) where it loads, else numba's (``kernel``: :func:`recon.native.chosen`)."""
     U, V, H, W = gray.shape
     if not 1 <= factor < 8 or W // factor < 2 or gray.dtype != np.float32 or not gray.flags.c_contiguous:
         return downsample_views_reference(gray, factor)
     out = np.empty((U, V, H // factor, W // factor), np.float32)
+    if chosen("initial", kernel):
+        call("initial", "lfrig_downsample", gray, U, V, H, W, int(factor), out, H // factor, W // factor,
+             thread_count())
+        return out
     _downsample_kernel(gray, int(factor), out)
     return out
 

@@ -18,6 +18,7 @@ from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FL
                                 min_window_costs_reference, min_window_group, set_view_counts, window_reach,
                                 window_sum_bound)
 from recon.entropy.layout import offer_runs
+from recon.native import call, chosen, thread_count
 from recon.entropy.windows import SET_BLOCKS, window_rect
 
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
@@ -411,19 +412,27 @@ def _subpixel_argmin_kernel(costs, candidates, step, disparity, best_out):
             best_out[y, x] = np.float32(c0)
 
 
-def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def subpixel_argmin(costs: np.ndarray, candidates: np.ndarray, *,
+                    kernel: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel arg-min of a ``(D, H, W)`` cost volume refined by a parabola: ``(disparity, cost
     at the arg-min)``, ``(H, W)`` float32 each. The arg-min is the first least candidate (the first
     NaN if any, as ``np.argmin``); the parabola through it and its two neighbours moves it by at
     most half a step (not at the ends of the range, nor where the curve is not convex there).
-    Compiled twin of :func:`subpixel_argmin_reference` (the same float64 arithmetic, same maps)."""
+    Compiled twin of :func:`subpixel_argmin_reference` (the same float64 arithmetic, same maps): C
+    (``recon/native/initial.c``) where it loads, else numba's (``kernel``: :func:`recon.native.chosen`)."""
     costs = np.asarray(costs)
-    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3:
+    if costs.dtype != np.float32 or not costs.flags.c_contiguous or costs.ndim != 3 or costs.shape[0] == 0:
         return subpixel_argmin_reference(costs, candidates)
     D, H, W = costs.shape
     candidates = np.asarray(candidates)
     step = float(candidates[1] - candidates[0]) if D > 1 else 0.0
     disparity = np.empty((H, W), np.float32)
     best = np.empty((H, W), np.float32)
+    if chosen("initial", kernel):
+        values = np.ascontiguousarray(candidates, np.float64)
+        if len(values) != D:
+            raise ValueError(f"{len(values)} candidates for a cost volume of {D}")
+        call("initial", "lfrig_subpixel_argmin", costs, D, H, W, values, step, disparity, best, thread_count())
+        return disparity, best
     _subpixel_argmin_kernel(costs, np.ascontiguousarray(candidates, np.float64), step, disparity, best)
     return disparity, best

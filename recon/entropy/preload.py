@@ -7,7 +7,9 @@ a process also sets up numba's typing and target registries, ~0.35 s: :func:`rec
 :func:`load_kernels` does that for every kernel of a default estimate, in the order the estimate
 first calls them; ``lfrig reconstruct`` runs it in a thread (:func:`recon.methods.warm_in_background`):
 the first phase's kernels (:data:`FIRST_PHASE_KERNELS`) while the views are decoded, the others
-while that phase runs; ``./setup.sh`` runs it once to fill the cache
+while that phase runs (where the first phase's C twins load, ``recon/native/initial.c``, the
+estimate calls none of the first four and starts without waiting for numba: numba's start-up comes
+with the first of the others, beside the first phase); ``./setup.sh`` runs it once to fill the cache
 (:func:`recon.methods.warm_every_method`). It computes nothing and changes no result.
 
 A signature is written as one token per argument: a scalar type by its numba name (``int64``,

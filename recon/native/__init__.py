@@ -37,8 +37,24 @@ HERE = Path(__file__).resolve().parent
 BUILD = HERE / "build"
 #: The compiler's flags. ``-ffp-contract=off``: C allows ``a * b + c`` to become one fused
 #: multiply-add, rounded once; numba's kernels round twice, and so must these.
-CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-pthread", "-fPIC", "-shared",
-          "-std=c11", "-Wall", "-Werror")
+#: ``-fno-trapping-math``: no value changes, but loops with a floating-point test vectorise, as
+#: LLVM (numba) assumes by default (the nine-view search's kernel 0.47 -> 0.43 s on one thread).
+CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno", "-pthread",
+          "-fPIC", "-shared", "-std=c11", "-Wall", "-Werror")
+
+#: Each library's functions and their C argument types (``p``: a pointer, an array's data; ``i``:
+#: int64; ``d``: double; ``f``: float), as :func:`library` declares them to :mod:`ctypes`. Every
+#: function returns an int status: 0, -1 out of memory, -2 a thread could not be started.
+SIGNATURES: dict[str, dict[str, str]] = {
+    "sweep": {"lfrig_sweep": "p i i i i p p i p p p p i i i p i i p p p p p"},
+    "initial": {
+        "lfrig_min_window_costs": "p i i i i p p p p p i p i p p p i p p i p p i i i i p",
+        "lfrig_subpixel_argmin": "p i i i p d p p i",
+        "lfrig_cost_ambiguity": "p i i i f p i",
+        "lfrig_downsample": "p i i i i i p i i i",
+    },
+}
+_CTYPES = {"p": ctypes.c_void_p, "i": ctypes.c_int64, "d": ctypes.c_double, "f": ctypes.c_float}
 
 _lock = threading.Lock()
 _loaded: dict[str, ctypes.CDLL | None] = {}
@@ -111,10 +127,51 @@ def library(name: str) -> ctypes.CDLL | None:
                     if not path.exists():
                         _build(name, cc, path)
                     lib = ctypes.CDLL(str(path))
+                    for function, types in SIGNATURES.get(name, {}).items():
+                        getattr(lib, function).argtypes = [_CTYPES[t] for t in types.split()]
+                        getattr(lib, function).restype = ctypes.c_int
                 except (OSError, RuntimeError, subprocess.SubprocessError) as error:
                     _why[name] = f"{name}.c could not be built or loaded: {error}"
         _loaded[name] = lib
         return lib
+
+
+def chosen(name: str, kernel: str = "auto") -> bool:
+    """Whether to run the C kernels of ``name.c`` (``True``) or their numba twins: ``kernel``
+    ``"numba"`` the twins, ``"native"`` the C ones (``RuntimeError`` saying why where they cannot be
+    had), ``"auto"`` the C ones where they load."""
+    if kernel not in ("auto", "native", "numba"):
+        raise ValueError(f"kernel must be 'auto', 'native' or 'numba'; got {kernel!r}")
+    if kernel == "numba":
+        return False
+    if library(name) is not None:
+        return True
+    if kernel == "native":
+        raise RuntimeError(f"the C kernels of {name}.c are not available: {unavailable(name)}")
+    return False
+
+
+def call(name: str, function: str, *args) -> None:
+    """Call ``function`` of the loaded library ``name`` (:func:`library` must have given it) with
+    ``args``: numpy arrays, passed as their data (each must be C-contiguous, the kernel's dtype, and
+    alive for the call), and numbers. Raises ``MemoryError`` or ``RuntimeError`` for a status
+    other than 0. The call releases the interpreter's lock (:mod:`ctypes`)."""
+    lib = _loaded.get(name)
+    if lib is None:
+        raise RuntimeError(f"the C kernels of {name}.c are not loaded: {unavailable(name)}")
+    values = []
+    for arg in args:
+        if hasattr(arg, "ctypes"):
+            if not arg.flags.c_contiguous:
+                raise ValueError(f"{function}: an array argument is not C-contiguous")
+            values.append(arg.ctypes.data)
+        else:
+            values.append(arg)
+    status = getattr(lib, function)(*values)
+    if status == -1:
+        raise MemoryError(f"{function} could not allocate its scratch memory")
+    if status != 0:
+        raise RuntimeError(f"{function} could not start its threads")
 
 
 def thread_count() -> int:

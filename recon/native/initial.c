@@ -1,0 +1,404 @@
+/* The kernels of the matching-entropy estimator's first phase (the nine-view search of
+ * recon/entropy/initial.py), compiled ahead of time so that the phase runs before numba has
+ * started: each mirrors its numba twin operation for operation on the same types (no fused
+ * multiply-add, no fast math), so it gives the same bits.
+ *
+ * - lfrig_min_window_costs: recon/entropy/cost.py, _min_window_costs_kernel (with _block_rows,
+ *   _block_view_rows, _view_row and _set_sum);
+ * - lfrig_subpixel_argmin: recon/entropy/matching.py, _subpixel_argmin_kernel;
+ * - lfrig_cost_ambiguity: recon/entropy/cost.py, _cost_ambiguity_kernel;
+ * - lfrig_downsample: recon/entropy/initial.py, _downsample_kernel.
+ *
+ * Arrays are C-contiguous; the comments of the numba twins say why each loop has its shape.
+ */
+#include "rows.h"
+
+#define N_BLOCKS 9
+static const double FIXED_POINT = 268435456.0; /* 2^28: recon.entropy.cost.FIXED_POINT */
+#define FIXED_INV (1.0 / 268435456.0)
+
+/* cost.py _view_row: the view's row at the float64 row sy, blended from its two source rows. */
+static void view_row_at(const float *img, int64_t H, int64_t W, double sy, float *restrict rv) {
+    if (sy < 0.0)
+        sy = 0.0;
+    else if (sy > H - 1.0)
+        sy = H - 1.0;
+    int64_t y0 = (int64_t)floor(sy);
+    if (y0 > H - 2) y0 = H - 2;
+    if (y0 < 0) y0 = 0;
+    float fy = (float)(sy - (double)y0);
+    float gy = 1.0f - fy;
+    int64_t y1 = min64(y0 + 1, H - 1);
+    const float *restrict a = img + y0 * W;
+    const float *restrict b = img + y1 * W;
+    for (int64_t x = 0; x < W; x++) rv[x] = gy * a[x] + fy * b[x];
+}
+
+struct views {
+    const float *gray;
+    int64_t U, V, H, W;
+    const int64_t *vu, *vv, *vblock;
+    const float *vdu, *vdv;
+    int64_t n;
+};
+
+/* _block_view_rows for one row (acc (9, W) float32): view k's row added into its block's, with view
+ * k + 1 in the same pass where it is in the same block. Returns the next view's index. */
+static int64_t block_view_row(const struct views *v, float disparity, int64_t y, float *acc, float *rv, int64_t k) {
+    const int64_t H = v->H, W = v->W, plane = H * W;
+    float base_p = -v->vdv[k] * disparity;
+    float fl_p = floorf(base_p);
+    int two = k + 1 < v->n && v->vblock[k + 1] == v->vblock[k];
+    int64_t m = two ? k + 1 : k;
+    float base_q = -v->vdv[m] * disparity;
+    float fl_q = floorf(base_q);
+    const float *centre = v->gray + ((v->U / 2) * v->V + v->V / 2) * plane + y * W;
+    const float *img_p = v->gray + (v->vu[k] * v->V + v->vv[k]) * plane;
+    view_row_at(img_p, H, W, (double)y - (double)(v->vdu[k] * disparity), rv);
+    float *row = acc + v->vblock[k] * W;
+    if (two) {
+        const float *img_q = v->gray + (v->vu[m] * v->V + v->vv[m]) * plane;
+        view_row_at(img_q, H, W, (double)y - (double)(v->vdu[m] * disparity), rv + W);
+        add_two_shifted_row_diffs(row, centre, W, rv, (int64_t)fl_p, base_p - fl_p, rv + W, (int64_t)fl_q,
+                                  base_q - fl_q);
+    } else {
+        add_shifted_row_diff(row, centre, rv, W, (int64_t)fl_p, base_p - fl_p);
+    }
+    return m + 1;
+}
+
+/* _set_sum: sums[s] = set s's row from the block rows (9, W), continuing set_from[s]'s sum. */
+static double *set_sum(const float *rows, int64_t W, const int64_t *set_blocks, const int64_t *set_from, int64_t s,
+                       double *sums) {
+    double *restrict v = sums + s * W;
+    int64_t t = 0;
+    int64_t p = set_from[s];
+    const int64_t *bs = set_blocks + s * N_BLOCKS;
+    if (p >= 0) {
+        const double *restrict before = sums + p * W;
+        const int64_t *bp = set_blocks + p * N_BLOCKS;
+        while (t < N_BLOCKS && bp[t] >= 0) t++;
+        const float *restrict row_b = rows + bs[t] * W;
+        for (int64_t x = 0; x < W; x++) v[x] = before[x] + (double)row_b[x];
+    } else {
+        const float *restrict row_b = rows + bs[0] * W;
+        for (int64_t x = 0; x < W; x++) v[x] = (double)row_b[x];
+    }
+    t++;
+    while (t < N_BLOCKS && bs[t] >= 0) {
+        const float *restrict row_b = rows + bs[t] * W;
+        for (int64_t x = 0; x < W; x++) v[x] += (double)row_b[x];
+        t++;
+    }
+    return v;
+}
+
+struct mwc_args {
+    struct views v;
+    const float *disparities;
+    int64_t G;
+    const int64_t *set_blocks, *set_from, *set_order;
+    int64_t S;
+    const int64_t *window_set, *rects;
+    int64_t K;
+    const double *counts;
+    const uint8_t *allowed;
+    int64_t aH, aW;
+    int64_t n_chunks;
+    float *out;
+};
+
+/* One chunk of rows of _min_window_costs_kernel. */
+static int mwc_chunk(void *ctx, int64_t chunk) {
+    const struct mwc_args *a = ctx;
+    const int64_t H = a->v.H, W = a->v.W, S = a->S, K = a->K, G = a->G;
+    int64_t up = 0, down = 0;
+    for (int64_t k = 0; k < K; k++) {
+        up = max64(up, -a->rects[k * 4 + 0]);
+        down = max64(down, a->rects[k * 4 + 1]);
+    }
+    const int64_t R = up + down + 2;
+    const int per_pixel = a->aH > 1 || a->aW > 1;
+    const int64_t c0 = chunk * H / a->n_chunks;
+    const int64_t c1 = (chunk + 1) * H / a->n_chunks;
+    double *rings = malloc(sizeof(double) * G * R * S * W);
+    float *acc = malloc(sizeof(float) * N_BLOCKS * W);
+    float *rv = malloc(sizeof(float) * 2 * W);
+    double *sums = malloc(sizeof(double) * S * W);
+    double *all_cols = malloc(sizeof(double) * G * K * W);
+    double *best = malloc(sizeof(double) * W);
+    int status = 0;
+    if (!rings || !acc || !rv || !sums || !all_cols || !best) {
+        status = -1;
+        goto done;
+    }
+    int64_t nxt = max64(c0 - up, 0);
+    for (int64_t y = c0; y < c1; y++) {
+        while (nxt <= min64(y + down, H - 1)) {
+            for (int64_t g = 0; g < G; g++) {
+                memset(acc, 0, sizeof(float) * N_BLOCKS * W);
+                for (int64_t k = 0; k < a->v.n;) k = block_view_row(&a->v, a->disparities[g], nxt, acc, rv, k);
+                double *slot = rings + (g * R + nxt % R) * S * W;
+                for (int64_t i = 0; i < S; i++) {
+                    int64_t s = a->set_order[i];
+                    const double *restrict v = set_sum(acc, W, a->set_blocks, a->set_from, s, sums);
+                    double *restrict fixed = slot + s * W;
+                    for (int64_t x = 0; x < W; x++) fixed[x] = floor(v[x] * FIXED_POINT + 0.5);
+                }
+            }
+            nxt++;
+        }
+        for (int64_t g = 0; g < G; g++) {
+            const double *ring = rings + g * R * S * W;
+            double *cols = all_cols + g * K * W;
+            for (int64_t x = 0; x < W; x++) best[x] = 1e300;
+            for (int64_t k = 0; k < K; k++) {
+                const uint8_t *allowed_k = a->allowed + k * a->aH * a->aW;
+                if (!per_pixel && !allowed_k[0]) continue;
+                const int64_t s = a->window_set[k];
+                const int64_t *rk = a->rects + k * 4;
+                const int64_t ya = max64(y + rk[0], 0);
+                const int64_t yb = min64(y + rk[1], H - 1) + 1;
+                double *restrict col = cols + k * W;
+                if (y == c0) {
+                    const double *f = ring + ((ya % R) * S + s) * W;
+                    for (int64_t x = 0; x < W; x++) col[x] = f[x];
+                    for (int64_t r = ya + 1; r < yb; r++) {
+                        f = ring + ((r % R) * S + s) * W;
+                        for (int64_t x = 0; x < W; x++) col[x] += f[x];
+                    }
+                } else {
+                    const int gone = y + rk[0] - 1 >= 0;
+                    const int come = y + rk[1] <= H - 1;
+                    const double *restrict f = ring + ((((y + rk[0] - 1) % R + R) % R) * S + s) * W;
+                    const double *restrict h = ring + (((y + rk[1]) % R) * S + s) * W;
+                    if (gone && come) {
+                        for (int64_t x = 0; x < W; x++) col[x] += h[x] - f[x];
+                    } else if (gone) {
+                        for (int64_t x = 0; x < W; x++) col[x] -= f[x];
+                    } else if (come) {
+                        for (int64_t x = 0; x < W; x++) col[x] += h[x];
+                    }
+                }
+                const double ck = a->counts[k];
+                const int64_t ra = rk[2], rb = rk[3];
+                const int64_t lo = min64(max64(-ra, 0), W);
+                const int64_t hi = min64(max64(W - 1 - rb, lo), W);
+                const uint8_t *al_row = per_pixel ? allowed_k + y * a->aW : NULL;
+                for (int64_t e = 0; e < lo + W - hi; e++) {
+                    const int64_t x = e < lo ? e : hi + e - lo;
+                    if (per_pixel && !al_row[x]) continue;
+                    const int64_t xa = max64(x + ra, 0);
+                    const int64_t xb = min64(x + rb, W - 1) + 1;
+                    double total = 0.0;
+                    for (int64_t j = xa; j < xb; j++) total += col[j];
+                    double c = total * FIXED_INV / ((double)((yb - ya) * (xb - xa)) * ck);
+                    if (c < best[x]) best[x] = c;
+                }
+                const int64_t n = hi - lo;
+                if (n > 0) {
+                    const int64_t width = rb - ra + 1;
+                    double *restrict bs = best + lo;
+                    const double denom = (double)((yb - ya) * width) * ck;
+                    const double *restrict s0 = col + lo + ra;
+                    const double *restrict s1 = s0 + 1;
+                    const double *restrict s2 = s0 + 2;
+                    const uint8_t *restrict al = per_pixel ? al_row + lo : NULL;
+                    if (width == 5) {
+                        const double *restrict s3 = s0 + 3;
+                        const double *restrict s4 = s0 + 4;
+                        for (int64_t i = 0; i < n; i++) {
+                            double c = (((s0[i] + s1[i]) + (s2[i] + s3[i])) + s4[i]) * FIXED_INV / denom;
+                            c = (!al || al[i]) ? c : INFINITY;
+                            bs[i] = c < bs[i] ? c : bs[i];
+                        }
+                    } else if (width == 3) {
+                        for (int64_t i = 0; i < n; i++) {
+                            double c = ((s0[i] + s1[i]) + s2[i]) * FIXED_INV / denom;
+                            c = (!al || al[i]) ? c : INFINITY;
+                            bs[i] = c < bs[i] ? c : bs[i];
+                        }
+                    } else {
+                        for (int64_t i = 0; i < n; i++) {
+                            double t = s0[i];
+                            for (int64_t q = 1; q < width; q++) t += s0[i + q];
+                            double c = t * FIXED_INV / denom;
+                            c = (!al || al[i]) ? c : INFINITY;
+                            bs[i] = c < bs[i] ? c : bs[i];
+                        }
+                    }
+                }
+            }
+            float *out = a->out + (g * H + y) * W;
+            for (int64_t x = 0; x < W; x++) out[x] = (float)best[x];
+        }
+    }
+done:
+    free(rings);
+    free(acc);
+    free(rv);
+    free(sums);
+    free(all_cols);
+    free(best);
+    return status;
+}
+
+/* _min_window_costs_kernel: each of the G candidates' least window cost per pixel into out
+ * (G, H, W) float32; the rows dealt out in n_chunks chunks to `threads` threads. allowed: (K, aH,
+ * aW) uint8 (numpy bool), aH = aW = 1 for every pixel alike. */
+int lfrig_min_window_costs(const float *gray, int64_t U, int64_t V, int64_t H, int64_t W, const int64_t *vu,
+                           const int64_t *vv, const float *vdu, const float *vdv, const int64_t *vblock, int64_t n,
+                           const float *disparities, int64_t G, const int64_t *set_blocks, const int64_t *set_from,
+                           const int64_t *set_order, int64_t S, const int64_t *window_set, const int64_t *rects,
+                           int64_t K, const double *counts, const uint8_t *allowed, int64_t aH, int64_t aW,
+                           int64_t n_chunks, int64_t threads, float *out) {
+    struct mwc_args a = {{gray, U, V, H, W, vu, vv, vblock, vdu, vdv, n}, disparities, G, set_blocks, set_from,
+                         set_order, S, window_set, rects, K, counts, allowed, aH, aW, n_chunks, out};
+    return run_items(mwc_chunk, &a, n_chunks, threads);
+}
+
+struct argmin_args {
+    const float *costs;
+    const double *candidates;
+    double step;
+    int64_t D, H, W;
+    float *disparity, *best_out;
+};
+
+/* One row of _subpixel_argmin_kernel. */
+static int argmin_row(void *ctx, int64_t y) {
+    const struct argmin_args *a = ctx;
+    const int64_t D = a->D, H = a->H, W = a->W;
+    int64_t *kk = calloc((size_t)W, sizeof(int64_t));
+    float *best = malloc(sizeof(float) * W);
+    uint8_t *nan = calloc((size_t)W, 1);
+    if (!kk || !best || !nan) {
+        free(kk);
+        free(best);
+        free(nan);
+        return -1;
+    }
+    const float *c0row = a->costs + y * W;
+    for (int64_t x = 0; x < W; x++) {
+        best[x] = c0row[x];
+        nan[x] = c0row[x] != c0row[x];
+    }
+    for (int64_t d = 1; d < D; d++) {
+        const float *row = a->costs + (d * H + y) * W;
+        for (int64_t x = 0; x < W; x++) {
+            float c = row[x];
+            if (nan[x]) continue;
+            if (c != c) {
+                nan[x] = 1;
+                kk[x] = d;
+                best[x] = c;
+            } else if (c < best[x]) {
+                best[x] = c;
+                kk[x] = d;
+            }
+        }
+    }
+    for (int64_t x = 0; x < W; x++) {
+        int64_t k = kk[x];
+        double c0 = (double)a->costs[(k * H + y) * W + x];
+        double cm = (double)a->costs[(max64(k - 1, 0) * H + y) * W + x];
+        double cp = (double)a->costs[(min64(k + 1, D - 1) * H + y) * W + x];
+        double denom = cm - 2 * c0 + cp;
+        double offset = 0.0;
+        if (k > 0 && k < D - 1 && denom > 0) offset = 0.5 * (cm - cp) / denom;
+        if (offset < -0.5)
+            offset = -0.5;
+        else if (offset > 0.5)
+            offset = 0.5;
+        a->disparity[y * W + x] = (float)(a->candidates[k] + offset * a->step);
+        a->best_out[y * W + x] = (float)c0;
+    }
+    free(kk);
+    free(best);
+    free(nan);
+    return 0;
+}
+
+/* _subpixel_argmin_kernel: costs (D, H, W) float32, candidates (D,) float64. */
+int lfrig_subpixel_argmin(const float *costs, int64_t D, int64_t H, int64_t W, const double *candidates, double step,
+                          float *disparity, float *best_out, int64_t threads) {
+    struct argmin_args a = {costs, candidates, step, D, H, W, disparity, best_out};
+    return run_items(argmin_row, &a, H, threads);
+}
+
+struct ambiguity_args {
+    const float *costs;
+    float delta;
+    int64_t D, H, W;
+    int32_t *out;
+};
+
+/* One row of _cost_ambiguity_kernel. */
+static int ambiguity_row(void *ctx, int64_t y) {
+    const struct ambiguity_args *a = ctx;
+    const int64_t D = a->D, H = a->H, W = a->W;
+    float *best = malloc(sizeof(float) * W);
+    if (!best) return -1;
+    for (int64_t x = 0; x < W; x++) best[x] = a->costs[y * W + x];
+    for (int64_t d = 1; d < D; d++) {
+        const float *row = a->costs + (d * H + y) * W;
+        for (int64_t x = 0; x < W; x++) {
+            float c = row[x];
+            if (c != c || c < best[x])
+                if (best[x] == best[x]) best[x] = c;
+        }
+    }
+    int32_t *out = a->out + y * W;
+    for (int64_t x = 0; x < W; x++) {
+        best[x] = best[x] + a->delta;
+        out[x] = 0;
+    }
+    for (int64_t d = 0; d < D; d++) {
+        const float *row = a->costs + (d * H + y) * W;
+        for (int64_t x = 0; x < W; x++)
+            if (row[x] <= best[x]) out[x] += 1;
+    }
+    free(best);
+    return 0;
+}
+
+/* _cost_ambiguity_kernel: costs (D, H, W) float32 into out (H, W) int32. */
+int lfrig_cost_ambiguity(const float *costs, int64_t D, int64_t H, int64_t W, float delta, int32_t *out,
+                         int64_t threads) {
+    struct ambiguity_args a = {costs, delta, D, H, W, out};
+    return run_items(ambiguity_row, &a, H, threads);
+}
+
+struct downsample_args {
+    const float *gray;
+    int64_t H, W, V, h, w, factor;
+    float *out;
+};
+
+/* One row of blocks of one view of _downsample_kernel (item k = (u * V + v) * h + y). */
+static int downsample_row(void *ctx, int64_t k) {
+    const struct downsample_args *a = ctx;
+    const int64_t h = a->h, w = a->w, factor = a->factor;
+    const int64_t view = k / h, y = k % h;
+    const float *img = a->gray + view * a->H * a->W;
+    const float count = (float)(factor * factor);
+    float *out = a->out + (view * h + y) * w;
+    for (int64_t x = 0; x < w; x++) {
+        float acc = 0.0f;
+        for (int64_t i = 0; i < factor; i++) {
+            float row = 0.0f;
+            const float *src = img + (y * factor + i) * a->W + x * factor;
+            for (int64_t j = 0; j < factor; j++) row += src[j];
+            acc += row;
+        }
+        out[x] = acc / count;
+    }
+    return 0;
+}
+
+/* _downsample_kernel: gray (U, V, H, W) float32 into out (U, V, h, w) float32. */
+int lfrig_downsample(const float *gray, int64_t U, int64_t V, int64_t H, int64_t W, int64_t factor, float *out,
+                     int64_t h, int64_t w, int64_t threads) {
+    struct downsample_args a = {gray, H, W, V, h, w, factor, out};
+    return run_items(downsample_row, &a, U * V * h, threads);
+}
