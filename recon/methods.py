@@ -271,16 +271,19 @@ def warm_in_background(name: str) -> Warming | None:
 
 def warm_every_method() -> None:
     """Every method's ``warm()`` and ``warm_later()`` in this thread, one after the other, and the
-    numba twin of the baseline's C sweep (which its warm-up skips where the C one loads): numba's
-    cache then holds every kernel they load (``./setup.sh`` runs it, so that no reconstruction
-    compiles them, with ``LFRIG_NATIVE=0`` neither; with the cache current it takes ~1.4 s)."""
+    numba twins of the C kernels (the baseline's sweep, the entropy method's first phase), which the
+    warm-ups skip where the C ones load: numba's cache then holds every kernel they load
+    (``./setup.sh`` runs it, so that no reconstruction compiles them, with ``LFRIG_NATIVE=0``
+    neither; with the cache current it takes ~1.4 s)."""
     for method in METHODS.values():
         for warm in (method.warm, method.warm_later):
             if warm is not None:
                 warm()
     from recon.baseline import load_kernels
+    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels as load_entropy_kernels
 
     load_kernels(kernel="numba")
+    load_entropy_kernels(KERNELS[:FIRST_PHASE_KERNELS])
 
 
 def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:
