@@ -217,11 +217,13 @@ def test_a_process_forks_after_the_c_sweep_and_the_child_sweeps_too():
 def test_the_benchmark_times_both_kernels_and_finds_the_same_bits():
     scene = require_hci_scene()
     require_native("sweep")
+    require_native("initial")
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "native_kernels.py"), "--scene", str(scene),
                           "--runs", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    assert "121 candidates" in run.stdout and "the same bits: True" in run.stdout
+    assert "sweep 121 candidates, initial 51" in run.stdout and run.stdout.count("the same bits: True") == 2
     assert "C (recon/native/sweep.c)" in run.stdout and "numba (costvolume._sweep_kernel)" in run.stdout
+    assert "C (recon/native/initial.c)" in run.stdout
 
 
 def _window_inputs(rng, grid, H, W, trial):

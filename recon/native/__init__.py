@@ -9,7 +9,7 @@ order (no fused multiply-add, no fast math), so it gives the same bits; the numb
 its fallback and its twin in the tests.
 
 :func:`library` builds a library the first time it is asked for (``./setup.sh`` asks, through the
-baseline's warm-up) into ``build/`` beside the sources, named by a digest of its source, the
+methods' warm-ups) into ``build/`` beside the sources, named by a digest of its source, the
 compiler flags and this CPU's model and features (it is built for this CPU: ``-march=native``), and
 loads it. Where no compiler is found, or the build fails, it returns ``None`` and says why once
 (:func:`unavailable`); callers then use the numba kernel, which gives the same result. A build
