@@ -138,4 +138,9 @@ export UV_PYTHON_DOWNLOADS=never
 say "compiling the estimators' kernels into numba's cache (a minute or two the first time)"
 .venv/bin/python -c 'from recon.methods import warm_every_method; warm_every_method()' \
   || say "warning: the estimators' kernels did not compile here; the first reconstruction compiles them (slower, nothing else)"
+.venv/bin/python -c 'from recon.native import SIGNATURES, library, unavailable
+for name in SIGNATURES:
+    if library(name) is None:
+        print(f"recon/native/{name}.c was not built ({unavailable(name)}); its numba twins run instead: the same results, a slower start")' \
+  | while read -r line; do say "note: $line"; done
 say "environment ready: .venv/bin/lfrig"
