@@ -48,12 +48,10 @@ def main() -> int:
 
     from recon.baseline import DEFAULT_DISPARITY_RANGE, SWEEP_CHUNK, disparity_candidates
     from recon.lf import read_lightfield
-    from recon.native import unavailable
+    from recon.native import SIGNATURES, library, unavailable
     from recon.sweep import sweep_least_cost, view_offsets
 
-    from recon.native import library
-
-    for name in ("sweep", "initial"):
+    for name in SIGNATURES:
         if library(name) is None:
             print(f"the C kernels of {name}.c are not available here: {unavailable(name)}", file=sys.stderr)
             return 1

@@ -79,10 +79,9 @@ def sweep_least_cost(gray: np.ndarray, candidates: np.ndarray, *, offsets: np.nd
         if array.dtype != dtype or array.shape != (H, W) or not array.flags.c_contiguous or not array.flags.writeable:
             raise ValueError(f"state[{name!r}] must be a writable C-contiguous ({H}, {W}) {np.dtype(dtype)} array")
     U, V = gray.shape[:2]
-    if len(vu) and not (0 <= vu.min() and vu.max() < U and 0 <= vv.min() and vv.max() < V):
+    if not (0 <= vu.min() and vu.max() < U and 0 <= vv.min() and vv.max() < V):
         raise ValueError(f"view indices must lie within the {U}x{V} grid")
-    call("sweep", "lfrig_sweep", gray, U, V, H, W, vu, vv, len(vu), np.ascontiguousarray(oy), np.ascontiguousarray(fy),
-         np.ascontiguousarray(ox), np.ascontiguousarray(fx), len(oy), int(first), int(window), edges, bands,
-         min(threads, bands), state["previous"], state["best"], state["best_index"], state["c_minus"],
+    call("sweep", "lfrig_sweep", gray, U, V, H, W, vu, vv, len(vu), oy, fy, ox, fx, len(oy), int(first), int(window),
+         edges, bands, min(threads, bands), state["previous"], state["best"], state["best_index"], state["c_minus"],
          state["c_plus"])
     return state

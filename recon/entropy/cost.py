@@ -20,8 +20,8 @@ import numba
 import numpy as np
 
 from recon.costvolume import add_shifted_row_diff, add_two_shifted_row_diffs
-from recon.native import call, chosen, thread_count
 from recon.entropy.windows import SET_BLOCKS, window_rect
+from recon.native import call, chosen, thread_count
 
 N_BLOCKS = 9
 

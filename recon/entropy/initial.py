@@ -16,10 +16,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from recon.native import call, chosen, thread_count
-
 from recon.entropy.matching import disparity_candidates, min_window_line_search
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES
+from recon.native import call, chosen, thread_count
 
 
 def initial_view_mask(grid_shape: tuple[int, int]) -> np.ndarray:

@@ -18,8 +18,8 @@ from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FL
                                 min_window_costs_reference, min_window_group, set_view_counts, window_reach,
                                 window_sum_bound)
 from recon.entropy.layout import offer_runs
-from recon.native import call, chosen, thread_count
 from recon.entropy.windows import SET_BLOCKS, window_rect
+from recon.native import call, chosen, thread_count
 
 def min_window_line_search(gray: np.ndarray, candidates: np.ndarray, *,
                            windows: list[tuple[int, int, int]],

@@ -22,6 +22,7 @@ does. ``LFRIG_NATIVE=0`` turns the compiled kernels off (the numba ones run inst
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
@@ -61,6 +62,7 @@ _loaded: dict[str, ctypes.CDLL | None] = {}
 _why: dict[str, str] = {}
 
 
+@functools.cache
 def _cpu() -> str:
     """This CPU's model and instruction-set features (the library is built for them)."""
     try:

@@ -14,8 +14,8 @@
 #include "rows.h"
 
 #define N_BLOCKS 9
-static const double FIXED_POINT = 268435456.0; /* 2^28: recon.entropy.cost.FIXED_POINT */
-#define FIXED_INV (1.0 / 268435456.0)
+#define FIXED_POINT 268435456.0 /* 2^28: recon.entropy.cost.FIXED_POINT */
+#define FIXED_INV (1.0 / FIXED_POINT)
 
 /* cost.py _view_row: the view's row at the float64 row sy, blended from its two source rows. */
 static void view_row_at(const float *img, int64_t H, int64_t W, double sy, float *restrict rv) {
