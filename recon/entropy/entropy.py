@@ -26,13 +26,14 @@ updated per added pixel (``E`` then follows from ``N`` and the running sums). Wi
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.entropy.labels import OCCLUDED, OCCLUDING
 from recon.entropy.layout import row_order
 from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, window_rect
+from recon.native import call, chosen, thread_count
 
 
 def quantise_grey(image: np.ndarray, bins: int) -> np.ndarray:
@@ -419,8 +420,9 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                    alpha2_other: float, strips: bool = True,
                    side_radius: np.ndarray | None = None, layers: np.ndarray | None = None,
                    layer_gap: float | None = None, max_size: np.ndarray | None = None,
-                   return_all: bool | str = False):
-    """Window of largest matching entropy per pixel (compiled).
+                   return_all: bool | str = False, kernel: str = "auto"):
+    """Window of largest matching entropy per pixel (compiled: the C twin of the kernel,
+    ``recon/native/select.c``, where it loads, else numba's; ``kernel``: :func:`recon.native.chosen`).
 
     Parameters
     ----------
@@ -509,11 +511,25 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     band = max(1, min(H, int(SELECT_BAND_MIB * 2 ** 20 // (W * K * 4))))
     counts = start[1:]
     values = np.empty(0, np.float32)  # the bands' values, packed
+    native = chosen("select", kernel)
+    c_maps = ()  # the C kernel's arguments before the rows: maps, with the bins' width and the lengths
+    if native:
+        if maps[1].shape != (H, W) or maps[11].shape != (H, W):
+            raise ValueError(f"labels and layers must be {H}x{W} as grey_q; got {maps[1].shape} and "
+                             f"{maps[11].shape}")
+        c_maps = (maps[0], int(bins.dtype == np.uint32), maps[1], H, W, rects, n_shapes, len(sizes), *maps[3:10],
+                  xlogx.size, *maps[10:])
+        threads = thread_count()
     for y0 in range(0, H, band):
         n = min(band, H - y0)
         row_values = np.empty(n * W * K, np.float32)  # only the pages a row's values fill are touched
-        _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, paired, shape_map,
-                       size_map, best_e, all_e, dense, row_values, y0, counts, mask)
+        if native:  # the C kernel deals the rows to its threads round-robin, as row_order does to numba's
+            call("select", "lfrig_select", *c_maps, np.arange(y0, y0 + n, dtype=np.int64), n, _ring_margin(sizes),
+                 ring, ring.shape[1], ring_end, paired, shape_map, size_map, best_e, all_e, int(dense), row_values,
+                 y0, counts, mask, threads)
+        else:
+            _select_kernel(*maps, y0 + row_order(n), _ring_margin(sizes), ring, ring_end, paired, shape_map,
+                           size_map, best_e, all_e, dense, row_values, y0, counts, mask)
         if return_all == "sparse":
             per_row = counts[y0 * W:(y0 + n) * W].reshape(n, W).sum(axis=1)
             end = values.size
@@ -527,7 +543,7 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     if dense:
         return shape_map, size_map, best_e, all_e
     if return_all == "sparse":
-        del maps, bins  # not alive beside the volume's offsets
+        del maps, c_maps, bins  # not alive beside the volume's offsets
         np.cumsum(counts, out=counts)
         return shape_map, size_map, best_e, SparseVolume((H, W, K), float(-np.inf), mask, start, values)
     return shape_map, size_map, best_e

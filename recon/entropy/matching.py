@@ -9,7 +9,7 @@ The cost at one candidate is :mod:`recon.entropy.cost`'s; the penalty volume's l
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FLOAT, MAGIC_LIMIT, N_BLOCKS,
@@ -17,7 +17,7 @@ from recon.entropy.cost import (EXACT_FLOAT_SUM, FIXED_INV, MAGIC_BITS, MAGIC_FL
                                 block_abs_diff, block_abs_diff_reference, cost_ambiguity, min_window_costs,
                                 min_window_costs_reference, min_window_group, set_view_counts, window_reach,
                                 window_sum_bound)
-from recon.entropy.layout import offer_runs
+from recon.entropy.layout import RUN_GAP, offer_runs
 from recon.entropy.windows import SET_BLOCKS, window_rect
 from recon.native import call, chosen, thread_count
 
@@ -263,7 +263,7 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
                       windows: list[tuple[int, int]], penalty: np.ndarray,
                       use_shape_set: np.ndarray, intensity_scale: float,
                       view_mask: np.ndarray | None = None, ambiguity_delta: float = 0.0,
-                      progress=None):
+                      progress=None, kernel: str = "auto"):
     """Joint minimisation of Eq. 7 over disparity and window.
 
     For every pixel and candidate ``d`` the objective is
@@ -288,6 +288,11 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     progress
         Called as ``progress(fraction)`` after each pass over a group of candidates
         (:data:`JOINT_TABLES`).
+    kernel
+        :func:`recon.native.chosen`: by default the C twin of the search's kernels
+        (``recon/native/joint.c``: :func:`_joint_group_kernel` and the offer runs of
+        :func:`recon.entropy.layout.offer_runs`, no numba start-up needed) where it loads, else
+        numba's; the same maps.
 
     Returns
     -------
@@ -301,24 +306,64 @@ def joint_line_search(gray: np.ndarray, candidates: np.ndarray, *,
     gray = np.ascontiguousarray(gray, dtype=np.float32)
     pixel_set = np.ascontiguousarray(use_shape_set, dtype=np.bool_)
     penalty = np.ascontiguousarray(penalty, dtype=np.float32)
-    run_start, runs = offer_runs(penalty, pixel_set, shapes)
     views = view_lists((U, V), view_mask)
     plan = set_sums_plan(np.arange(SET_BLOCKS.shape[0]))
+    native = chosen("joint", kernel)
+    if native:
+        _check_joint_inputs(gray, penalty, pixel_set, rects, shapes, counts, plan)
+        threads = thread_count()
+        run_start, runs = _offer_runs_native(penalty, pixel_set, shapes, threads)
+    else:
+        threads = numba.get_num_threads()
+        run_start, runs = offer_runs(penalty, pixel_set, shapes)
     D = len(candidates)
     ring_rows = JOINT_ROWS + sum(window_reach(rects)) + 1  # as the kernel's rings
-    group = max(JOINT_TABLES * (H + 1) // ring_rows, numba.get_num_threads(), 1)
+    group = max(JOINT_TABLES * (H + 1) // ring_rows, threads, 1)
     bounds = np.linspace(0, D, -(-D // group) + 1).astype(int)  # passes of even size
     costs = np.empty((D, H, W), np.float32)
     least = np.full((H, W), np.inf, np.float32)
     window_index = np.full((H, W), -1, np.int64)
     for i, j in zip(bounds[:-1], bounds[1:]):
-        _joint_group_kernel(gray, *views, np.asarray(candidates[i:j], np.float32), *plan, pixel_set, rects,
-                            shapes, counts, penalty, run_start, runs, float(intensity_scale), JOINT_ROWS,
-                            costs[i:j], least, window_index)
+        if native:
+            disparities = np.ascontiguousarray(candidates[i:j], np.float32)
+            call("joint", "lfrig_joint_group", gray, U, V, H, W, *views[:4], views[4], len(views[0]), disparities,
+                 len(disparities), *plan, len(plan[0]), pixel_set, rects, shapes, len(rects), counts, penalty,
+                 run_start, runs, float(intensity_scale), JOINT_ROWS, costs[i:j], least, window_index, threads)
+        else:
+            _joint_group_kernel(gray, *views, np.asarray(candidates[i:j], np.float32), *plan, pixel_set, rects,
+                                shapes, counts, penalty, run_start, runs, float(intensity_scale), JOINT_ROWS,
+                                costs[i:j], least, window_index)
         if progress is not None:
             progress(j / D)
     disparity, best = subpixel_argmin(costs, candidates)
     return disparity, best, window_index, cost_ambiguity(costs, ambiguity_delta)
+
+
+def _check_joint_inputs(gray, penalty, pixel_set, rects, shapes, counts, plan) -> None:
+    # What lfrig_joint_group reads, checked before it reads it: the penalty (H, K, W) and the pixels'
+    # sets (H, W) of the views' image, windows about their pixel and over sets the tables hold.
+    _, _, H, W = gray.shape
+    K = len(rects)
+    if penalty.shape != (H, K, W) or pixel_set.shape != (H, W):
+        raise ValueError(f"penalty must be ({H}, {K}, {W}) and use_shape_set ({H}, {W}); got "
+                         f"{penalty.shape} and {pixel_set.shape}")
+    if K and ((rects[:, [0, 2]] > 0).any() or (rects[:, [1, 3]] < 0).any()):
+        raise ValueError("every window must hold its pixel")
+    if K and (shapes.min() < 0 or shapes.max() >= min(len(plan[0]), len(counts))):
+        raise ValueError(f"window shapes must be 0..{min(len(plan[0]), len(counts)) - 1}")
+
+
+def _offer_runs_native(penalty: np.ndarray, pixel_set: np.ndarray, shapes: np.ndarray,
+                       threads: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`recon.entropy.layout.offer_runs` of the ``(H, K, W)`` float32 penalty, ``(H, W)`` bool
+    pixel sets and ``(K,)`` int64 window shapes (contiguous) by its C twin (``recon/native/joint.c``):
+    the same ``(run_start, runs)``."""
+    H, K, W = penalty.shape
+    run_start = np.empty(H * K * 2 + 1, np.int64)
+    call("joint", "lfrig_offer_counts", penalty, H, K, W, pixel_set, shapes, RUN_GAP, run_start, threads)
+    runs = np.empty((int(run_start[-1]), 2), np.int32)
+    call("joint", "lfrig_offer_runs", penalty, H, K, W, pixel_set, shapes, RUN_GAP, run_start, runs, threads)
+    return run_start, runs
 
 
 def disparity_candidates(d_min: float, d_max: float, step: float) -> np.ndarray:

@@ -21,6 +21,7 @@ does. ``LFRIG_NATIVE=0`` turns the compiled kernels off (the numba ones run inst
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -31,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -54,6 +56,12 @@ SIGNATURES: dict[str, dict[str, str]] = {
         "lfrig_cost_ambiguity": "p i i i f p i",
         "lfrig_downsample": "p i i i i i p i i i",
     },
+    "joint": {
+        "lfrig_joint_group": "p i i i i p p p p p i p i p p p i p p p i p p p p d i p p p i",
+        "lfrig_offer_counts": "p i i i p p i p i",
+        "lfrig_offer_runs": "p i i i p p i p p i",
+    },
+    "select": {"lfrig_select": "p i p i i p i i p d d d i i p i p p d p p i i p i p p p p p p i p i p p i"},
 }
 _CTYPES = {"p": ctypes.c_void_p, "i": ctypes.c_int64, "d": ctypes.c_double, "f": ctypes.c_float}
 
@@ -144,6 +152,8 @@ def chosen(name: str, kernel: str = "auto") -> bool:
     had), ``"auto"`` the C ones where they load."""
     if kernel not in ("auto", "native", "numba"):
         raise ValueError(f"kernel must be 'auto', 'native' or 'numba'; got {kernel!r}")
+    if kernel == "auto" and _preferred:
+        kernel = _preferred[-1]
     if kernel == "numba":
         return False
     if library(name) is not None:
@@ -151,6 +161,24 @@ def chosen(name: str, kernel: str = "auto") -> bool:
     if kernel == "native":
         raise RuntimeError(f"the C kernels of {name}.c are not available: {unavailable(name)}")
     return False
+
+
+_preferred: list[str] = []
+
+
+@contextlib.contextmanager
+def preferring(kernel: str) -> Iterator[None]:
+    """Within, every :func:`chosen` asked with ``kernel="auto"`` answers as if asked with ``kernel``
+    (``"native"`` or ``"numba"``): a whole estimate runs with all its C kernels or all their numba
+    twins, for tests and benchmarks that compare the two (``bench/native_kernels.py``). It holds for
+    the whole process, every thread, while the block runs."""
+    if kernel not in ("native", "numba"):
+        raise ValueError(f"kernel must be 'native' or 'numba'; got {kernel!r}")
+    _preferred.append(kernel)
+    try:
+        yield
+    finally:
+        _preferred.pop()
 
 
 def call(name: str, function: str, *args) -> None:
