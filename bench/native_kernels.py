@@ -13,7 +13,10 @@ machine's drift touches both alike:
 - ``initial``: the entropy method's nine-view search with its defaults (the square and the eight
   shaped 5x5 windows, 0.05 px/view over the scene's range widened by a step each side, in groups of
   ``cost.min_window_group`` candidates: :func:`recon.entropy.cost.min_window_costs`), then the
-  sub-step arg-min and the ambiguity count of its cost volume.
+  sub-step arg-min and the ambiguity count of its cost volume;
+- ``estimate``: the whole default estimate (:func:`recon.entropy.estimate_disparity`, the scene's
+  range), every kernel C or every kernel numba's (:func:`recon.native.preferring`), with each
+  step's median wall seconds beside the totals.
 
 It prints the median wall and CPU seconds of each, their ratio, the machine and the load, and checks
 that the two gave the same bits. ``--threads`` sets both kernels' threads (numba's
@@ -95,8 +98,20 @@ def main() -> int:
             min_window_costs(gray, nine[i:i + group], **inputs, out=costs[i:i + group], kernel=kernel)
         return (costs, *subpixel_argmin(costs, nine, kernel=kernel), cost_ambiguity(costs, 0.002, kernel=kernel))
 
+    from recon.entropy import estimate_disparity
+    from recon.native import preferring
+
+    steps: dict[str, list[dict[str, float]]] = {}
+
+    def estimate(kernel: str) -> list:
+        with preferring(kernel):
+            result = estimate_disparity(lf)
+        steps.setdefault(kernel, []).append(result.timings)
+        return [value for value in vars(result).values() if isinstance(value, np.ndarray)]
+
     work = {"sweep": (sweep, lambda r: list(r.values()), "recon/native/sweep.c", "costvolume._sweep_kernel"),
-            "initial": (initial, list, "recon/native/initial.c", "cost._min_window_costs_kernel ...")}
+            "initial": (initial, list, "recon/native/initial.c", "cost._min_window_costs_kernel ..."),
+            "estimate": (estimate, list, "every recon/native kernel", "every numba twin")}
     same = {}
     for name, (run_it, arrays, _, _) in work.items():  # loaded, untimed
         a, b = arrays(run_it("native")), arrays(run_it("numba"))
@@ -127,6 +142,10 @@ def main() -> int:
             print(f"  {label:<42} {medians[name, kernel][0]:6.3f} s wall {medians[name, kernel][1]:6.3f} s CPU")
         ratio = medians[name, "native"][0] / medians[name, "numba"][0]
         print(f"  C / numba wall {ratio:.3f}; the same bits: {same[name]}")
+    for kernel, label in (("native", "C"), ("numba", "numba")):
+        timed = steps[kernel][1:]  # the untimed run's steps left out
+        print(f"estimate's steps, {label}, median wall s: "
+              + " ".join(f"{step} {statistics.median(t[step] for t in timed):.3f}" for step in timed[0]))
     return 0 if all(same.values()) else 1
 
 

@@ -14,7 +14,7 @@ or its C twin (``recon/native/sweep.c``), which mirrors it and the row helpers i
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.shifts import split_shift, view_offsets  # noqa: F401  view_offsets: the views to match

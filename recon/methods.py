@@ -82,27 +82,28 @@ def _warm_baseline() -> None:
 
 
 def _warm_entropy() -> None:
-    import recon.entropy.estimate  # noqa: F401  numba and the estimator's modules (scipy loads later)
+    import recon.entropy.estimate  # noqa: F401  the estimator's modules (numba and scipy load later)
     import recon.entropy.outputs  # noqa: F401
-    from recon.costvolume import start_numba
-    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
-    from recon.native import library
+    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels, without_c_twins
 
-    if library("initial") is not None:  # the first phase's C kernels: numba starts beside that phase
+    # the nine-view search's kernels that have no C twin here, with their argument types
+    numba_kernels = without_c_twins(KERNELS[:FIRST_PHASE_KERNELS])
+    if not numba_kernels:  # the first phase's C kernels: numba (if any kernel needs it) starts beside it
         return
+    from recon.costvolume import start_numba
+
     with _blas_check_skipped():  # the first phase uses no scipy
         start_numba()
-        # the nine-view search's kernels, with their argument types
-        load_kernels(KERNELS[:FIRST_PHASE_KERNELS], stop=_EXITING)
+        load_kernels(numba_kernels, stop=_EXITING)
 
 
 def _warm_entropy_later() -> None:
-    # (with the first phase's C kernels, numba's start-up comes with the first kernel loaded here)
+    # (with the first phase's C kernels, numba's start-up comes with the first numba kernel loaded here)
     import scipy.sparse.linalg  # noqa: F401  the hole fill's solver, the first step after the first phase
 
-    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels
+    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels, without_c_twins
 
-    load_kernels(KERNELS[FIRST_PHASE_KERNELS:], stop=_EXITING)  # the later steps' kernels
+    load_kernels(without_c_twins(KERNELS[FIRST_PHASE_KERNELS:]), stop=_EXITING)  # the later steps' kernels
     if not _EXITING.is_set():
         import scipy.ndimage  # noqa: F401  first used by the region types (the matching phase)
 
@@ -271,7 +272,7 @@ def warm_in_background(name: str) -> Warming | None:
 
 def warm_every_method() -> None:
     """Every method's ``warm()`` and ``warm_later()`` in this thread, one after the other, and the
-    numba twins of the C kernels (the baseline's sweep, the entropy method's first phase), which the
+    numba twins of the C kernels (the baseline's sweep, the entropy method's kernels), which the
     warm-ups skip where the C ones load: numba's cache then holds every kernel they load
     (``./setup.sh`` runs it, so that no reconstruction compiles them, with ``LFRIG_NATIVE=0``
     neither; with the cache current it takes ~1.4 s)."""
@@ -280,10 +281,10 @@ def warm_every_method() -> None:
             if warm is not None:
                 warm()
     from recon.baseline import load_kernels
-    from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels as load_entropy_kernels
+    from recon.entropy.preload import load_kernels as load_entropy_kernels
 
     load_kernels(kernel="numba")
-    load_entropy_kernels(KERNELS[:FIRST_PHASE_KERNELS])
+    load_entropy_kernels()
 
 
 def run_method(name: str, lf: LightField, *, progress: Any = None, **options: Any) -> MethodResult:

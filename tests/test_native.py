@@ -216,14 +216,17 @@ def test_a_process_forks_after_the_c_sweep_and_the_child_sweeps_too():
 @pytest.mark.hci
 def test_the_benchmark_times_both_kernels_and_finds_the_same_bits():
     scene = require_hci_scene()
-    require_native("sweep")
-    require_native("initial")
+    from recon.native import SIGNATURES
+
+    for name in SIGNATURES:
+        require_native(name)
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "native_kernels.py"), "--scene", str(scene),
                           "--runs", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    assert "sweep 121 candidates, initial 51" in run.stdout and run.stdout.count("the same bits: True") == 2
+    assert "sweep 121 candidates, initial 51" in run.stdout and run.stdout.count("the same bits: True") == 3
     assert "C (recon/native/sweep.c)" in run.stdout and "numba (costvolume._sweep_kernel)" in run.stdout
     assert "C (recon/native/initial.c)" in run.stdout
+    assert "estimate's steps, C, median wall s: load" in run.stdout and "matching" in run.stdout
 
 
 def _window_inputs(rng, grid, H, W, trial):
@@ -298,9 +301,14 @@ print(json.dumps({"maps": out, "kernels": status()}))
 """
 
 
-def test_an_estimate_with_the_first_phases_c_kernels_makes_the_same_maps():
-    require_native("initial")
+def test_an_estimate_with_its_c_kernels_makes_numbas_maps():
+    from recon.entropy.preload import C_TWINS
+
+    libraries = sorted(set(C_TWINS.values()))
+    for name in libraries:
+        require_native(name)
     native = json.loads(_run(ESTIMATE_IN_A_PROCESS).stdout.strip().splitlines()[-1])
     twins = json.loads(_run(ESTIMATE_IN_A_PROCESS, LFRIG_NATIVE="0").stdout.strip().splitlines()[-1])
-    assert native["kernels"] == {"initial": "C"} and twins["kernels"] == {"initial": "numba: LFRIG_NATIVE=0"}
+    assert native["kernels"] == dict.fromkeys(libraries, "C")
+    assert twins["kernels"] == dict.fromkeys(libraries, "numba: LFRIG_NATIVE=0")
     assert native["maps"] == twins["maps"] and len(native["maps"]["found"]) >= 8

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 #: A 5x5 neighbour supports the far value when it lies within this of it (px/view).

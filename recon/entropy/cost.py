@@ -16,7 +16,7 @@ Twins follow the rule of :mod:`recon.entropy`: ``name`` compiled, ``name_referen
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.costvolume import add_shifted_row_diff, add_two_shifted_row_diffs

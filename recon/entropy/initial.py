@@ -13,7 +13,7 @@ On backgammon this alone takes BadPix 0.07 from 18 % (square window, nine views)
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.entropy.matching import disparity_candidates, min_window_line_search

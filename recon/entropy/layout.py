@@ -6,7 +6,7 @@ Twins follow the rule of :mod:`recon.entropy`: ``name`` compiled, ``name_referen
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 #: Two runs of pixels that offer a window closer than this many columns are one run for the joint

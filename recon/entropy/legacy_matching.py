@@ -10,7 +10,7 @@ to them (``tests/test_twins_matching.py``): nothing in the estimator calls them.
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.entropy.cost import FIXED_INV

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 

@@ -7,10 +7,10 @@ a process also sets up numba's typing and target registries, ~0.35 s: :func:`rec
 :func:`load_kernels` does that for every kernel of a default estimate, in the order the estimate
 first calls them; ``lfrig reconstruct`` runs it in a thread (:func:`recon.methods.warm_in_background`):
 the first phase's kernels (:data:`FIRST_PHASE_KERNELS`) while the views are decoded, the others
-while that phase runs (where the first phase's C twins load, ``recon/native/initial.c``, the
-estimate calls none of the first four and starts without waiting for numba: numba's start-up comes
-with the first of the others, beside the first phase); ``./setup.sh`` runs it once to fill the cache
-(:func:`recon.methods.warm_every_method`). It computes nothing and changes no result.
+while that phase runs, each only where its C twin (``recon/native``, :data:`C_TWINS`) does not load
+(:func:`without_c_twins`): the estimate then calls the C kernel, and where every kernel has its
+C twin, the process never imports numba (:mod:`recon.jit`). ``./setup.sh`` loads them all once,
+to fill the cache (:func:`recon.methods.warm_every_method`). It computes nothing and changes no result.
 
 A signature is written as one token per argument: a scalar type by its numba name (``int64``,
 ``float32``, ``bool``) and a C-contiguous array as ``dtype:ndim``, with ``:ro`` for a read-only
@@ -60,6 +60,27 @@ KERNELS: tuple[tuple[str, str, str], ...] = (
 )
 #: How many of :data:`KERNELS` the estimate's first phase calls (the first ones).
 FIRST_PHASE_KERNELS = 4
+#: The library of ``recon/native`` that holds each kernel's C twin (``module.kernel`` -> name):
+#: where it loads, the estimate calls the C kernel and never this one (:func:`without_c_twins`).
+C_TWINS: dict[str, str] = {
+    "recon.entropy.initial._downsample_kernel": "initial",
+    "recon.entropy.cost._min_window_costs_kernel": "initial",
+    "recon.entropy.matching._subpixel_argmin_kernel": "initial",
+    "recon.entropy.cost._cost_ambiguity_kernel": "initial",
+    "recon.entropy.entropy._select_kernel": "select",
+    "recon.entropy.layout._offer_runs_kernel": "joint",  # the joint search's offer runs
+    "recon.entropy.matching._joint_group_kernel": "joint",
+}
+
+
+def without_c_twins(kernels: tuple[tuple[str, str, str], ...]) -> tuple[tuple[str, str, str], ...]:
+    """The entries of ``kernels`` whose C twin (:data:`C_TWINS`) does not load here: the numba
+    kernels an estimate will call. Loads (and, the first time, builds) the C libraries it asks
+    about (:func:`recon.native.library`, milliseconds once built)."""
+    from recon.native import library
+
+    return tuple(entry for entry in kernels
+                 if (twin := C_TWINS.get(f"{entry[0]}.{entry[1]}")) is None or library(twin) is None)
 
 
 def argument_types(tokens: str) -> tuple:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 if TYPE_CHECKING:  # scipy loads at the first solve: the estimate's first phase does without it

@@ -26,7 +26,7 @@ lands* (the README's reading of the shift ``(x + du, y + dv)``):
 
 from __future__ import annotations
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 from recon.entropy.initial import initial_view_mask

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
+from recon.jit import numba
 import numpy as np
 
 #: Rows packed or unpacked at a time (keeps the ``(rows, W, K)`` temporaries small).
