@@ -7,12 +7,13 @@ and target registries, ~1 s of one core's time under the interpreter's lock (``d
 results.md``, "Speed and memory"). So the estimator's modules and :mod:`recon.costvolume` define
 their kernels through :data:`numba` here: ``@numba.njit(...)`` keeps the function and its options
 (:class:`Kernel`) and compiles nothing. At the kernel's first call or public attribute lookup (its
-``overloads``, ``py_func``, ``compile``: :func:`recon.entropy.preload.load_kernels` asks for them)
-numba is imported and the dispatcher made, with the same options, from the same function (so
-numba's cache finds the same entries); the names of the function's module that stand for kernels,
-and ``numba`` itself, are then bound to the real ones, for the compiler reads a kernel's callees and
-``numba.prange`` from its module's globals. Any other attribute (``numba.get_num_threads``) imports
-numba and is numba's. It changes no result: the kernels are numba's, compiled and cached as before.
+``overloads``, ``compile``: :func:`recon.entropy.preload.load_kernels` asks for them) numba is
+imported and the dispatcher made, with the same options, from the same function (so numba's cache
+finds the same entries); the names of the function's module that stand for kernels, and ``numba``
+itself, are then bound to the real ones, for the compiler reads a kernel's callees and
+``numba.prange`` from its module's globals. ``py_func`` is the Python function, as numba's, and
+imports nothing; any other attribute (``numba.get_num_threads``) imports numba and is numba's. It
+changes no result: the kernels are numba's, compiled and cached as before.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ class Kernel:
         self.__module__ = function.__module__
         self.__doc__ = function.__doc__
         self.__wrapped__ = function
+        self.py_func = function  # numba's name for it: the Python function, run without numba
 
     def dispatcher(self):
         """numba's dispatcher of the function (importing numba the first time)."""

@@ -26,7 +26,10 @@ def _fresh(code: str) -> object:
 def test_importing_the_estimator_and_the_baselines_kernels_imports_no_numba():
     assert _fresh("""
         import json, sys
+        import numpy as np
         import recon.entropy.estimate, recon.entropy.outputs, recon.entropy.legacy_matching, recon.costvolume
+        from recon.entropy.cost import window_reach
+        assert window_reach(np.array([[-2, 3, -1, 1]])) == (2, 3)  # a kernel's py_func, run as Python
         print(json.dumps(sorted(m for m in ("numba", "llvmlite") if m in sys.modules)))
         """) == []
 
