@@ -70,6 +70,8 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.entropy._select_kernel": "select",
     "recon.entropy.layout._offer_runs_kernel": "joint",  # the joint search's offer runs
     "recon.entropy.matching._joint_group_kernel": "joint",
+    "recon.entropy.volume._take_kernel": "volume",
+    "recon.entropy.volume._window_major_kernel": "volume",
 }
 
 

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from recon.jit import numba
 import numpy as np
 
+from recon.native import call, chosen, thread_count
+
 #: Rows packed or unpacked at a time (keeps the ``(rows, W, K)`` temporaries small).
 CHUNK_ROWS = 64
 
@@ -61,26 +63,39 @@ class SparseVolume:
         out[keep] = self.values[self.start[a * W]:self.start[b * W]]
         return out
 
-    def window_major(self, a: int, b: int, *, scale: float) -> np.ndarray:
+    def window_major(self, a: int, b: int, *, scale: float, kernel: str = "auto") -> np.ndarray:
         """Rows ``[a, b)`` laid out ``(b - a, K, W)`` float32, each row's windows one after another:
         ``float32(scale) * entry`` where that is finite, ``inf`` elsewhere (the fill and NaN
         included). The same values as ``np.multiply(self.rows(a, b), np.float32(scale),
         dtype=np.float32)`` with its non-finite entries set to ``inf``, moved to ``(b - a, K, W)``,
-        in one pass without the dense volume."""
+        in one pass without the dense volume (compiled: the C twin of the kernel,
+        ``recon/native/volume.c``, where it loads, else numba's; ``kernel``: :func:`recon.native.chosen`)."""
         H, W, K = self.shape
         a, b = max(a, 0), min(b, H)
         out = np.empty((b - a, K, W), np.float32)
-        _window_major_kernel(self.mask, self.start, self.values, a, W, np.float32(scale), out)
+        if chosen("volume", kernel):
+            self._check_packed()
+            call("volume", "lfrig_window_major", self.mask, self.mask.shape[2], self.start, self.values, a, b - a, W,
+                 K, float(np.float32(scale)), out, thread_count())
+        else:
+            _window_major_kernel(self.mask, self.start, self.values, a, W, np.float32(scale), out)
         return out
 
-    def take(self, index: np.ndarray) -> np.ndarray:
+    def take(self, index: np.ndarray, *, kernel: str = "auto") -> np.ndarray:
         """``(H, W)`` float32: each pixel's entry at its ``index`` ``(H, W)`` in ``-K..K-1``
         (negative from the end), as ``np.take_along_axis(dense, index[..., None], 2)[..., 0]``
-        (:meth:`take_reference`, the readable twin: the same entries)."""
+        (:meth:`take_reference`, the readable twin: the same entries). Compiled: the C twin of the
+        kernel, ``recon/native/volume.c``, where it loads, else numba's (``kernel``:
+        :func:`recon.native.chosen`)."""
         H, W, K = self._checked_index(index)
         out = np.empty((H, W), np.float32)
-        _take_kernel(self.mask, self.start, self.values, np.ascontiguousarray(index, dtype=np.int64), K,
-                     np.float32(self.fill), out)
+        index = np.ascontiguousarray(index, dtype=np.int64)
+        if chosen("volume", kernel):
+            self._check_packed()
+            call("volume", "lfrig_take", self.mask, self.mask.shape[2], self.start, self.values, index, H, W, K,
+                 float(np.float32(self.fill)), out, thread_count())
+        else:
+            _take_kernel(self.mask, self.start, self.values, index, K, np.float32(self.fill), out)
         return out
 
     def take_reference(self, index: np.ndarray) -> np.ndarray:
@@ -100,6 +115,17 @@ class SparseVolume:
             first = self.start[y * W:(y + keep.shape[0]) * W].reshape(keep.shape[:2])
             out[y:y + CHUNK_ROWS] = np.where(kept, self.values[np.where(kept, first + rank, 0)], np.float32(self.fill))
         return out
+
+    def _check_packed(self) -> None:
+        # What the C kernels read: the mask (H, W, ceil(K / 8)) uint8, the offsets (H * W + 1,)
+        # int64 and the values float32, each C-contiguous (pack and select_windows make them so).
+        H, W, K = self.shape
+        for name, array, dtype, shape in (("mask", self.mask, np.uint8, (H, W, (K + 7) // 8)),
+                                          ("start", self.start, np.int64, (H * W + 1,)),
+                                          ("values", self.values, np.float32, (self.values.size,))):
+            if array.dtype != dtype or array.shape != shape or not array.flags.c_contiguous:
+                raise ValueError(f"the volume's {name} must be {shape} {np.dtype(dtype).name}, C-contiguous; "
+                                 f"got {array.shape} {array.dtype}")
 
     def _checked_index(self, index: np.ndarray) -> tuple[int, int, int]:
         H, W, K = self.shape
