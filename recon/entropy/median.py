@@ -19,6 +19,8 @@ from functools import lru_cache
 from recon.jit import numba
 import numpy as np
 
+from recon.native import call, chosen, thread_count
+
 
 def median_filter_nearest_reference(image: np.ndarray, *, footprint: np.ndarray) -> np.ndarray:
     """``scipy.ndimage.median_filter(image, footprint=footprint, mode="nearest")``."""
@@ -104,10 +106,12 @@ def _median_kernel(image, dy, dx, pairs, rank, out):
 
 
 def median_filter_nearest(image: np.ndarray, *, size: int | tuple[int, int] | None = None,
-                          footprint: np.ndarray | None = None) -> np.ndarray:
+                          footprint: np.ndarray | None = None, kernel: str = "auto") -> np.ndarray:
     """``(H, W)`` median of each pixel's ``size`` box (an int: square) or ``footprint`` (bool,
     centred at ``shape // 2`` like scipy's), borders continued by the nearest pixel; the dtype of
-    ``image``. The same map as :func:`median_filter_nearest_reference` (see the module docstring)."""
+    ``image``. The same map as :func:`median_filter_nearest_reference` (see the module docstring).
+    Compiled: the C twin of the kernel, ``recon/native/median.c``, where it loads, else numba's
+    (``kernel``: :func:`recon.native.chosen`)."""
     if footprint is None:
         if size is None:
             raise ValueError("median_filter_nearest needs size or footprint, got neither")
@@ -125,5 +129,11 @@ def median_filter_nearest(image: np.ndarray, *, size: int | tuple[int, int] | No
     dx = (fx - footprint.shape[1] // 2).astype(np.int64)
     out = np.empty(image.shape, image.dtype)
     rank = len(dy) // 2
-    _median_kernel(np.ascontiguousarray(image), dy, dx, selection_network(len(dy), rank), rank, out)
+    image = np.ascontiguousarray(image)
+    pairs = selection_network(len(dy), rank)
+    if chosen("median", kernel):  # image float32 or float64 (above), out of its dtype, pairs (M, 2) in 0..n-1
+        call("median", "lfrig_median", image, int(image.dtype == np.float64), *image.shape, dy, dx, len(dy), pairs,
+             len(pairs), rank, out, thread_count())
+    else:
+        _median_kernel(image, dy, dx, pairs, rank, out)
     return out

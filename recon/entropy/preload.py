@@ -72,6 +72,7 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.matching._joint_group_kernel": "joint",
     "recon.entropy.volume._take_kernel": "volume",
     "recon.entropy.volume._window_major_kernel": "volume",
+    "recon.entropy.median._median_kernel": "median",
 }
 
 
