@@ -73,6 +73,9 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.volume._take_kernel": "volume",
     "recon.entropy.volume._window_major_kernel": "volume",
     "recon.entropy.median._median_kernel": "median",
+    "recon.entropy.refine._centroid_kernel": "refine",
+    "recon.entropy.refine._tv_wavefront": "refine",
+    "recon.entropy.refine._tv_blocks": "refine",
 }
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from recon.jit import numba
+from recon.native import call, chosen, thread_count
 import numpy as np
 
 if TYPE_CHECKING:  # scipy loads at the first solve: the estimate's first phase does without it
@@ -528,6 +529,10 @@ TV_HALO_ROWS = 16
 #: wall at load 6).
 TV_PARALLEL_PIXELS = 2 ** 18
 
+#: :data:`TV_PARALLEL_PIXELS` of the C kernels (``recon/native/refine.c``), whose bands' threads
+#: start once per call and meet at a barrier once per round.
+TV_NATIVE_PARALLEL_PIXELS = 2 ** 18
+
 #: Columns between two runs of the TV kernel's pixels (:func:`tv_runs`) up to which they are
 #: worked as one: a loop over x stays long enough to run several pixels at once.
 TV_RUN_GAP = 8
@@ -576,12 +581,16 @@ def tv_bands(runs: np.ndarray, run_x0: np.ndarray, run_x1: np.ndarray, n_bands: 
 
 def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
               iterations: int, holes: np.ndarray | None = None,
-              hole_weight: np.ndarray | None = None) -> np.ndarray:
+              hole_weight: np.ndarray | None = None, kernel: str = "auto") -> np.ndarray:
     """Minimise Eq. 13 over the pixels of ``mask``; the others keep their value.
 
     Compiled twin of :func:`tv_refine_reference`: the same parameters and result (Chambolle-Pock in
     two sweeps per iteration instead of 300 rounds of whole-array numpy operations, over the
-    pixels whose values can change, :func:`tv_runs`).
+    pixels whose values can change, :func:`tv_runs`). ``kernel``: :func:`recon.native.chosen`: by
+    default the C twin of :func:`_tv_wavefront` and :func:`_tv_blocks` (``recon/native/refine.c``)
+    where it loads, else numba's; the same map. The C kernels run in bands from
+    :data:`TV_NATIVE_PARALLEL_PIXELS` pixels in the runs, numba's from :data:`TV_PARALLEL_PIXELS`
+    (the bands give the one thread's values: only the time differs).
     """
     if min(np.shape(disparity)) < 2:
         return tv_refine_reference(disparity, mask, gamma=gamma, iterations=iterations, holes=holes,
@@ -598,6 +607,20 @@ def tv_refine(disparity: np.ndarray, mask: np.ndarray, *, gamma: float,
     mask = np.ascontiguousarray(mask)
     weight = np.ascontiguousarray(weight, dtype=np.float64)
     H = f.shape[0]
+    if chosen("refine", kernel):
+        if f.ndim != 2 or mask.shape != f.shape or weight.shape != f.shape or mask.dtype != np.bool_:
+            raise ValueError(f"mask and hole_weight must be {f.shape} as the disparity (H, W); got {mask.shape} "
+                             f"and {weight.shape}")
+        W = f.shape[1]
+        threads = thread_count()
+        n_blocks = min(threads, H // (4 * TV_HALO_ROWS))
+        if n_blocks < 2 or np.sum(runs[2] - runs[1]) < TV_NATIVE_PARALLEL_PIXELS:
+            call("refine", "lfrig_tv_wavefront", f, mask, weight, H, W, float(gamma), int(iterations), mu, bar, py,
+                 px, 0, H, TV_WAVE_ITERATIONS, *runs)
+        else:
+            call("refine", "lfrig_tv_blocks", f, mask, weight, H, W, float(gamma), int(iterations), mu, bar, py, px,
+                 tv_bands(*runs, n_blocks), n_blocks, TV_HALO_ROWS, *runs, threads)
+        return mu.astype(np.float32)
     n_blocks = min(numba.get_num_threads(), H // (4 * TV_HALO_ROWS))
     if n_blocks < 2 or np.sum(runs[2] - runs[1]) < TV_PARALLEL_PIXELS:
         _tv_wavefront(f, mask, weight, float(gamma), int(iterations), mu, bar, py, px, 0, H, TV_WAVE_ITERATIONS,
@@ -716,16 +739,26 @@ def _centroid_kernel(d, rects, max_residual, max_shift, out):
 
 
 def centroid_correction(disparity: np.ndarray, rects: np.ndarray, *,
-                        max_residual: float, max_shift: float) -> np.ndarray:
+                        max_residual: float, max_shift: float, kernel: str = "auto") -> np.ndarray:
     """Move each pixel's disparity from its window's centroid back to the pixel.
 
     As :func:`centroid_correction_reference` (same parameters and result up to rounding), with
     each window's sums taken directly in a fixed order in coordinates relative to the pixel, so a
     pixel's result depends only on the values in its window, not on where the image starts (a
-    tile computes what the whole image computes).
+    tile computes what the whole image computes). ``kernel``: :func:`recon.native.chosen`: by
+    default the C twin of :func:`_centroid_kernel` (``recon/native/refine.c``) where it loads, else
+    numba's; the same map.
     """
     d = np.ascontiguousarray(disparity, dtype=np.float64)
+    rects = np.ascontiguousarray(rects, dtype=np.int64)
     out = np.empty(d.shape, np.float64)
-    _centroid_kernel(d, np.ascontiguousarray(rects, dtype=np.int64), float(max_residual),
-                     float(max_shift), out)
+    if chosen("refine", kernel):
+        if d.ndim != 2 or rects.shape != d.shape + (4,):
+            raise ValueError(f"rects must be {d.shape + (4,)} for a disparity of {d.shape}; got {rects.shape}")
+        if rects[..., 0::2].max(initial=0) > 0 or rects[..., 1::2].min(initial=0) < 0:
+            raise ValueError("every window must hold its pixel (rects y0, x0 <= 0 <= y1, x1)")
+        call("refine", "lfrig_centroid", d, d.shape[0], d.shape[1], rects, float(max_residual), float(max_shift),
+             out, thread_count())
+    else:
+        _centroid_kernel(d, rects, float(max_residual), float(max_shift), out)
     return out.astype(np.float32)

@@ -61,6 +61,11 @@ SIGNATURES: dict[str, dict[str, str]] = {
         "lfrig_offer_counts": "p i i i p p i p i",
         "lfrig_offer_runs": "p i i i p p i p p i",
     },
+    "refine": {
+        "lfrig_centroid": "p i i p d d p i",
+        "lfrig_tv_wavefront": "p p p i i d i p p p p i i i p p p",
+        "lfrig_tv_blocks": "p p p i i d i p p p p p i i p p p i",
+    },
     "select": {"lfrig_select": "p i p i i p i i p d d d i i p i p p d p p i i p i p p p p p p i p i p p i"},
     "volume": {"lfrig_take": "p i p p p i i i f p i", "lfrig_window_major": "p i p p i i i i f p i"},
     "median": {"lfrig_median": "p i i i p p i p i i p i"},
