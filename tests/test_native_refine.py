@@ -241,6 +241,34 @@ def test_the_c_tv_wavefront_keeps_the_values_on_the_ball():
             _same_bits(a, b, f"W={W}")
 
 
+def test_the_c_tv_wavefront_keeps_the_values_at_the_balls_edge():
+    # a flat map (forward differences 0): the dual values' new norm is their own, a few units in the
+    # last place either side of gamma, and at gammas whose square is subnormal, 0 or beyond float64,
+    # four columns at a time in the ball or not, and mixed (the C kernel leaves the divisions out
+    # where all four lie in the ball)
+    require_native("refine")
+    rng = np.random.default_rng(12)
+    n, W = 6, 41
+    f = np.full((n, W), 0.25)
+    mask = np.ones((n, W), bool)
+    weight = np.ones((n, W))
+    runs = _runs_of(rng, mask, f, 0, "whole")
+    for gamma in (0.2, 0.1, 3.0, 1e-160, 1e-300, 1e200, 5e-324):
+        steps = rng.integers(-3, 4, (n, W))
+        steps[:, :8] = -1  # a chunk in the ball
+        steps[:, 8:12] = 1  # one outside
+        py = gamma * rng.choice([1.0, -1.0], (n, W))
+        py = np.where(steps < 0, np.nextafter(py, 0.0), np.where(steps > 0, np.nextafter(py, 2 * py), py))
+        for _ in range(2):
+            py = np.where(np.abs(steps) > 1, np.nextafter(py, np.where(steps < 0, 0.0, 2 * py)), py)
+        px = np.where(rng.random((n, W)) < 0.2, gamma * 1e-9, 0.0)
+        state = [f.copy(), f.copy(), py, px]
+        c = _c_wavefront(f, mask, weight, gamma, 1, state, 0, n, 1, runs)
+        nb = _numba_wavefront(f, mask, weight, gamma, 1, state, 0, n, 1, runs)
+        for name, a, b in zip(("mu", "bar", "py", "px"), c, nb):
+            _same_bits(a, b, f"{name}, gamma {gamma}")
+
+
 def test_the_c_tv_bands_give_the_one_thread_values_for_any_band_count():
     # 1 to 6 bands on 1 to 4 threads (several bands a thread), halos of 1 to more than the image,
     # iteration counts of an odd and an even number of rounds: every map bit for bit numba's one
@@ -352,6 +380,44 @@ print(json.dumps("numba" in sys.modules))
     run = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout.strip().splitlines()[-1]) is False
+
+
+def test_the_portable_c_loops_give_numbas_bits(tmp_path, monkeypatch):
+    # refine.c built without AVX (its plain loops, as on a CPU without it, the dual step's divisions
+    # everywhere) gives the same bits
+    import ctypes
+
+    import recon.native as native
+
+    require_native("refine")
+    target = tmp_path / "refine-portable.so"
+    run = subprocess.run([native.compiler(), *native.CFLAGS, "-mno-avx", "-o", str(target),
+                          str(native.HERE / "refine.c")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lib = ctypes.CDLL(str(target))
+    for function, types in native.SIGNATURES["refine"].items():
+        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
+        getattr(lib, function).restype = ctypes.c_int
+    monkeypatch.setitem(native._loaded, "refine", lib)
+    rng = np.random.default_rng(13)
+    for n, W, top, H in ((2, 2, 0, 2), (17, 9, 5, 40), (25, 33, 0, 25), (70, 45, 0, 70)):
+        f, mask, weight = _kernel_inputs(rng, n, W, odd=1)
+        full = np.zeros((H, W), bool)
+        full[top:top + n] = mask
+        runs = _runs_of(rng, full, np.pad(f, ((top, H - top - n), (0, 0))), 3, "mask")
+        state = _state(rng, (n, W), 1)
+        one = _numba_wavefront(f, mask, weight, 0.2, 19, state, top, H, 8, runs)
+        for a, b in zip(_c_wavefront(f, mask, weight, 0.2, 19, state, top, H, 8, runs), one):
+            _same_bits(a, b, f"{n}x{W}")
+        if top == 0 and n >= 6:
+            for a, b in zip(_c_blocks(f, mask, weight, 0.2, 19, state, tv_bands(*runs, 3), 4, runs, 2), one):
+                _same_bits(a, b, f"{n}x{W} in bands")
+    d = rng.normal(0, 0.1, (30, 34))
+    rects = _rects(rng, 30, 34)
+    c, nb = np.empty((30, 34)), np.empty((30, 34))
+    native.call("refine", "lfrig_centroid", d, 30, 34, rects, 0.5, 0.2, c, 2)
+    refine._centroid_kernel(d, rects, 0.5, 0.2, nb)
+    _same_bits(c, nb)
 
 
 @pytest.mark.hci
