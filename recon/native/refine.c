@@ -6,8 +6,10 @@
  * - lfrig_centroid: _centroid_kernel;
  * - lfrig_tv_wavefront: _tv_wavefront, with _tv_row, _tv_dual_row, _tv_divergence_primal_row,
  *   _tv_dual and _tv_primal;
- * - lfrig_tv_blocks: _tv_blocks, with _copy_runs: the bands' threads are started once for the call
- *   and meet at a barrier once per round of `halo` iterations.
+ * - lfrig_tv_blocks: _tv_blocks, with _copy_runs: the bands' threads are started once for the call,
+ *   and each band's copy persists from round to round, taking the rows beyond its band from the
+ *   other bands' copies between two barriers (numba's twin passes them through a second set of the
+ *   maps: the same values).
  *
  * Arrays are C-contiguous; the comments of the numba twins say why each loop has its shape. numba's
  * max(a, b) is `b > a ? b : a` and min(a, b) `b < a ? b : a` (the first argument kept on a tie or a
@@ -299,7 +301,7 @@ static void copy_runs(double *const *source, double *const *target, int64_t sour
 }
 
 /* The threads of one lfrig_tv_blocks call: a gate they wait at until all are started (or one could
- * not be, when they leave), and the barrier between the rounds. */
+ * not be, when they leave), and the barriers around the exchange of the bands' rows. */
 struct bands {
     pthread_mutex_t lock;
     pthread_cond_t cond;
@@ -336,9 +338,9 @@ static void bands_barrier(struct bands *c) {
     pthread_mutex_unlock(&c->lock);
 }
 
-/* What the bands of a lfrig_tv_blocks call read and write: the image's f, mask and weight, the two
- * sets of the four maps (mu, bar, py, px) that the rounds take turns to read and write, and each
- * band's copy (depth rows of the four maps) and scratch row. */
+/* What the bands of a lfrig_tv_blocks call read and write: the image's f, mask and weight, the four
+ * maps (mu, bar, py, px) they start from and end in, and each band's copy (depth rows of the four
+ * maps, from the band's first row less halo) and scratch row. */
 struct blocks_args {
     const double *f;
     const uint8_t *mask;
@@ -346,7 +348,7 @@ struct blocks_args {
     int64_t H, W;
     double gamma;
     int64_t iterations;
-    double *sets[2][4];
+    double *maps[4];
     const int64_t *edges;
     int64_t n_blocks, halo, depth;
     const int64_t *runs;
@@ -354,35 +356,62 @@ struct blocks_args {
     double *copies, *div;
 };
 
-/* Thread t of T's share of _tv_blocks: bands t, t + T, ..., round after round. In a round each band
- * takes the rows of its copy beyond it from the state (all of its copy in the first round), iterates
- * its copy and puts its own rows' runs into the next state; the barrier after the round lets every
- * band read that state in the next. */
+/* Band b's copy's first image row, and its four maps. */
+static int64_t copy_top(const struct blocks_args *a, int64_t b) { return max64(a->edges[b] - a->halo, 0); }
+
+static void copy_maps(const struct blocks_args *a, int64_t b, double **maps) {
+    for (int j = 0; j < 4; j++) maps[j] = a->copies + ((b * 4 + j) * a->depth) * a->W;
+}
+
+/* The runs of image rows [y0, y1) into band b's copy from the copies of the bands they are in. */
+static void take_rows(const struct blocks_args *a, int64_t b, int64_t y0, int64_t y1) {
+    double *own[4], *other[4];
+    copy_maps(a, b, own);
+    for (int64_t o = 0; o < a->n_blocks; o++) {
+        const int64_t u0 = max64(y0, a->edges[o]), u1 = min64(y1, a->edges[o + 1]);
+        if (o == b || u0 >= u1) continue;
+        copy_maps(a, o, other);
+        copy_runs(other, own, copy_top(a, o), copy_top(a, b), u0, u1, a->W, a->runs, a->x0, a->x1);
+    }
+}
+
+/* Thread t of T's share of _tv_blocks: bands t, t + T, ... Each band's copy takes its rows from the
+ * maps, then, round after round, is iterated `halo` iterations (the last round fewer) and takes the
+ * rows beyond its band from the bands they are in (the values numba's twin exchanges through a
+ * second set of maps: the same values, with two barriers a round instead of one, and each band's
+ * rows copied out once, not once a round); at the end each band's rows go into the maps. */
 static void blocks_share(const struct blocks_args *a, struct bands *c, int64_t t) {
-    const int64_t H = a->H, W = a->W, halo = a->halo;
-    int turn = 0;
+    const int64_t H = a->H, W = a->W, halo = a->halo, T = c->count;
+    for (int64_t b = t; b < a->n_blocks; b += T) {
+        const int64_t top = copy_top(a, b), z = min64(a->edges[b + 1] + halo, H);
+        double *own[4];
+        copy_maps(a, b, own);
+        for (int j = 0; j < 4; j++) memcpy(own[j], a->maps[j] + top * W, sizeof(double) * (size_t)((z - top) * W));
+    }
     for (int64_t done = 0; done < a->iterations;) {
         const int64_t k = min64(halo, a->iterations - done);
-        double *const *state = a->sets[turn], *const *next = a->sets[turn ^ 1];
-        for (int64_t b = t; b < a->n_blocks; b += c->count) {
-            const int64_t lo = a->edges[b], hi = a->edges[b + 1];
-            const int64_t top = max64(lo - halo, 0), z = min64(hi + halo, H);
-            double *own[4];
-            for (int j = 0; j < 4; j++) own[j] = a->copies + ((b * 4 + j) * a->depth) * W;
-            if (done == 0) {
-                for (int j = 0; j < 4; j++) memcpy(own[j], state[j] + top * W, sizeof(double) * (size_t)((z - top) * W));
-            } else {
-                copy_runs(state, own, 0, top, top, lo, W, a->runs, a->x0, a->x1);
-                copy_runs(state, own, 0, top, hi, z, W, a->runs, a->x0, a->x1);
+        if (done > 0) {
+            bands_barrier(c); /* every band's rows are those of `done` iterations */
+            for (int64_t b = t; b < a->n_blocks; b += T) {
+                take_rows(a, b, copy_top(a, b), a->edges[b]);
+                take_rows(a, b, a->edges[b + 1], min64(a->edges[b + 1] + halo, H));
             }
+        }
+        bands_barrier(c); /* every copy has its rows: the bands may change theirs */
+        for (int64_t b = t; b < a->n_blocks; b += T) {
+            const int64_t top = copy_top(a, b), z = min64(a->edges[b + 1] + halo, H);
+            double *own[4];
+            copy_maps(a, b, own);
             const struct tv_maps s = {a->f + top * W, a->mask + top * W, a->weight + top * W, own[0], own[1], own[2],
                                       own[3], z - top, W, top, H, a->runs, a->x0, a->x1};
             tv_wavefront(&s, a->gamma, k, TV_WAVE_ITERATIONS, a->div + b * W);
-            copy_runs(own, next, top, 0, lo, hi, W, a->runs, a->x0, a->x1);
         }
-        bands_barrier(c);
-        turn ^= 1;
         done += k;
+    }
+    for (int64_t b = t; b < a->n_blocks; b += T) {
+        double *own[4];
+        copy_maps(a, b, own);
+        copy_runs(own, a->maps, copy_top(a, b), 0, a->edges[b], a->edges[b + 1], W, a->runs, a->x0, a->x1);
     }
 }
 
@@ -413,21 +442,15 @@ int lfrig_tv_blocks(const double *f, const uint8_t *mask, const double *weight, 
     int64_t depth = 0;
     for (int64_t b = 0; b < n_blocks; b++) depth = max64(depth, min64(edges[b + 1] + halo, H) - max64(edges[b] - halo, 0));
     const int64_t T = max64(min64(threads, n_blocks), 1);
-    const size_t plane = sizeof(double) * (size_t)(H * W);
-    struct blocks_args a = {f, mask, weight, H, W, gamma, iterations, {{mu, bar, py, px}}, edges, n_blocks, halo,
+    struct blocks_args a = {f, mask, weight, H, W, gamma, iterations, {mu, bar, py, px}, edges, n_blocks, halo,
                             depth, runs, run_x0, run_x1, NULL, NULL};
-    double *next = malloc(4 * plane);
     a.copies = malloc(sizeof(double) * (size_t)(n_blocks * 4 * depth * W));
     a.div = malloc(sizeof(double) * (size_t)(n_blocks * W));
     struct band_thread *team = calloc((size_t)T, sizeof(struct band_thread));
     int status = 0;
-    if (!next || !a.copies || !a.div || !team) {
+    if (!a.copies || !a.div || !team) {
         status = -1;
         goto done;
-    }
-    for (int j = 0; j < 4; j++) {
-        a.sets[1][j] = next + j * H * W;
-        memcpy(a.sets[1][j], a.sets[0][j], plane);
     }
     struct bands c = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER, T, 0, 0, 0};
     int64_t started = 0;
@@ -442,10 +465,7 @@ int lfrig_tv_blocks(const double *f, const uint8_t *mask, const double *weight, 
     bands_open(&c, status == 0 ? 1 : -1);
     if (status == 0) blocks_share(&a, &c, 0);
     for (int64_t t = 1; t <= started; t++) pthread_join(team[t].id, NULL);
-    if (status == 0 && (iterations + halo - 1) / halo % 2 == 1) /* an odd number of rounds: the state is next */
-        for (int j = 0; j < 4; j++) memcpy(a.sets[0][j], a.sets[1][j], plane);
 done:
-    free(next);
     free(a.copies);
     free(a.div);
     free(team);
