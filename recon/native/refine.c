@@ -440,7 +440,8 @@ int lfrig_tv_blocks(const double *f, const uint8_t *mask, const double *weight, 
     if (H <= 0 || W <= 0 || n_blocks <= 0 || iterations <= 0) return 0;
     if (halo < 1) halo = 1; /* the rows a copy reaches beyond its band: none would be no band's */
     int64_t depth = 0;
-    for (int64_t b = 0; b < n_blocks; b++) depth = max64(depth, min64(edges[b + 1] + halo, H) - max64(edges[b] - halo, 0));
+    for (int64_t b = 0; b < n_blocks; b++)
+        depth = max64(depth, min64(edges[b + 1] + halo, H) - max64(edges[b] - halo, 0));
     const int64_t T = max64(min64(threads, n_blocks), 1);
     struct blocks_args a = {f, mask, weight, H, W, gamma, iterations, {mu, bar, py, px}, edges, n_blocks, halo,
                             depth, runs, run_x0, run_x1, NULL, NULL};
