@@ -76,6 +76,7 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.refine._centroid_kernel": "refine",
     "recon.entropy.refine._tv_wavefront": "refine",
     "recon.entropy.refine._tv_blocks": "refine",
+    "recon.entropy.regions._occlusion_kernel": "regions",
 }
 
 

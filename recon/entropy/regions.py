@@ -32,6 +32,7 @@ import numpy as np
 from recon.entropy.initial import initial_view_mask
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
 from recon.entropy.median import median_filter_nearest
+from recon.native import call, chosen, thread_count
 
 
 def layer_map(d0: np.ndarray, *, median_size: int, keep: np.ndarray | None = None) -> np.ndarray:
@@ -160,8 +161,10 @@ OCCLUSION_BAND_ROWS = 64
 
 
 def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
-                    layer_gap: float) -> tuple[np.ndarray, np.ndarray]:
-    """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel.
+                    layer_gap: float, kernel: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel (the C
+    twin of the kernel, ``recon/native/regions.c``, where it loads, else numba's; ``kernel``:
+    :func:`recon.native.chosen`).
 
     Two pixels that land on one spot of a view lie at most ``1 + |du| (M_max - M_min)`` rows
     (``|dv|`` columns) apart, so a pixel whose layer is within ``layer_gap`` of every layer in that
@@ -172,7 +175,7 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     from scipy import ndimage
 
     layers = np.ascontiguousarray(layers, np.float32)
-    offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
+    offsets = np.ascontiguousarray(offsets, np.float64).reshape(-1, 2)
     H, W = layers.shape
     neg = np.zeros((H, W), np.float32)
     pos = np.zeros((H, W), np.float32)
@@ -199,8 +202,12 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     ends = np.nonzero(edges == -1)[1]
     row_start = np.zeros(H + 1, np.int64)
     np.cumsum(np.bincount(ys, minlength=H), out=row_start[1:])
-    _occlusion_kernel(layers, offsets, gap, row_shift, OCCLUSION_BAND_ROWS, row_start,
-                      np.stack([starts, ends], axis=1).astype(np.int64), neg, pos)
+    runs = np.stack([starts, ends], axis=1).astype(np.int64)
+    if chosen("regions", kernel):
+        call("regions", "lfrig_occlusion", layers, H, W, offsets, offsets.shape[0], float(gap), row_shift,
+             int(OCCLUSION_BAND_ROWS), row_start, runs, neg, pos, thread_count())
+    else:
+        _occlusion_kernel(layers, offsets, gap, row_shift, OCCLUSION_BAND_ROWS, row_start, runs, neg, pos)
     return neg, pos
 
 
