@@ -49,6 +49,8 @@ import math
 from recon.jit import numba
 import numpy as np
 
+from recon.native import call, chosen, thread_count
+
 #: A 5x5 neighbour supports the far value when it lies within this of it (px/view).
 SUPPORT_TOLERANCE = 0.1
 #: The near hypothesis is searched over ``m(p) + k * NEAR_STEP`` with ``|k NEAR_STEP| <= NEAR_WIDTH``.
@@ -368,9 +370,11 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
                     disparity_range: tuple[float, float], jump: float, support: int,
                     confidence: float,
                     mix: float = 0.0, mix_contrast: float = 12.0,
-                    mix_extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                    mix_extrapolate: bool = False, kernel: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """The matched map with the pixels beside a depth jump that their own grey value places on the
-    surface behind given that surface's value (module docstring).
+    surface behind given that surface's value (module docstring). The tested pixels' view test runs
+    compiled: the C twin of the kernel, ``recon/native/regions.c``, where it loads, else numba's
+    (``kernel``: :func:`recon.native.chosen`).
 
     Parameters
     ----------
@@ -414,9 +418,16 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
 
     top = np.minimum(ndimage.maximum_filter(occ, size=2 * reach + 1, mode="nearest"),
                      np.float32(disparity_range[1]))
-    _snap_kernel(gray, m, occ, top, reach, ys.astype(np.int64), xs.astype(np.int64),
-                 far.astype(np.float64), near_offsets(), LANDING_PX,
-                 MIN_VIEWS, threshold, far_mean, near_mean, views, far_median, line)
+    ys64, xs64, far64 = ys.astype(np.int64), xs.astype(np.int64), far.astype(np.float64)
+    if chosen("regions", kernel):
+        U, V, H, W = gray.shape
+        offsets = near_offsets()
+        call("regions", "lfrig_snap", gray, U, V, H, W, m, occ, top, int(reach), ys64, xs64, far64, n, offsets,
+             offsets.size, float(LANDING_PX), int(MIN_VIEWS), float(threshold), far_mean, near_mean, views,
+             far_median, line, thread_count())
+    else:
+        _snap_kernel(gray, m, occ, top, reach, ys64, xs64, far64, near_offsets(), LANDING_PX,
+                     MIN_VIEWS, threshold, far_mean, near_mean, views, far_median, line)
     enough = views >= MIN_VIEWS
     flip = enough & (near_mean - far_mean > threshold / np.sqrt(np.maximum(views, 1)))
     alpha, centre = rim_evidence(gray, m, ys, xs, far, far_median, jump=jump,

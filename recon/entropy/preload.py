@@ -77,6 +77,7 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.refine._tv_wavefront": "refine",
     "recon.entropy.refine._tv_blocks": "refine",
     "recon.entropy.regions._occlusion_kernel": "regions",
+    "recon.entropy.boundary._snap_kernel": "regions",
 }
 
 
