@@ -8,18 +8,26 @@
  *   _partition, whose swaps decide which of two equal values (0.0 and -0.0) and which NaN it gives).
  *
  * Arrays are C-contiguous; the comments of the numba twins say why each loop has its shape. Each
- * output element is computed by one item (a band of rows, a tested pixel) whatever thread runs it,
- * so the bits do not depend on the number of threads. Python's min(a, b) and max(a, b) of floats
- * keep a unless b is less (greater): min_py and max_py, which fmin and fmax are not (NaN, -0.0). A
- * value out of int64's range (NaN, inf) converts to INT64_MIN, x86's "integer indefinite", as in
- * numba (to_int64, without C's undefined conversion).
+ * output element is computed by one item (a band of rows; a chunk of tested pixels) whatever thread
+ * runs it, so the bits do not depend on the number of threads. Python's min(a, b) and max(a, b) of
+ * floats keep a unless b is less (greater): min_py and max_py, which fmin and fmax are not (NaN,
+ * -0.0). A value out of int64's range (NaN, inf) converts to INT64_MIN, x86's "integer indefinite",
+ * as in numba (to_int64: cvttsd2si itself on x86-64, without C's undefined conversion). The layer
+ * maxima and minima and the occlusion sums are selects, not branches, as numba's (which way they go
+ * is as common as not at a depth edge).
  */
 #include "rows.h"
 
-/* int(v) of a float64 as numba converts it on x86-64. */
+#if defined(__x86_64__)
+#include <emmintrin.h>
+
+/* int(v) of a float64 as numba converts it on x86-64: cvttsd2si. */
+static inline int64_t to_int64(double v) { return _mm_cvttsd_si64(_mm_set_sd(v)); }
+#else
 static inline int64_t to_int64(double v) {
     return (v >= -9223372036854775808.0 && v < 9223372036854775808.0) ? (int64_t)v : INT64_MIN;
 }
+#endif
 
 /* Python's min(a, b) and max(a, b) of two floats, as numba lowers them. */
 static inline double min_py(double a, double b) { return b < a ? b : a; }
@@ -44,26 +52,44 @@ static inline int64_t landing(int64_t y, float m, double du) {
     return to_int64(floor((double)y - du * (double)m + 0.5));
 }
 
+/* One spot of a band's stretch of rows: its top and bottom layers, and the view whose pixels it
+ * holds (together: one cache line for the three). */
+struct spot {
+    float top, bottom;
+    int32_t view;
+};
+
+/* Where pixel (y, x) of layer value m lands in view (du, dv): its spot in the stretch of rows t0 to
+ * t1 (W columns), or -1 where it lands outside. */
+static inline int64_t spot_index(int64_t y, int64_t x, float m, double du, double dv, int64_t t0, int64_t t1,
+                                 int64_t W) {
+    const int64_t ly = landing(y, m, du), lx = landing(x, m, dv);
+    return (t0 <= ly && ly < t1 && 0 <= lx && lx < W) ? (ly - t0) * W + lx : -1;
+}
+
 /* One band of rows of _occlusion_kernel: its pixels' top and bottom layers view by view, each
- * view's forward warp of the rows that land on those the band reads into the band's own stretch. */
+ * view's forward warp of the rows that land on those the band reads into the band's own stretch.
+ * The band's own pixels' spots are kept from the warp for the test (the same landings). */
 static int occlusion_band(void *ctx, int64_t b) {
     const struct occlusion_args *a = ctx;
     const int64_t H = a->H, W = a->W;
     const int64_t lo = b * a->band_rows, hi = min64((b + 1) * a->band_rows, H);
     const int64_t rows = hi - lo + a->span;
     if (rows < 0) return -1;  /* as numba refuses an array of negative rows */
+    const int64_t *row_start = a->row_start, *runs = a->runs;
+    int64_t n_own = 0;  /* the band's pixels */
+    for (int64_t i = row_start[lo]; i < row_start[hi]; i++) n_own += runs[2 * i + 1] - runs[2 * i];
     const size_t cells = (size_t)rows * (size_t)W;
-    float *top = malloc(sizeof(float) * cells);
-    float *bottom = malloc(sizeof(float) * cells);
-    int32_t *view = malloc(sizeof(int32_t) * cells);  /* the view whose pixels a spot holds */
-    if (!top || !bottom || !view) {
-        free(top);
-        free(bottom);
-        free(view);
+    struct spot *spots = malloc(sizeof(struct spot) * cells);
+    int64_t *own = malloc(sizeof(int64_t) * (size_t)max64(n_own, 1));  /* the band's pixels' spots */
+    if (!spots || !own) {
+        free(spots);
+        free(own);
         return -1;
     }
-    for (size_t i = 0; i < cells; i++) view[i] = -1;
+    for (size_t i = 0; i < cells; i++) spots[i].view = -1;
     const float *layers = a->layers;
+    float *neg = a->neg, *pos = a->pos;
     const float gap = a->gap;
     for (int64_t k = 0; k < a->n_views; k++) {
         const double du = a->offsets[2 * k], dv = a->offsets[2 * k + 1];
@@ -71,42 +97,47 @@ static int occlusion_band(void *ctx, int64_t b) {
         const int64_t t0 = max64(lo + sa, 0), t1 = min64(hi - 1 + sc, H - 1) + 1;  /* the rows the band reads */
         const int64_t s0 = max64(t0 - sc, 0), s1 = min64(t1 - 1 - sa, H - 1) + 1;  /* the rows that land there */
         const int32_t kk = (int32_t)k;
+        int64_t j = 0;
         for (int64_t y = s0; y < s1; y++) {
-            for (int64_t i = a->row_start[y]; i < a->row_start[y + 1]; i++) {
-                for (int64_t x = a->runs[2 * i]; x < a->runs[2 * i + 1]; x++) {
+            const int keep = lo <= y && y < hi;
+            for (int64_t i = row_start[y]; i < row_start[y + 1]; i++) {
+                for (int64_t x = runs[2 * i]; x < runs[2 * i + 1]; x++) {
                     const float m = layers[y * W + x];
-                    const int64_t ly = landing(y, m, du), lx = landing(x, m, dv);
-                    if (t0 <= ly && ly < t1 && 0 <= lx && lx < W) {
-                        const size_t q = (size_t)(ly - t0) * (size_t)W + (size_t)lx;
-                        const int first = view[q] != kk;  /* the first pixel of this view there */
-                        view[q] = kk;
-                        const float t = top[q];
-                        top[q] = (first || m > t) ? m : t;
-                        const float d = bottom[q];
-                        bottom[q] = (first || m < d) ? m : d;
+                    const int64_t q = spot_index(y, x, m, du, dv, t0, t1, W);
+                    if (keep) own[j++] = q;
+                    if (q >= 0) {
+                        struct spot *p = spots + q;
+                        const int first = p->view != kk;  /* the first pixel of this view there */
+                        p->view = kk;
+                        /* maxss and minss, then a masked move: selects, not branches, as numba's */
+                        const float t = p->top, d = p->bottom;
+                        const float up = m > t ? m : t, down = m < d ? m : d;
+                        p->top = first ? m : up;
+                        p->bottom = first ? m : down;
                     }
                 }
             }
         }
+        j = 0;
         for (int64_t y = lo; y < hi; y++) {
-            for (int64_t i = a->row_start[y]; i < a->row_start[y + 1]; i++) {
-                for (int64_t x = a->runs[2 * i]; x < a->runs[2 * i + 1]; x++) {
+            const int kept = s0 <= y && y < s1;  /* else a row the warp left out: its landings made here */
+            for (int64_t i = row_start[y]; i < row_start[y + 1]; i++) {
+                for (int64_t x = runs[2 * i]; x < runs[2 * i + 1]; x++) {
                     const float m = layers[y * W + x];
-                    const int64_t ly = landing(y, m, du), lx = landing(x, m, dv);
-                    if (t0 <= ly && ly < t1 && 0 <= lx && lx < W) {
-                        const size_t q = (size_t)(ly - t0) * (size_t)W + (size_t)lx;
-                        const float t = top[q];
-                        a->neg[y * W + x] += (t - m > gap) ? m - t : 0.0f;
-                        const float d = bottom[q];
-                        a->pos[y * W + x] += (m - d > gap) ? m - d : 0.0f;
+                    const int64_t q = kept ? own[j++] : spot_index(y, x, m, du, dv, t0, t1, W);
+                    if (q >= 0) {
+                        /* t - m > gap as m - t < -gap (negation is exact): the same test, which the
+                         * compiler makes a select of m - t, not a branch */
+                        const float below = m - spots[q].top, above = m - spots[q].bottom;
+                        neg[y * W + x] += (below < -gap) ? below : 0.0f;
+                        pos[y * W + x] += (above > gap) ? above : 0.0f;
                     }
                 }
             }
         }
     }
-    free(top);
-    free(bottom);
-    free(view);
+    free(spots);
+    free(own);
     return 0;
 }
 
@@ -239,11 +270,11 @@ struct snap_args {
     double *far_mean, *near_mean;
     int64_t *views;
     double *far_median, *line;
+    int64_t n;
 };
 
-/* One tested pixel of _snap_kernel. */
-static int snap_pixel(void *ctx, int64_t i) {
-    const struct snap_args *a = ctx;
+/* One tested pixel of _snap_kernel; seen ((U, V) uint8) and samples ((U V,) float64): scratch. */
+static void snap_pixel(const struct snap_args *a, int64_t i, uint8_t *restrict seen, double *restrict samples) {
     const int64_t U = a->U, V = a->V, H = a->H, W = a->W;
     const int64_t u0 = U / 2, v0 = V / 2;
     const int64_t y = a->ys[i], x = a->xs[i];
@@ -251,13 +282,7 @@ static int snap_pixel(void *ctx, int64_t i) {
     const float nearest = a->top[y * W + x];  /* no occluder on any of its rays is nearer */
     const double dm = (double)a->m[y * W + x];
     const double centre = (double)a->gray[((u0 * V + v0) * H + y) * W + x];
-    uint8_t *seen = calloc((size_t)(U * V), 1);
-    double *samples = malloc(sizeof(double) * (size_t)(U * V));
-    if (!seen || !samples) {
-        free(seen);
-        free(samples);
-        return -1;
-    }
+    memset(seen, 0, (size_t)(U * V));
     int64_t n = 0, n_line = 0;
     double far_sum = 0.0, near0 = 0.0, far_line = 0.0, near_line0 = 0.0;
     for (int64_t u = 0; u < U; u++) {
@@ -306,6 +331,21 @@ static int snap_pixel(void *ctx, int64_t i) {
     }
     a->near_mean[i] = best / (double)max64(n, 1);
     a->line[i] = n_line > 0 ? (best_line - far_line) / (double)n_line : NAN;
+}
+
+/* The tested pixels of a chunk of SNAP_CHUNK (threads write their outputs' cache lines apart). */
+#define SNAP_CHUNK 64
+
+static int snap_chunk(void *ctx, int64_t c) {
+    const struct snap_args *a = ctx;
+    uint8_t *seen = malloc((size_t)(a->U * a->V));
+    double *samples = malloc(sizeof(double) * (size_t)(a->U * a->V));
+    if (!seen || !samples) {
+        free(seen);
+        free(samples);
+        return -1;
+    }
+    for (int64_t i = c * SNAP_CHUNK; i < min64((c + 1) * SNAP_CHUNK, a->n); i++) snap_pixel(a, i, seen, samples);
     free(seen);
     free(samples);
     return 0;
@@ -322,6 +362,6 @@ int lfrig_snap(const float *gray, int64_t U, int64_t V, int64_t H, int64_t W, co
                int64_t threads) {
     if (n <= 0 || U <= 0 || V <= 0 || H <= 0 || W <= 0) return 0;
     struct snap_args a = {gray, U, V, H, W, m, occ, top, reach, ys, xs, far, offsets, n_off, landing_px, min_views,
-                          threshold, far_mean, near_mean, views, far_median, line};
-    return run_items(snap_pixel, &a, n, threads);
+                          threshold, far_mean, near_mean, views, far_median, line, n};
+    return run_items(snap_chunk, &a, (n + SNAP_CHUNK - 1) / SNAP_CHUNK, threads);
 }
