@@ -286,10 +286,12 @@ def test_the_c_paths_call_no_numba(monkeypatch):
     got = (snap_boundaries(gray, matched, **kw), occlusion_diffs(layers, _grid_offsets(5, 5), layer_gap=0.25))
     for x, y in zip((*got[0], *got[1]), (*expected[0], *expected[1])):
         _same_bits(x, y)
-    with pytest.raises(ValueError, match="kernel must be"):
-        occlusion_diffs(layers, [(1, 0)], layer_gap=0.25, kernel="fortran")
-    with pytest.raises(ValueError, match="kernel must be"):
-        snap_boundaries(gray, matched, kernel="fortran", **kw)
+    for views in ([(1, 0)], []):  # with views, and without (no kernel called)
+        with pytest.raises(ValueError, match="kernel must be"):
+            occlusion_diffs(layers, views, layer_gap=0.25, kernel="fortran")
+    for m in (matched, np.zeros_like(matched)):  # with tested pixels, and without
+        with pytest.raises(ValueError, match="kernel must be"):
+            snap_boundaries(gray, m, kernel="fortran", **kw)
 
 
 def test_the_c_kernels_need_no_numba_kernel():

@@ -397,6 +397,7 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     -------
     ``(snapped float32 (H, W), changed bool (H, W))``.
     """
+    native = chosen("regions", kernel)
     gray = np.ascontiguousarray(gray, np.float32)
     m = np.ascontiguousarray(matched, np.float32)
     _check(gray, m)
@@ -419,7 +420,7 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     top = np.minimum(ndimage.maximum_filter(occ, size=2 * reach + 1, mode="nearest"),
                      np.float32(disparity_range[1]))
     ys64, xs64, far64 = ys.astype(np.int64), xs.astype(np.int64), far.astype(np.float64)
-    if chosen("regions", kernel):
+    if native:
         U, V, H, W = gray.shape
         offsets = near_offsets()
         call("regions", "lfrig_snap", gray, U, V, H, W, m, occ, top, int(reach), ys64, xs64, far64, n, offsets,

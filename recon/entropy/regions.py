@@ -174,6 +174,7 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     band reads around it follow from the spread of the layers' shifts, not from their size."""
     from scipy import ndimage
 
+    native = chosen("regions", kernel)
     layers = np.ascontiguousarray(layers, np.float32)
     offsets = np.ascontiguousarray(offsets, np.float64).reshape(-1, 2)
     H, W = layers.shape
@@ -203,7 +204,7 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     row_start = np.zeros(H + 1, np.int64)
     np.cumsum(np.bincount(ys, minlength=H), out=row_start[1:])
     runs = np.stack([starts, ends], axis=1).astype(np.int64)
-    if chosen("regions", kernel):
+    if native:
         call("regions", "lfrig_occlusion", layers, H, W, offsets, offsets.shape[0], float(gap), row_shift,
              int(OCCLUSION_BAND_ROWS), row_start, runs, neg, pos, thread_count())
     else:
