@@ -531,9 +531,10 @@ TV_PARALLEL_PIXELS = 2 ** 18
 
 #: :data:`TV_PARALLEL_PIXELS` of the C kernels (``recon/native/refine.c``: the bands' threads start
 #: once per call, each band's copy takes the rows beyond it from the others' between two barriers a
-#: round). Backgammon's 131 k stay on one thread there too: 0.12 s CPU on one thread, 0.14 in two
-#: bands, and 0.13 against 0.15 s wall at load 3 (the second core was another process's).
-TV_NATIVE_PARALLEL_PIXELS = 2 ** 18
+#: round). Backgammon's 131 k run in two bands there: ``tv_refine`` 0.12 s wall (0.20 s CPU) against
+#: one thread's 0.17 s at load 1; where the second core is another process's the bands cost a tenth
+#: more than one thread (0.14 against 0.13 s wall at load 3).
+TV_NATIVE_PARALLEL_PIXELS = 2 ** 16
 
 #: Columns between two runs of the TV kernel's pixels (:func:`tv_runs`) up to which they are
 #: worked as one: a loop over x stays long enough to run several pixels at once.
