@@ -132,9 +132,9 @@ export UV_PYTHON_DOWNLOADS=never
 # without this, the first `lfrig reconstruct` on a machine compiles for ~70 s before and during its
 # estimate. Every method's warm-up (recon.methods.warm_every_method: the entropy method's
 # recon/entropy/preload.py, the baseline's sweep) compiles them here instead, once; with the cache
-# current this takes ~1.4 s. The warm-ups also build the C kernels with the system's cc (the
-# baseline's sweep, the entropy method's first phase; recon/native: ~1 s each, once per source and
-# CPU; without a compiler their numba twins run instead).
+# current this takes ~1.4 s. The warm-ups and the loop below also build the C kernels with the
+# system's cc (every library of recon.native.SIGNATURES: ~1 s each, once per source and CPU; a
+# reconstruction then loads no numba; without a compiler their numba twins run instead).
 say "compiling the estimators' kernels into numba's cache (a minute or two the first time)"
 .venv/bin/python -c 'from recon.methods import warm_every_method; warm_every_method()' \
   || say "warning: the estimators' kernels did not compile here; the first reconstruction compiles them (slower, nothing else)"
