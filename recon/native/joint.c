@@ -98,30 +98,39 @@ struct sets {
     int64_t S;
 };
 
-/* cost.py ring_table_rows: rows y0 + 1 .. y1 of the sets' summed-area tables at one candidate into the
- * ring (R, S, W + 1) int64, table row r in slot r % R, made from the row above it. The block rows of
- * `rows` image rows at a time, view by view; then those rows of every set's table. acc (rows, 9, W)
- * float32, rv (2, W) float32, sums (S, W) float64, fixed (W,) int64: scratch. */
-static void ring_table_rows(const struct views *v, float disparity, const struct sets *p, int64_t y0, int64_t y1,
-                            int64_t *ring, int64_t R, float *acc, int64_t rows, float *rv, double *sums,
-                            int64_t *fixed) {
-    const int64_t W = v->W, S = p->S, W1 = W + 1;
-    for (int64_t y = y0; y < y1; y += rows) {
-        const int64_t n = min64(rows, y1 - y);
-        memset(acc, 0, sizeof(float) * (size_t)(n * N_BLOCKS * W));
-        for (int64_t k = 0; k < v->n;) {  /* _block_rows */
-            int64_t next = k;
-            for (int64_t j = 0; j < n; j++) next = block_view_row(v, disparity, y + j, acc + j * N_BLOCKS * W, rv, k);
-            k = next;
-        }
-        for (int64_t j = 0; j < n; j++) {
-            const int64_t *prev = ring + ((y + j) % R) * S * W1;
-            int64_t *cur = ring + ((y + j + 1) % R) * S * W1;
-            for (int64_t i = 0; i < S; i++) {
-                const int64_t s = p->order[i];
-                fixed_table_row(set_sum(acc + j * N_BLOCKS * W, W, p->blocks, p->from, s, sums), W, fixed,
-                                prev + s * W1, cur + s * W1);
-            }
+/* cost.py ring_table_rows, its block rows: rows y .. y + n - 1 of the block rows (n, 9, W) float32 of
+ * m candidates, candidate i's at disparities[i * step] into acc + i * stride, view by view and, for
+ * each view, candidate by candidate: a view's source rows, which the candidates' nearby disparities
+ * mostly share, come from cache for all but the first (a stretch's rows of all the views, 1.6 MB on
+ * backgammon, do not stay in cache from one candidate to the next). Each block row gets its views in
+ * the same order as one candidate at a time. rv (2, W) float32: scratch. */
+static void block_rows(const struct views *v, const float *disparities, int64_t step, int64_t m, int64_t y, int64_t n,
+                       float *acc, int64_t stride, float *rv) {
+    const int64_t W = v->W;
+    for (int64_t i = 0; i < m; i++) memset(acc + i * stride, 0, sizeof(float) * (size_t)(n * N_BLOCKS * W));
+    for (int64_t k = 0; k < v->n;) { /* _block_rows */
+        int64_t next = k;
+        for (int64_t i = 0; i < m; i++)
+            for (int64_t j = 0; j < n; j++)
+                next = block_view_row(v, disparities[i * step], y + j, acc + i * stride + j * N_BLOCKS * W, rv, k);
+        k = next;
+    }
+}
+
+/* cost.py ring_table_rows, its set rows: rows y + 1 .. y + n of the sets' summed-area tables at one
+ * candidate into the ring (R, S, W + 1) int64, table row r in slot r % R, made from the row above it,
+ * from the block rows acc (n, 9, W) float32 of image rows y .. y + n - 1. sums (S, W) float64, fixed
+ * (W,) int64: scratch. */
+static void set_table_rows(const struct sets *p, int64_t W, int64_t y, int64_t n, const float *acc, int64_t *ring,
+                           int64_t R, double *sums, int64_t *fixed) {
+    const int64_t S = p->S, W1 = W + 1;
+    for (int64_t j = 0; j < n; j++) {
+        const int64_t *prev = ring + ((y + j) % R) * S * W1;
+        int64_t *cur = ring + ((y + j + 1) % R) * S * W1;
+        for (int64_t i = 0; i < S; i++) {
+            const int64_t s = p->order[i];
+            fixed_table_row(set_sum(acc + j * N_BLOCKS * W, W, p->blocks, p->from, s, sums), W, fixed, prev + s * W1,
+                            cur + s * W1);
         }
     }
 }
@@ -139,10 +148,11 @@ struct joint_args {
     const int64_t *run_start;
     const int32_t *runs;
     double scale;
-    int64_t rows, up, down, R;
+    int64_t rows, up, down, R, per_thread;
     float *out, *best;
     int64_t *best_k;
-    /* the candidates' rings (G, R, S, W + 1) and k_best (2, G, rows, W); per thread, scratch */
+    /* the candidates' rings (G, R, S, W + 1) and k_best (2, G, rows, W); per thread, scratch (acc: the
+     * block rows (per_thread, rows, 9, W) of the thread's candidates, a seventh of their rings) */
     int64_t *tables, *k_best;
     float *acc, *rv;
     double *sums, *c_best;
@@ -278,15 +288,11 @@ struct stretch {
     int64_t y0, y1, made, need, buffer;
 };
 
-/* The body of _joint_group_kernel's loop over the candidates for one stretch: candidate g's ring
- * extended to the rows the stretch needs, its objectives at the stretch's rows into out (thread t's
+/* Candidate g's objectives at the stretch's rows into out, from its ring of table rows (thread t's
  * scratch). */
 static void joint_candidate(const struct joint_args *a, const struct stretch *st, int64_t g, int64_t t) {
     const int64_t H = a->v.H, W = a->v.W, S = a->p.S, R = a->R, W1 = W + 1;
-    int64_t *ring = a->tables + g * R * S * W1;
-    ring_table_rows(&a->v, a->disparities[g], &a->p, st->made, st->need, ring, R,
-                    a->acc + t * a->rows * N_BLOCKS * W, a->rows, a->rv + t * 2 * W, a->sums + t * S * W,
-                    a->fixed + t * W);
+    const int64_t *ring = a->tables + g * R * S * W1;
     /* no window total of the stretch exceeds its rows' total (the set values are >= 0) */
     const int64_t *top = ring + (max64(st->y0 - a->up, 0) % R) * S * W1;
     const int64_t *bottom = ring + (st->need % R) * S * W1;
@@ -301,6 +307,28 @@ static void joint_candidate(const struct joint_args *a, const struct stretch *st
         float *out = a->out + (g * H + y) * W;
         for (int64_t x = 0; x < W; x++) out[x] = (float)cb[x];
     }
+}
+
+/* The body of _joint_group_kernel's loop over the candidates for one stretch, for thread t of T's
+ * candidates t, t + T, ...: each one's ring extended to the rows the stretch needs (ring_table_rows,
+ * `rows` image rows at a time: the block rows of all of them, then each one's set rows), and, right
+ * after its last set rows, while they are in cache, its objectives at the stretch's rows. */
+static void joint_candidates(const struct joint_args *a, const struct stretch *st, int64_t t, int64_t T) {
+    const int64_t W = a->v.W, S = a->p.S, R = a->R, W1 = W + 1;
+    const int64_t m = t < a->G ? (a->G - t + T - 1) / T : 0, stride = a->rows * N_BLOCKS * W;
+    float *acc = a->acc + t * a->per_thread * stride;
+    for (int64_t y = st->made; y < st->need; y += a->rows) {
+        const int64_t n = min64(a->rows, st->need - y);
+        block_rows(&a->v, a->disparities + t, T, m, y, n, acc, stride, a->rv + t * 2 * W);
+        for (int64_t i = 0; i < m; i++) {
+            const int64_t g = t + i * T;
+            set_table_rows(&a->p, W, y, n, acc + i * stride, a->tables + g * R * S * W1, R, a->sums + t * S * W,
+                           a->fixed + t * W);
+            if (y + n == st->need) joint_candidate(a, st, g, t);
+        }
+    }
+    if (st->made >= st->need)
+        for (int64_t i = 0; i < m; i++) joint_candidate(a, st, t + i * T, t);
 }
 
 /* The body of _joint_group_kernel's fold for row y0 + j of a stretch: each candidate's objective, in
@@ -369,7 +397,7 @@ static void joint_share(const struct joint_args *a, struct crew *c, int64_t t) {
         st.y0 = y0;
         st.y1 = min64(y0 + a->rows, H);
         st.need = min64(st.y1 + a->down, H);
-        for (int64_t g = t; g < a->G; g += T) joint_candidate(a, &st, g, t);
+        joint_candidates(a, &st, t, T);
         crew_barrier(c);
         for (int64_t j = t; j < st.y1 - y0; j += T) joint_fold(a, &st, j);
         st.made = st.need;
@@ -421,7 +449,8 @@ int lfrig_joint_group(const float *gray, int64_t U, int64_t V, int64_t H, int64_
     a.best_k = best_k;
     a.tables = alloc(sizeof(int64_t) * (size_t)(G * R * S * W1));
     a.k_best = alloc(sizeof(int64_t) * (size_t)(2 * G * rows * W));
-    a.acc = alloc(sizeof(float) * (size_t)(T * rows * N_BLOCKS * W));
+    a.per_thread = (G + T - 1) / T;
+    a.acc = alloc(sizeof(float) * (size_t)(T * a.per_thread * rows * N_BLOCKS * W));
     a.rv = alloc(sizeof(float) * (size_t)(T * 2 * W));
     a.sums = alloc(sizeof(double) * (size_t)(T * S * W));
     a.c_best = alloc(sizeof(double) * (size_t)(T * W));
