@@ -128,6 +128,19 @@ def test_the_c_joint_kernel_gives_numbas_bits_on_random_inputs():
               view_mask=view_mask)
 
 
+def test_the_c_joint_kernel_gives_numbas_bits_with_several_candidates_a_thread():
+    # each thread's candidates' block rows made view by view for all of them (3, 2 and 2 of 7 on three
+    # threads; 9 on one), stretches whose rows are made in several steps (rows 1, 3) or none (the last
+    # ones), and rings of table rows of 2 MiB and more (2 MiB pages where the system gives them)
+    require_native("joint")
+    rng = np.random.default_rng(43)
+    for trial, (H, W, G, threads, rows) in enumerate(((26, 230, 7, 3, 3), (26, 230, 9, 1, 8), (12, 19, 7, 2, 1),
+                                                      (9, 40, 8, 4, 3), (5, 6, 6, 5, 8))):
+        inputs = _case(rng, H, W, quantised=trial % 2 == 0)
+        candidates = np.sort(rng.uniform(-1.5, 1.5, G))
+        _both(*inputs[:1], candidates, *inputs[1:], rows=rows, group=G, threads=threads)
+
+
 def test_the_c_joint_kernel_keeps_numbas_bits_on_large_and_odd_values():
     # grey values up to 5000 (window totals beyond 2^51 in the lower rows: the plain int64 -> float64
     # conversion there), NaN and inf in views (set values out of range: the scalar rounding, and
