@@ -171,7 +171,7 @@ def test_the_c_kernel_does_nothing_for_no_rows():
     i64 = np.zeros(1, np.int64)
     out = np.full(4, 7, np.int64)
     # no rows (n_order 0): returns at once, without memory, writing nothing
-    call("select", "lfrig_select", np.zeros(3, np.uint16), 0, np.zeros(1, np.uint8), 1, 1, np.zeros(4, np.int64), 1,
+    call("select", "lfrig_select", np.zeros(2, np.uint16), 0, np.zeros(1, np.uint8), 1, 1, np.zeros(4, np.int64), 1,
          1, np.array([1], np.int64), 1.0, 1.0, 0.0, 1, 1, np.zeros(3), 3, i64, np.zeros(1, np.float32), -1.0,
          i64, np.zeros(0, np.int64), 0, 0, np.zeros(1, np.uint64), 1, i64, np.zeros(1, np.bool_), out, out,
          np.zeros(1, np.float32), np.zeros(0, np.float32), 0, np.zeros(0, np.float32), 0, out, np.zeros(1, np.uint8),

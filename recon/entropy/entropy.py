@@ -479,13 +479,16 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
                          "with an origin at or below the map's minimum)")
     n_grey = int(grey_q.max()) + 1
     n_disp = int(disp_q.max()) + 1
+    native = chosen("select", kernel)
     # each pixel's bins in a window's histograms, one array of three parts: grey, disparity and
     # mismatched grey, 16 bits each where the histograms' 2 n_grey + n_disp bins allow (6 bytes a
-    # pixel instead of 12: the rows a window reads are half as many cache lines)
-    bins = np.empty((H * W, 3), np.uint16 if 2 * n_grey + n_disp <= 2 ** 16 else np.uint32)
+    # pixel instead of 12: the rows a window reads are half as many cache lines); the C kernel takes
+    # the first two (4 bytes a pixel, read in one load) and adds n_grey + n_disp to the grey bin
+    bins = np.empty((H * W, 2 if native else 3), np.uint16 if 2 * n_grey + n_disp <= 2 ** 16 else np.uint32)
     bins[:, 0] = grey_q.ravel()
     bins[:, 1] = disp_q.ravel() + n_grey
-    bins[:, 2] = bins[:, 0] + (n_grey + n_disp)
+    if not native:
+        bins[:, 2] = bins[:, 0] + (n_grey + n_disp)
     c = np.arange(max(sizes) ** 2 + 2, dtype=np.float64)
     xlogx = np.where(c > 0, c * np.log(np.maximum(c, 1)), 0.0)
     shape_map = np.zeros((H, W), np.int64)
@@ -511,7 +514,6 @@ def select_windows(grey_q: np.ndarray, disp_q: np.ndarray, labels: np.ndarray, *
     band = max(1, min(H, int(SELECT_BAND_MIB * 2 ** 20 // (W * K * 4))))
     counts = start[1:]
     values = np.empty(0, np.float32)  # the bands' values, packed
-    native = chosen("select", kernel)
     c_maps = ()  # the C kernel's arguments before the rows: maps, with the bins' width and the lengths
     if native:
         if maps[1].shape != (H, W) or maps[11].shape != (H, W):

@@ -12,6 +12,12 @@
  * inline them, so that each has its own loads; and the window functions take `occl` (whether the
  * pixel is in an occlusion region: its windows count mismatched pixels, else they test the layers)
  * as a constant in each of their calls, so that their pixel loops test neither.
+ *
+ * A pixel's bins are two here, its grey and its disparity bin, read in one load (4 bytes, or 8 when
+ * wide); its mismatched-grey bin is the grey one plus n_grey + n_disp (the numba twin reads it from
+ * a third column that select_windows fills so). A window's pixel loop indexes the bins, labels and
+ * layers from their addresses at the window's base pixel by the ring's offsets: no multiply or add
+ * per pixel beyond the load's own.
  */
 #include "rows.h"
 
@@ -23,9 +29,19 @@ static inline int64_t floordiv64(int64_t a, int64_t b) {
     return (a % b != 0 && ((a < 0) != (b < 0))) ? q - 1 : q;
 }
 
-/* The bin of index i of bins (uint16 or uint32). */
-ALWAYS uint32_t bin_at(const void *bins, int wide, uint64_t i) {
-    return wide ? ((const uint32_t *)bins)[i] : (uint32_t)((const uint16_t *)bins)[i];
+/* Pixel q's grey bin (*g) and disparity bin (*d): bins' two of q (uint16 or uint32), in one load. */
+ALWAYS void bins_at(const void *bins, int wide, uint64_t q, uint32_t *g, uint32_t *d) {
+    if (wide) {
+        uint64_t v;
+        memcpy(&v, (const uint32_t *)bins + 2u * q, sizeof v);
+        *g = (uint32_t)v;
+        *d = (uint32_t)(v >> 32);
+    } else {
+        uint32_t v;
+        memcpy(&v, (const uint16_t *)bins + 2u * q, sizeof v);
+        *g = v & 0xffffu;
+        *d = v >> 16;
+    }
 }
 
 /* What every pixel's windows of a call read, and where they write. */
@@ -38,6 +54,7 @@ struct select_args {
     const int64_t *sizes_n;
     double alpha1, a2_occl, a2_other;
     int64_t n_hist;
+    uint32_t mismatched; /* n_grey + n_disp: a pixel's mismatched-grey bin less its grey bin */
     const double *xlogx;
     const int64_t *side_radius;
     const float *layers;
@@ -66,6 +83,13 @@ struct sums {
     int mixed;
 };
 
+/* Where a window's pixels are: bins, labels and layers from the window's base pixel on. */
+struct base {
+    const void *bins;
+    const uint8_t *labels;
+    const float *layers;
+};
+
 /* What _add_pixel reads besides the pixel: the pixel's region and layer. */
 struct centre {
     int occl;
@@ -82,20 +106,31 @@ ALWAYS double add(uint32_t *restrict counts, uint32_t k, double s, const double 
     return s + xlogx[c + 1u] - xlogx[c];
 }
 
-/* _add_pixel: pixel q (flat index) into one window's histograms and sums. */
-ALWAYS void add_pixel(const struct select_args *a, int wide, int occl, uint64_t q, uint32_t *restrict hist,
-                      struct sums *w, const struct centre *c) {
-    uint64_t b = 3u * q;
-    w->sg = add(hist, bin_at(a->bins, wide, b), w->sg, a->xlogx);
-    w->sd = add(hist, bin_at(a->bins, wide, b + 1u), w->sd, a->xlogx);
+/* _add_pixel: pixel q (flat index from the base pixel at p) into one window's histograms and sums. */
+ALWAYS void add_pixel(const struct select_args *a, int wide, int occl, const struct base *p, uint64_t q,
+                      uint32_t *restrict hist, struct sums *w, const struct centre *c) {
+    uint32_t g, d;
+    bins_at(p->bins, wide, q, &g, &d);
+    w->sg = add(hist, g, w->sg, a->xlogx);
+    w->sd = add(hist, d, w->sd, a->xlogx);
     if (occl) {
-        if ((int64_t)a->labels[q] == c->opposite) {
-            w->sm = add(hist, bin_at(a->bins, wide, b + 2u), w->sm, a->xlogx);
+        if ((int64_t)p->labels[q] == c->opposite) {
+            w->sm = add(hist, g + a->mismatched, w->sm, a->xlogx);
             w->m += 1;
         }
-    } else if (a->gap >= 0 && fabsf(a->layers[q] - c->m_centre) > a->gap) {
+    } else if (a->gap >= 0 && fabsf(p->layers[q] - c->m_centre) > a->gap) {
         w->mixed = 1;
     }
+}
+
+/* The histograms of pixel q (from p) back to 0. */
+ALWAYS void clear_pixel(const struct select_args *a, int wide, const struct base *p, uint64_t q,
+                        uint32_t *restrict hist) {
+    uint32_t g, d;
+    bins_at(p->bins, wide, q, &g, &d);
+    hist[g] = 0;
+    hist[d] = 0;
+    hist[g + a->mismatched] = 0;
 }
 
 /* _window_entropy: Eq. 1 from a window's pixel count n (logn: its log) and running sums. */
@@ -116,16 +151,11 @@ ALWAYS int verdict(int occl, int64_t s, int64_t k, int64_t size, int64_t cap, in
 
 /* _clear_ring: the histograms of a window of n ring pixels back to 0. */
 ALWAYS void clear_ring(const struct select_args *a, int wide, uint32_t *restrict hist, const uint64_t *restrict ring,
-                       int64_t n, uint64_t base_u) {
+                       int64_t n, const struct base *p) {
     if (a->n_hist <= 6 * n) {
         memset(hist, 0, sizeof(uint32_t) * (size_t)a->n_hist);
     } else {
-        for (uint64_t i = 0; i < (uint64_t)n; i++) {
-            uint64_t b = 3u * (base_u + ring[i]);
-            hist[bin_at(a->bins, wide, b)] = 0;
-            hist[bin_at(a->bins, wide, b + 1u)] = 0;
-            hist[bin_at(a->bins, wide, b + 2u)] = 0;
-        }
+        for (uint64_t i = 0; i < (uint64_t)n; i++) clear_pixel(a, wide, p, ring[i], hist);
     }
 }
 
@@ -134,7 +164,7 @@ ALWAYS void clear_ring(const struct select_args *a, int wide, uint32_t *restrict
  * n_sizes + k] for shape s + j; then the histograms cleared. */
 ALWAYS void ring_windows(const struct select_args *a, int wide, int occl, int two, int64_t s,
                          const uint64_t *restrict ring_a, const uint64_t *restrict ring_b,
-                         const int64_t *restrict ends, uint64_t base_u,
+                         const int64_t *restrict ends, const struct base *p,
                          uint32_t *restrict hist_a, uint32_t *restrict hist_b, const struct centre *c,
                          double *restrict e_k, uint8_t *restrict offered) {
     const int64_t n_sizes = a->n_sizes;
@@ -149,13 +179,13 @@ ALWAYS void ring_windows(const struct select_args *a, int wide, int occl, int tw
         uint64_t i1 = (uint64_t)n;
         if (act_a && act_b) {
             for (uint64_t i = i0; i < i1; i++) {
-                add_pixel(a, wide, occl, base_u + ring_a[i], hist_a, &wa, c);
-                add_pixel(a, wide, occl, base_u + ring_b[i], hist_b, &wb, c);
+                add_pixel(a, wide, occl, p, ring_a[i], hist_a, &wa, c);
+                add_pixel(a, wide, occl, p, ring_b[i], hist_b, &wb, c);
             }
         } else if (act_a) {
-            for (uint64_t i = i0; i < i1; i++) add_pixel(a, wide, occl, base_u + ring_a[i], hist_a, &wa, c);
+            for (uint64_t i = i0; i < i1; i++) add_pixel(a, wide, occl, p, ring_a[i], hist_a, &wa, c);
         } else if (act_b) {
-            for (uint64_t i = i0; i < i1; i++) add_pixel(a, wide, occl, base_u + ring_b[i], hist_b, &wb, c);
+            for (uint64_t i = i0; i < i1; i++) add_pixel(a, wide, occl, p, ring_b[i], hist_b, &wb, c);
         }
         offered[k] = offered[n_sizes + k] = 0;
         if (act_a) {
@@ -177,8 +207,8 @@ ALWAYS void ring_windows(const struct select_args *a, int wide, int occl, int tw
             }
         }
     }
-    clear_ring(a, wide, hist_a, ring_a, na, base_u);
-    if (two) clear_ring(a, wide, hist_b, ring_b, nb, base_u);
+    clear_ring(a, wide, hist_a, ring_a, na, p);
+    if (two) clear_ring(a, wide, hist_b, ring_b, nb, p);
 }
 
 /* _clipped_windows: the windows of shape s of a pixel near the border, clipped to the image, each
@@ -189,6 +219,7 @@ ALWAYS void clipped_windows(const struct select_args *a, int wide, int occl, int
                             uint8_t *restrict offered) {
     const int64_t n_sizes = a->n_sizes, H = a->H, W = a->W;
     const int64_t *rects_s = a->rects + s * n_sizes * 4;
+    const struct base p = {a->bins, a->labels, a->layers};
     struct sums w = {0.0, 0.0, 0.0, 0, 0};
     int64_t n = 0;
     int64_t py0 = 0, px0 = 0, py1 = -1, px1 = -1;
@@ -212,7 +243,7 @@ ALWAYS void clipped_windows(const struct select_args *a, int wide, int occl, int
             }
             for (int r = 0; r < 2; r++) {
                 for (int64_t xx = runs[r][0]; xx < runs[r][1]; xx++) {
-                    add_pixel(a, wide, occl, (uint64_t)(yy * W + xx), hist, &w, c);
+                    add_pixel(a, wide, occl, &p, (uint64_t)(yy * W + xx), hist, &w, c);
                     n += 1;
                 }
             }
@@ -233,12 +264,7 @@ ALWAYS void clipped_windows(const struct select_args *a, int wide, int occl, int
         }
     }
     for (int64_t yy = py0; yy < py1 + 1; yy++) {
-        for (int64_t xx = px0; xx < px1 + 1; xx++) {
-            const int64_t b = 3 * (yy * W + xx);
-            hist[bin_at(a->bins, wide, (uint64_t)b)] = 0;
-            hist[bin_at(a->bins, wide, (uint64_t)b + 1u)] = 0;
-            hist[bin_at(a->bins, wide, (uint64_t)b + 2u)] = 0;
-        }
+        for (int64_t xx = px0; xx < px1 + 1; xx++) clear_pixel(a, wide, &p, (uint64_t)(yy * W + xx), hist);
     }
 }
 
@@ -272,7 +298,7 @@ ALWAYS int select_row(const struct select_args *a, int wide, int64_t jr) {
         c.a2 = c.occl ? a->a2_occl : a->a2_other;
         const int64_t s_last = (c.occl || a->side_radius[p] <= r_max) ? n_shapes : 1;
         const int inside = margin <= y && y < H - margin && margin <= x && x < W - margin;
-        const uint64_t base_u = (uint64_t)(p - ring_shift);
+        const uint64_t base_u = (uint64_t)(p - ring_shift); /* the windows' base pixel, where inside */
         c.m_centre = a->layers[p];
         c.cap = a->max_size[p];
         c.side_r = a->side_radius[p];
@@ -283,13 +309,15 @@ ALWAYS int select_row(const struct select_args *a, int wide, int64_t jr) {
         while (s < s_last) {
             const int two = inside && a->paired[s] && s + 1 < s_last;
             if (inside) {
+                const struct base at = {(const char *)a->bins + base_u * (wide ? 8u : 4u), a->labels + base_u,
+                                        a->layers + base_u};
                 const uint64_t *ring_a = a->ring + s * a->ring_len;
                 const uint64_t *ring_b = two ? ring_a + a->ring_len : ring_a;
                 const int64_t *ends = a->ring_end + s * n_sizes;
                 if (c.occl)
-                    ring_windows(a, wide, 1, two, s, ring_a, ring_b, ends, base_u, hist_a, hist_b, &c, e_k, offered);
+                    ring_windows(a, wide, 1, two, s, ring_a, ring_b, ends, &at, hist_a, hist_b, &c, e_k, offered);
                 else
-                    ring_windows(a, wide, 0, two, s, ring_a, ring_b, ends, base_u, hist_a, hist_b, &c, e_k, offered);
+                    ring_windows(a, wide, 0, two, s, ring_a, ring_b, ends, &at, hist_a, hist_b, &c, e_k, offered);
             } else {
                 clipped_windows(a, wide, c.occl, y, x, s, hist_a, &c, e_k, offered);
             }
@@ -328,7 +356,8 @@ static int select_row16(void *ctx, int64_t jr) { return select_row(ctx, 0, jr); 
 static int select_row32(void *ctx, int64_t jr) { return select_row(ctx, 1, jr); }
 
 /* _select_kernel: the windows of the rows `order` (n_order of them, dealt to `threads` threads)
- * and their matching entropies. bins (H * W * 3,) uint16 (wide 0) or uint32 (wide 1); labels
+ * and their matching entropies. bins (H * W * 2,) uint16 (wide 0) or uint32 (wide 1), each pixel's
+ * grey bin and its disparity bin (+ n_grey), the mismatched-grey bin being grey + n_grey + n_disp; labels
  * (H, W) uint8; rects (n_shapes, n_sizes, 4); sizes_n (n_sizes,); xlogx (n_xlogx,); side_radius,
  * max_size (H, W) int64; layers (H, W) float32; ring (n_shapes, ring_len) uint64; ring_end
  * (n_shapes, n_sizes); paired (n_shapes,) uint8 (numpy bool); shape_map, size_map (H, W) int64;
@@ -348,9 +377,9 @@ int lfrig_select(const void *bins, int64_t wide, const uint8_t *labels, int64_t 
     log_n[0] = 0.0;
     for (int64_t n = 1; n < n_xlogx; n++) log_n[n] = log((double)n);
     struct select_args a = {bins, labels, H, W, rects, n_shapes, n_sizes, sizes_n, alpha1, a2_occl, a2_other,
-                            2 * n_grey + n_disp, xlogx, side_radius, layers, gap, max_size, order, margin, ring,
-                            ring_len, ring_end, paired, shape_map, size_map, best_e, all_e, dense != 0, row_values,
-                            row_first, counts, mask, log_n};
+                            2 * n_grey + n_disp, (uint32_t)(n_grey + n_disp), xlogx, side_radius, layers, gap,
+                            max_size, order, margin, ring, ring_len, ring_end, paired, shape_map, size_map, best_e,
+                            all_e, dense != 0, row_values, row_first, counts, mask, log_n};
     int status = run_items(wide ? select_row32 : select_row16, &a, n_order, threads);
     free(log_n);
     return status;
