@@ -3,6 +3,9 @@
 sparse) and the volume's mask and offsets, on random inputs that reach every rule of the selection
 and on the HCI backgammon scene's own inputs."""
 
+import ctypes
+import subprocess
+
 import numpy as np
 import pytest
 
@@ -124,6 +127,26 @@ def test_the_c_selection_gives_numbas_bits_with_bins_beyond_16_bits():
               side_radius=rng.integers(0, 4, (H, W)), return_all=True)
         _both(grey, disp, labels, sizes=(1, 3, 5, 7), alpha1=1.0, alpha2_occlusion=1.0, alpha2_other=0.0,
               return_all="sparse")
+
+
+def test_the_c_selection_without_sse2_gives_numbas_bits(monkeypatch, tmp_path):
+    # select.c built with its plain sums (two doubles, as where SSE2 is not there) gives the same bits
+    import recon.native as native
+
+    require_native("select")
+    target = tmp_path / "select-plain.so"
+    run = subprocess.run([native.compiler(), *native.CFLAGS, "-U__SSE2__", "-o", str(target),
+                          str(native.HERE / "select.c")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lib = ctypes.CDLL(str(target))
+    for function, types in native.SIGNATURES["select"].items():
+        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
+        getattr(lib, function).restype = ctypes.c_int
+    monkeypatch.setitem(native._loaded, "select", lib)
+    rng = np.random.default_rng(29)
+    for trial in range(14):
+        grey, disp, labels, kw = _random_case(rng, trial)
+        _both(grey, disp, labels, return_all="sparse", **kw)
 
 
 def test_the_c_selection_is_the_same_on_any_number_of_threads(monkeypatch):
