@@ -283,6 +283,41 @@ def test_the_first_phases_c_kernels_give_numbas_bits_on_random_inputs():
                                   downsample_views(gray, factor, kernel="numba").view(np.uint32))
 
 
+def test_the_first_phases_c_kernels_without_avx512_give_numbas_bits(monkeypatch, tmp_path):
+    # initial.c built without AVX-512 (its loops over 256-bit registers or fewer, as on a CPU without
+    # it; with it they take 512) gives the same bits
+    import ctypes
+
+    import recon.native as native
+    from recon.entropy.cost import min_window_costs
+    from recon.entropy.matching import subpixel_argmin
+
+    require_native("initial")
+    target = tmp_path / "initial-portable.so"
+    run = subprocess.run([native.compiler(), *native.CFLAGS, "-mno-avx512f", "-o", str(target),
+                          str(native.HERE / "initial.c")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lib = ctypes.CDLL(str(target))
+    for function, types in native.SIGNATURES["initial"].items():
+        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
+        getattr(lib, function).restype = ctypes.c_int
+    monkeypatch.setitem(native._loaded, "initial", lib)
+    rng = np.random.default_rng(8)
+    for trial in range(8):
+        grid = [(9, 9), (5, 5), (3, 4), (7, 7)][trial % 4]
+        H, W = int(rng.integers(8, 40)), int(rng.integers(8, 70))
+        gray = rng.random(grid + (H, W)).astype(np.float32)
+        inputs = _window_inputs(rng, grid, H, W, trial)
+        candidates = np.sort(rng.uniform(-3, 3, int(rng.integers(1, 4)))).astype(np.float32)
+        native_costs = min_window_costs(gray, candidates, **inputs, kernel="native")
+        twin = min_window_costs(gray, candidates, **inputs, kernel="numba")
+        assert np.array_equal(native_costs.view(np.uint32), twin.view(np.uint32))
+        values = np.sort(rng.uniform(-2, 2, len(candidates)))
+        for a, b in zip(subpixel_argmin(native_costs, values, kernel="native"),
+                        subpixel_argmin(native_costs, values, kernel="numba")):
+            assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+
+
 ESTIMATE_IN_A_PROCESS = """
 import hashlib, json
 import numpy as np

@@ -10,7 +10,15 @@
  * - lfrig_downsample: recon/entropy/initial.py, _downsample_kernel.
  *
  * Arrays are C-contiguous; the comments of the numba twins say why each loop has its shape.
+ *
+ * Built for a CPU with AVX-512, the loops vectorise over 512-bit registers (GCC's -march=native
+ * takes 256 for some of them, Intel's among them): the same operations lane by lane, no sum
+ * reordered, so the same bits; on backgammon the nine-view search's window costs took 0.37 -> 0.30 s
+ * on one thread.
  */
+#if defined(__AVX512F__) && defined(__GNUC__) && !defined(__clang__)
+#pragma GCC target("prefer-vector-width=512")
+#endif
 #include "tables.h"
 
 struct mwc_args {
