@@ -283,6 +283,22 @@ def test_the_first_phases_c_kernels_give_numbas_bits_on_random_inputs():
                                   downsample_views(gray, factor, kernel="numba").view(np.uint32))
 
 
+def test_the_nine_view_costs_give_numbas_bits_on_wide_rows():
+    # rows of whole tiles of the sets' sums (64 pixels), and of whole tiles and a part
+    from recon.entropy.cost import min_window_costs
+
+    require_native("initial")
+    rng = np.random.default_rng(12)
+    for trial, W in enumerate((64, 65, 128, 150, 201)):
+        grid = [(9, 9), (5, 5), (3, 4), (7, 7)][trial % 4]
+        gray = rng.random(grid + (9, W)).astype(np.float32)
+        inputs = _window_inputs(rng, grid, 9, W, trial + 1)
+        candidates = np.sort(rng.uniform(-3, 3, 2)).astype(np.float32)
+        native = min_window_costs(gray, candidates, **inputs, kernel="native")
+        twin = min_window_costs(gray, candidates, **inputs, kernel="numba")
+        assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
+
+
 def test_the_first_phases_c_kernels_without_avx512_give_numbas_bits(monkeypatch, tmp_path):
     # initial.c built without AVX-512 (its loops over 256-bit registers or fewer, as on a CPU without
     # it; with it they take 512) gives the same bits

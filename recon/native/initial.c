@@ -19,7 +19,10 @@
 #if defined(__AVX512F__) && defined(__GNUC__) && !defined(__clang__)
 #pragma GCC target("prefer-vector-width=512")
 #endif
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-function" /* set_sum: here fixed_set_rows makes the sets' rows */
 #include "tables.h"
+#pragma GCC diagnostic pop
 
 struct mwc_args {
     struct views v;
@@ -35,6 +38,53 @@ struct mwc_args {
     int64_t n_chunks;
     float *out;
 };
+
+/* Pixels a pass of fixed_set_rows takes at once: a set's sum over them stays in registers. */
+#define SET_TILE 64
+
+/* _set_sum for every set (in set_order) and each value rounded to a multiple of 1 / FIXED_POINT into
+ * slot (S, W), TILE pixels at a time: a set's blocks added in registers (each pixel's float64 sum the
+ * same additions in the same order as set_sum's passes), the tile's sums kept in sums (S, SET_TILE)
+ * for the sets that continue them. first, from, count: per set, its first block's row that it adds
+ * (after set_from's sum, or as its start), the set it continues (-1: none) and how many rows it adds;
+ * rows_of[s * N_BLOCKS + j] its j-th block row. */
+static void fixed_set_rows(const float *const *rows_of, const int64_t *from, const int64_t *count,
+                           const int64_t *order, int64_t S, int64_t W, double *tile, double *slot) {
+    for (int64_t x0 = 0; x0 < W; x0 += SET_TILE) {
+        const int64_t n = min64(SET_TILE, W - x0);
+        for (int64_t i = 0; i < S; i++) {
+            const int64_t s = order[i];
+            const float *const *r = rows_of + s * N_BLOCKS;
+            double *restrict v = tile + s * SET_TILE;
+            double *restrict fixed = slot + s * W + x0;
+            if (n == SET_TILE) {
+                double t[SET_TILE];
+                if (from[s] >= 0) {
+                    const double *restrict before = tile + from[s] * SET_TILE;
+                    for (int64_t x = 0; x < SET_TILE; x++) t[x] = before[x] + (double)r[0][x0 + x];
+                } else {
+                    for (int64_t x = 0; x < SET_TILE; x++) t[x] = (double)r[0][x0 + x];
+                }
+                for (int64_t j = 1; j < count[s]; j++)
+                    for (int64_t x = 0; x < SET_TILE; x++) t[x] += (double)r[j][x0 + x];
+                for (int64_t x = 0; x < SET_TILE; x++) {
+                    v[x] = t[x];
+                    fixed[x] = floor(t[x] * FIXED_POINT + 0.5);
+                }
+            } else {
+                if (from[s] >= 0) {
+                    const double *restrict before = tile + from[s] * SET_TILE;
+                    for (int64_t x = 0; x < n; x++) v[x] = before[x] + (double)r[0][x0 + x];
+                } else {
+                    for (int64_t x = 0; x < n; x++) v[x] = (double)r[0][x0 + x];
+                }
+                for (int64_t j = 1; j < count[s]; j++)
+                    for (int64_t x = 0; x < n; x++) v[x] += (double)r[j][x0 + x];
+                for (int64_t x = 0; x < n; x++) fixed[x] = floor(v[x] * FIXED_POINT + 0.5);
+            }
+        }
+    }
+}
 
 /* One chunk of rows of _min_window_costs_kernel. */
 static int mwc_chunk(void *ctx, int64_t chunk) {
@@ -52,13 +102,25 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
     double *rings = malloc(sizeof(double) * G * R * S * W);
     float *acc = malloc(sizeof(float) * N_BLOCKS * W);
     float *rv = malloc(sizeof(float) * 2 * W);
-    double *sums = malloc(sizeof(double) * S * W);
+    double *sums = malloc(sizeof(double) * S * SET_TILE);
+    const float **rows_of = malloc(sizeof(float *) * S * N_BLOCKS);
+    int64_t *count = malloc(sizeof(int64_t) * S);
     double *all_cols = malloc(sizeof(double) * G * K * W);
     double *best = malloc(sizeof(double) * W);
     int status = 0;
-    if (!rings || !acc || !rv || !sums || !all_cols || !best) {
+    if (!rings || !acc || !rv || !sums || !all_cols || !best || !rows_of || !count) {
         status = -1;
         goto done;
+    }
+    for (int64_t s = 0; s < S; s++) { /* set_sum's rows: after set_from's blocks, or all of the set's */
+        const int64_t *bs = a->set_blocks + s * N_BLOCKS;
+        int64_t t = 0;
+        const int64_t p = a->set_from[s];
+        if (p >= 0)
+            while (t < N_BLOCKS && a->set_blocks[p * N_BLOCKS + t] >= 0) t++;
+        count[s] = 0;
+        for (int64_t j = t; j < N_BLOCKS && (j == t || bs[j] >= 0); j++)
+            rows_of[s * N_BLOCKS + count[s]++] = acc + bs[j] * W;
     }
     int64_t nxt = max64(c0 - up, 0);
     for (int64_t y = c0; y < c1; y++) {
@@ -66,13 +128,8 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
             for (int64_t g = 0; g < G; g++) {
                 memset(acc, 0, sizeof(float) * N_BLOCKS * W);
                 for (int64_t k = 0; k < a->v.n;) k = block_view_row(&a->v, a->disparities[g], nxt, acc, rv, k);
-                double *slot = rings + (g * R + nxt % R) * S * W;
-                for (int64_t i = 0; i < S; i++) {
-                    int64_t s = a->set_order[i];
-                    const double *restrict v = set_sum(acc, W, a->set_blocks, a->set_from, s, sums);
-                    double *restrict fixed = slot + s * W;
-                    for (int64_t x = 0; x < W; x++) fixed[x] = floor(v[x] * FIXED_POINT + 0.5);
-                }
+                fixed_set_rows(rows_of, a->set_from, count, a->set_order, S, W, sums,
+                               rings + (g * R + nxt % R) * S * W);
             }
             nxt++;
         }
@@ -166,6 +223,8 @@ done:
     free(acc);
     free(rv);
     free(sums);
+    free(rows_of);
+    free(count);
     free(all_cols);
     free(best);
     return status;
