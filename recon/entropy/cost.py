@@ -16,6 +16,8 @@ Twins follow the rule of :mod:`recon.entropy`: ``name`` compiled, ``name_referen
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 from recon.jit import numba
 import numpy as np
 
@@ -699,9 +701,10 @@ def min_window_costs(gray: np.ndarray, disparities: np.ndarray, *, sets: np.ndar
     disparities = np.ascontiguousarray(disparities, np.float32)
     if out is None:
         out = np.empty((len(disparities), H, W), np.float32)
-    views = view_lists((U, V), view_mask)
-    plan = set_sums_plan(np.asarray(sets))
     if chosen("initial", kernel):
+        mask = None if view_mask is None else np.asarray(view_mask, bool)
+        views, plan = _native_plan((U, V), None if mask is None else (mask.shape, mask.tobytes()),
+                                   np.asarray(sets, np.int64).tobytes())
         threads = thread_count()
         n_chunks = max(1, min(threads, H))
         window_set, rects = np.ascontiguousarray(window_set, np.int64), np.ascontiguousarray(rects, np.int64)
@@ -712,9 +715,24 @@ def min_window_costs(gray: np.ndarray, disparities: np.ndarray, *, sets: np.ndar
              views[4], len(views[0]), disparities, len(disparities), *plan[:3], len(plan[0]), window_set, rects,
              len(rects), counts, allowed, allowed.shape[1], allowed.shape[2], n_chunks, threads, out)
         return out
+    views = view_lists((U, V), view_mask)
+    plan = set_sums_plan(np.asarray(sets))
     n_chunks = max(1, min(numba.get_num_threads(), H))
     _min_window_costs_kernel(gray, *views, disparities, *plan, window_set, rects, counts, allowed, n_chunks, out)
     return out
+
+
+@lru_cache(maxsize=16)
+def _native_plan(grid_shape: tuple[int, int], view_mask: tuple | None, sets: bytes):
+    # view_lists and set_sums_plan of one view mask ((shape, bool bytes), None: every view) and one
+    # list of sets (int64 bytes), made once for the calls of a search (backgammon's nine-view search:
+    # 26 groups, 0.2 ms each); read only, as the C kernel reads them
+    mask = None if view_mask is None else np.frombuffer(view_mask[1], np.bool_).reshape(view_mask[0])
+    views = view_lists(grid_shape, mask)
+    plan = set_sums_plan(np.frombuffer(sets, np.int64))
+    for array in (*views, *plan):
+        array.flags.writeable = False
+    return views, plan
 
 
 #: Bytes of the rings of set rows and the column sums the candidates of one group of
