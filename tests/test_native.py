@@ -299,6 +299,28 @@ def test_the_nine_view_costs_give_numbas_bits_on_wide_rows():
         assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
 
 
+def test_the_nine_view_costs_give_numbas_bits_with_any_view_counts():
+    # windows of one denominator share a division where it is positive and finite; view counts of 0,
+    # negative, inf or NaN (each window then divides alone), and of equal denominators across
+    # windows of other shapes
+    from recon.entropy.cost import min_window_costs
+
+    require_native("initial")
+    rng = np.random.default_rng(21)
+    odd = np.array([0.0, -2.0, np.inf, np.nan, 0.5, 3.0, 1e-300, 6.0])
+    for trial in range(12):
+        W = int(rng.integers(3, 90))
+        gray = rng.random((3, 3, 7, W)).astype(np.float32)
+        if trial % 4 == 3:
+            gray[1, 1, 2:4, 1:3] = np.nan  # NaN sums
+        inputs = _window_inputs(rng, (3, 3), 7, W, trial)
+        inputs["counts"] = rng.choice(odd if trial % 2 else np.array([2.0, 3.0, 4.0, 6.0]), len(inputs["counts"]))
+        candidates = np.sort(rng.uniform(-2, 2, 2)).astype(np.float32)
+        native = min_window_costs(gray, candidates, **inputs, kernel="native")
+        twin = min_window_costs(gray, candidates, **inputs, kernel="numba")
+        assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
+
+
 def test_the_first_phases_c_kernels_without_avx512_give_numbas_bits(monkeypatch, tmp_path):
     # initial.c built without AVX-512 (its loops over 256-bit registers or fewer, as on a CPU without
     # it; with it they take 512) gives the same bits

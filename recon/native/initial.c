@@ -86,6 +86,77 @@ static void fixed_set_rows(const float *const *rows_of, const int64_t *from, con
     }
 }
 
+/* A window of a row for the pixels its window covers whole in x: its column sums, gate row (NULL:
+ * every pixel), first column offset, width, pixels [lo, hi) and denominator. */
+struct inner {
+    const double *col;
+    const uint8_t *al;
+    int64_t ra, width, lo, hi;
+    double denom;
+    int done;
+};
+
+/* Whether two doubles have the same bits. */
+static inline int same_bits(double a, double b) {
+    uint64_t p, q;
+    memcpy(&p, &a, sizeof p);
+    memcpy(&q, &b, sizeof q);
+    return p == q;
+}
+
+/* The window's sum at pixels [xa, xb) from its column sums s0 = col + xa + ra (_min_window_costs_kernel's
+ * additions, by width), as v(i, t) takes it. */
+#define WINDOW_SUMS(w, xa, xb, body)                                                                              \
+    do {                                                                                                          \
+        const int64_t n_ = (xb) - (xa);                                                                           \
+        const double *restrict s0 = (w)->col + (xa) + (w)->ra;                                                    \
+        const double *restrict s1 = s0 + 1;                                                                       \
+        const double *restrict s2 = s0 + 2;                                                                       \
+        if ((w)->width == 5) {                                                                                    \
+            const double *restrict s3 = s0 + 3;                                                                   \
+            const double *restrict s4 = s0 + 4;                                                                   \
+            for (int64_t i = 0; i < n_; i++) {                                                                    \
+                const double t = ((s0[i] + s1[i]) + (s2[i] + s3[i])) + s4[i];                                     \
+                body;                                                                                             \
+            }                                                                                                     \
+        } else if ((w)->width == 3) {                                                                             \
+            for (int64_t i = 0; i < n_; i++) {                                                                    \
+                const double t = (s0[i] + s1[i]) + s2[i];                                                         \
+                body;                                                                                             \
+            }                                                                                                     \
+        } else {                                                                                                  \
+            for (int64_t i = 0; i < n_; i++) {                                                                    \
+                double t = s0[i];                                                                                 \
+                for (int64_t q = 1; q < (w)->width; q++) t += s0[i + q];                                          \
+                body;                                                                                             \
+            }                                                                                                     \
+        }                                                                                                         \
+    } while (0)
+
+/* The window's costs at pixels [xa, xb) into best (the least), a division each. */
+static void window_costs(double *restrict best, const struct inner *w, int64_t xa, int64_t xb) {
+    if (xb <= xa) return;
+    double *restrict bs = best + xa;
+    const uint8_t *restrict al = w->al ? w->al + xa : NULL;
+    const double denom = w->denom;
+    WINDOW_SUMS(w, xa, xb, {
+        double c = t * FIXED_INV / denom;
+        c = (!al || al[i]) ? c : INFINITY;
+        bs[i] = c < bs[i] ? c : bs[i];
+    });
+}
+
+/* The window's sums at pixels [xa, xb) into least (the least where the gate allows; a NaN sum never). */
+static void least_sums(double *restrict least, const struct inner *w, int64_t xa, int64_t xb) {
+    if (xb <= xa) return;
+    double *restrict ls = least + xa;
+    const uint8_t *restrict al = w->al ? w->al + xa : NULL;
+    WINDOW_SUMS(w, xa, xb, {
+        const double u = (!al || al[i]) ? t : INFINITY;
+        ls[i] = u < ls[i] ? u : ls[i];
+    });
+}
+
 /* One chunk of rows of _min_window_costs_kernel. */
 static int mwc_chunk(void *ctx, int64_t chunk) {
     const struct mwc_args *a = ctx;
@@ -107,8 +178,10 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
     int64_t *count = malloc(sizeof(int64_t) * S);
     double *all_cols = malloc(sizeof(double) * G * K * W);
     double *best = malloc(sizeof(double) * W);
+    double *least = malloc(sizeof(double) * W);
+    struct inner *live = malloc(sizeof(struct inner) * (size_t)max64(K, 1));
     int status = 0;
-    if (!rings || !acc || !rv || !sums || !all_cols || !best || !rows_of || !count) {
+    if (!rings || !acc || !rv || !sums || !all_cols || !best || !rows_of || !count || !least || !live) {
         status = -1;
         goto done;
     }
@@ -137,6 +210,7 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
             const double *ring = rings + g * R * S * W;
             double *cols = all_cols + g * K * W;
             for (int64_t x = 0; x < W; x++) best[x] = 1e300;
+            int64_t n_live = 0;
             for (int64_t k = 0; k < K; k++) {
                 const uint8_t *allowed_k = a->allowed + k * a->aH * a->aW;
                 if (!per_pixel && !allowed_k[0]) continue;
@@ -180,38 +254,52 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
                     double c = total * FIXED_INV / ((double)((yb - ya) * (xb - xa)) * ck);
                     if (c < best[x]) best[x] = c;
                 }
-                const int64_t n = hi - lo;
-                if (n > 0) {
-                    const int64_t width = rb - ra + 1;
-                    double *restrict bs = best + lo;
-                    const double denom = (double)((yb - ya) * width) * ck;
-                    const double *restrict s0 = col + lo + ra;
-                    const double *restrict s1 = s0 + 1;
-                    const double *restrict s2 = s0 + 2;
-                    const uint8_t *restrict al = per_pixel ? al_row + lo : NULL;
-                    if (width == 5) {
-                        const double *restrict s3 = s0 + 3;
-                        const double *restrict s4 = s0 + 4;
-                        for (int64_t i = 0; i < n; i++) {
-                            double c = (((s0[i] + s1[i]) + (s2[i] + s3[i])) + s4[i]) * FIXED_INV / denom;
-                            c = (!al || al[i]) ? c : INFINITY;
-                            bs[i] = c < bs[i] ? c : bs[i];
-                        }
-                    } else if (width == 3) {
-                        for (int64_t i = 0; i < n; i++) {
-                            double c = ((s0[i] + s1[i]) + s2[i]) * FIXED_INV / denom;
-                            c = (!al || al[i]) ? c : INFINITY;
-                            bs[i] = c < bs[i] ? c : bs[i];
-                        }
-                    } else {
-                        for (int64_t i = 0; i < n; i++) {
-                            double t = s0[i];
-                            for (int64_t q = 1; q < width; q++) t += s0[i + q];
-                            double c = t * FIXED_INV / denom;
-                            c = (!al || al[i]) ? c : INFINITY;
-                            bs[i] = c < bs[i] ? c : bs[i];
-                        }
-                    }
+                /* the pixels whose window lies within the row: below, with the windows of the same denominator */
+                struct inner *w = &live[n_live++];
+                w->col = col;
+                w->al = per_pixel ? al_row : NULL;
+                w->ra = ra;
+                w->width = rb - ra + 1;
+                w->lo = lo;
+                w->hi = hi;
+                w->denom = (double)((yb - ya) * (rb - ra + 1)) * ck;
+                w->done = 0;
+            }
+            /* A window's cost is its sum times FIXED_INV (exact, a power of 2) over its denominator,
+             * rounded once: rounding keeps the order of the exact values, so among windows of one
+             * positive finite denominator (the same bits) the least sum gives the least cost, and a
+             * pixel's least over all windows is the same whichever way it is taken (a NaN cost never
+             * taken, none -0: the sums are >= +0). The windows of one denominator take their least
+             * sum over the pixels all of them cover and divide once there (backgammon: 11 windows, 4
+             * denominators, 0.300 -> 0.284 s on one thread); each window alone divides for its
+             * other pixels, and a window of another denominator (0, negative, inf or NaN counts)
+             * for all of its. */
+            for (int64_t i = 0; i < n_live; i++) {
+                if (live[i].done) continue;
+                if (!(live[i].denom > 0.0 && live[i].denom < INFINITY)) { /* no order kept: each alone */
+                    window_costs(best, &live[i], live[i].lo, live[i].hi);
+                    continue;
+                }
+                int64_t from = live[i].lo, to = live[i].hi;
+                for (int64_t j = i; j < n_live; j++) {
+                    if (!same_bits(live[j].denom, live[i].denom)) continue;
+                    from = max64(from, live[j].lo);
+                    to = min64(to, live[j].hi);
+                }
+                to = max64(to, from);
+                for (int64_t x = from; x < to; x++) least[x] = INFINITY;
+                for (int64_t j = i; j < n_live; j++) {
+                    const struct inner *v = &live[j];
+                    if (!same_bits(v->denom, live[i].denom)) continue;
+                    live[j].done = 1;
+                    window_costs(best, v, v->lo, min64(from, v->hi));
+                    window_costs(best, v, max64(to, v->lo), v->hi);
+                    least_sums(least, v, from, to);
+                }
+                const double denom = live[i].denom;
+                for (int64_t x = from; x < to; x++) {
+                    const double c = least[x] * FIXED_INV / denom;
+                    best[x] = c < best[x] ? c : best[x];
                 }
             }
             float *out = a->out + (g * H + y) * W;
@@ -227,6 +315,8 @@ done:
     free(count);
     free(all_cols);
     free(best);
+    free(least);
+    free(live);
     return status;
 }
 
