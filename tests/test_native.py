@@ -313,11 +313,22 @@ def test_the_nine_view_costs_give_numbas_bits_with_any_view_counts():
         gray = rng.random((3, 3, 7, W)).astype(np.float32)
         if trial % 4 == 3:
             gray[1, 1, 2:4, 1:3] = np.nan  # NaN sums
+        if trial % 3 == 1:
+            gray[:, :, :, : W // 2] = 0.5  # sums of 0 (costs of -0 with a negative count)
         inputs = _window_inputs(rng, (3, 3), 7, W, trial)
         inputs["counts"] = rng.choice(odd if trial % 2 else np.array([2.0, 3.0, 4.0, 6.0]), len(inputs["counts"]))
         candidates = np.sort(rng.uniform(-2, 2, 2)).astype(np.float32)
         native = min_window_costs(gray, candidates, **inputs, kernel="native")
         twin = min_window_costs(gray, candidates, **inputs, kernel="numba")
+        assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
+    for trial in range(6):  # every sum 0: costs of +0 and -0, the first window taken at a pixel decides
+        W = int(rng.integers(8, 30))
+        inputs = _window_inputs(rng, (3, 3), 7, W, 1)
+        inputs["allowed"] = rng.random((len(inputs["counts"]), 7, W)) < 0.5
+        inputs["counts"] = rng.choice(np.array([-3.0, 2.0, -6.0, 4.0]), len(inputs["counts"]))
+        gray = np.full((3, 3, 7, W), 0.25, np.float32)
+        native = min_window_costs(gray, np.array([0.0, 0.5], np.float32), **inputs, kernel="native")
+        twin = min_window_costs(gray, np.array([0.0, 0.5], np.float32), **inputs, kernel="numba")
         assert np.array_equal(native.view(np.uint32), twin.view(np.uint32))
 
 

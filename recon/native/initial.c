@@ -195,6 +195,8 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
         for (int64_t j = t; j < N_BLOCKS && (j == t || bs[j] >= 0); j++)
             rows_of[s * N_BLOCKS + count[s]++] = acc + bs[j] * W;
     }
+    int ordered = 0; /* a negative count: the windows' costs taken window by window (below) */
+    for (int64_t k = 0; k < K; k++) ordered |= a->counts[k] < 0.0;
     int64_t nxt = max64(c0 - up, 0);
     for (int64_t y = c0; y < c1; y++) {
         while (nxt <= min64(y + down, H - 1)) {
@@ -254,7 +256,8 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
                     double c = total * FIXED_INV / ((double)((yb - ya) * (xb - xa)) * ck);
                     if (c < best[x]) best[x] = c;
                 }
-                /* the pixels whose window lies within the row: below, with the windows of the same denominator */
+                /* the pixels whose window lies within the row: below, with the windows of the same
+                 * denominator, or here where a count is negative */
                 struct inner *w = &live[n_live++];
                 w->col = col;
                 w->al = per_pixel ? al_row : NULL;
@@ -263,7 +266,8 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
                 w->lo = lo;
                 w->hi = hi;
                 w->denom = (double)((yb - ya) * (rb - ra + 1)) * ck;
-                w->done = 0;
+                w->done = ordered;
+                if (ordered) window_costs(best, w, lo, hi);
             }
             /* A window's cost is its sum times FIXED_INV (exact, a power of 2) over its denominator,
              * rounded once: rounding keeps the order of the exact values, so among windows of one
@@ -272,8 +276,9 @@ static int mwc_chunk(void *ctx, int64_t chunk) {
              * taken, none -0: the sums are >= +0). The windows of one denominator take their least
              * sum over the pixels all of them cover and divide once there (backgammon: 11 windows, 4
              * denominators, 0.300 -> 0.284 s on one thread); each window alone divides for its
-             * other pixels, and a window of another denominator (0, negative, inf or NaN counts)
-             * for all of its. */
+             * other pixels, and a window of another denominator (0, inf or NaN counts) for all of
+             * its. A negative count makes costs of -0, whose order counts: then every window goes
+             * alone, in turn (above). */
             for (int64_t i = 0; i < n_live; i++) {
                 if (live[i].done) continue;
                 if (!(live[i].denom > 0.0 && live[i].denom < INFINITY)) { /* no order kept: each alone */
