@@ -355,44 +355,6 @@ static void joint_fold(const struct joint_args *a, const struct stretch *st, int
     }
 }
 
-/* The threads of one lfrig_joint_group call: a gate they wait at until all are started (or one could
- * not be, when they leave), and a barrier. */
-struct crew {
-    pthread_mutex_t lock;
-    pthread_cond_t cond;
-    int64_t count, waiting, generation;
-    int state; /* 0 until the threads are started, then 1 (go) or -1 (leave) */
-};
-
-static int crew_gate(struct crew *c) {
-    pthread_mutex_lock(&c->lock);
-    while (c->state == 0) pthread_cond_wait(&c->cond, &c->lock);
-    const int go = c->state > 0;
-    pthread_mutex_unlock(&c->lock);
-    return go;
-}
-
-static void crew_open(struct crew *c, int state) {
-    pthread_mutex_lock(&c->lock);
-    c->state = state;
-    pthread_cond_broadcast(&c->cond);
-    pthread_mutex_unlock(&c->lock);
-}
-
-static void crew_barrier(struct crew *c) {
-    if (c->count <= 1) return;
-    pthread_mutex_lock(&c->lock);
-    const int64_t generation = c->generation;
-    if (++c->waiting == c->count) {
-        c->waiting = 0;
-        c->generation++;
-        pthread_cond_broadcast(&c->cond);
-    } else {
-        while (generation == c->generation) pthread_cond_wait(&c->cond, &c->lock);
-    }
-    pthread_mutex_unlock(&c->lock);
-}
-
 /* Thread t of T's share of _joint_group_kernel, stretch after stretch: candidates t, t + T, ...
  * (prange(G)), then, once every candidate has made the stretch, its rows t, t + T, ... (prange over
  * the rows). k_best has a buffer per stretch parity, so that the next stretch's candidates need not
@@ -412,18 +374,8 @@ static void joint_share(const struct joint_args *a, struct crew *c, int64_t t) {
     }
 }
 
-struct member {
-    const struct joint_args *a;
-    struct crew *c;
-    int64_t t;
-    pthread_t id;
-};
-
-static void *member_main(void *arg) {
-    struct member *m = arg;
-    if (crew_gate(m->c)) joint_share(m->a, m->c, m->t);
-    return NULL;
-}
+/* joint_share as run_crew calls it. */
+static void joint_crew(const void *a, struct crew *c, int64_t t) { joint_share(a, c, t); }
 
 static void *alloc(size_t bytes) { return malloc(bytes ? bytes : 1); }
 
@@ -463,26 +415,13 @@ int lfrig_joint_group(const float *gray, int64_t U, int64_t V, int64_t H, int64_
     a.c_best = alloc(sizeof(double) * (size_t)(T * W));
     a.fixed = alloc(sizeof(int64_t) * (size_t)(T * W));
     a.ps64 = alloc(sizeof(int64_t) * (size_t)(T * W));
-    struct member *team = calloc((size_t)T, sizeof(struct member));
     int status = 0;
-    if (!a.tables || !a.k_best || !a.acc || !a.rv || !a.sums || !a.c_best || !a.fixed || !a.ps64 || !team) {
+    if (!a.tables || !a.k_best || !a.acc || !a.rv || !a.sums || !a.c_best || !a.fixed || !a.ps64) {
         status = -1;
         goto done;
     }
     for (int64_t g = 0; g < G; g++) memset(a.tables + g * R * S * W1, 0, sizeof(int64_t) * (size_t)(S * W1));
-    struct crew c = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER, T, 0, 0, 0};
-    int64_t started = 0;
-    for (int64_t t = 1; t < T; t++) {
-        team[t] = (struct member){&a, &c, t, 0};
-        if (pthread_create(&team[t].id, NULL, member_main, &team[t]) != 0) {
-            status = -2;
-            break;
-        }
-        started = t;
-    }
-    crew_open(&c, status == 0 ? 1 : -1);
-    if (status == 0) joint_share(&a, &c, 0);
-    for (int64_t t = 1; t <= started; t++) pthread_join(team[t].id, NULL);
+    status = run_crew(joint_crew, &a, T);
 done:
     free(a.tables);
     free(a.k_best);
@@ -492,7 +431,6 @@ done:
     free(a.c_best);
     free(a.fixed);
     free(a.ps64);
-    free(team);
     return status;
 }
 

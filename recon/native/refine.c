@@ -300,44 +300,6 @@ static void copy_runs(double *const *source, double *const *target, int64_t sour
     }
 }
 
-/* The threads of one lfrig_tv_blocks call: a gate they wait at until all are started (or one could
- * not be, when they leave), and the barriers around the exchange of the bands' rows. */
-struct bands {
-    pthread_mutex_t lock;
-    pthread_cond_t cond;
-    int64_t count, waiting, generation;
-    int state; /* 0 until the threads are started, then 1 (go) or -1 (leave) */
-};
-
-static int bands_gate(struct bands *c) {
-    pthread_mutex_lock(&c->lock);
-    while (c->state == 0) pthread_cond_wait(&c->cond, &c->lock);
-    const int go = c->state > 0;
-    pthread_mutex_unlock(&c->lock);
-    return go;
-}
-
-static void bands_open(struct bands *c, int state) {
-    pthread_mutex_lock(&c->lock);
-    c->state = state;
-    pthread_cond_broadcast(&c->cond);
-    pthread_mutex_unlock(&c->lock);
-}
-
-static void bands_barrier(struct bands *c) {
-    if (c->count <= 1) return;
-    pthread_mutex_lock(&c->lock);
-    const int64_t generation = c->generation;
-    if (++c->waiting == c->count) {
-        c->waiting = 0;
-        c->generation++;
-        pthread_cond_broadcast(&c->cond);
-    } else {
-        while (generation == c->generation) pthread_cond_wait(&c->cond, &c->lock);
-    }
-    pthread_mutex_unlock(&c->lock);
-}
-
 /* What the bands of a lfrig_tv_blocks call read and write: the image's f, mask and weight, the four
  * maps (mu, bar, py, px) they start from and end in, and each band's copy (depth rows of the four
  * maps, from the band's first row less halo) and scratch row. */
@@ -380,7 +342,7 @@ static void take_rows(const struct blocks_args *a, int64_t b, int64_t y0, int64_
  * rows beyond its band from the bands they are in (the values numba's twin exchanges through a
  * second set of maps: the same values, with two barriers a round instead of one, and each band's
  * rows copied out once, not once a round); at the end each band's rows go into the maps. */
-static void blocks_share(const struct blocks_args *a, struct bands *c, int64_t t) {
+static void blocks_share(const struct blocks_args *a, struct crew *c, int64_t t) {
     const int64_t H = a->H, W = a->W, halo = a->halo, T = c->count;
     for (int64_t b = t; b < a->n_blocks; b += T) {
         const int64_t top = copy_top(a, b), z = min64(a->edges[b + 1] + halo, H);
@@ -391,13 +353,13 @@ static void blocks_share(const struct blocks_args *a, struct bands *c, int64_t t
     for (int64_t done = 0; done < a->iterations;) {
         const int64_t k = min64(halo, a->iterations - done);
         if (done > 0) {
-            bands_barrier(c); /* every band's rows are those of `done` iterations */
+            crew_barrier(c); /* every band's rows are those of `done` iterations */
             for (int64_t b = t; b < a->n_blocks; b += T) {
                 take_rows(a, b, copy_top(a, b), a->edges[b]);
                 take_rows(a, b, a->edges[b + 1], min64(a->edges[b + 1] + halo, H));
             }
         }
-        bands_barrier(c); /* every copy has its rows: the bands may change theirs */
+        crew_barrier(c); /* every copy has its rows: the bands may change theirs */
         for (int64_t b = t; b < a->n_blocks; b += T) {
             const int64_t top = copy_top(a, b), z = min64(a->edges[b + 1] + halo, H);
             double *own[4];
@@ -415,18 +377,8 @@ static void blocks_share(const struct blocks_args *a, struct bands *c, int64_t t
     }
 }
 
-struct band_thread {
-    const struct blocks_args *a;
-    struct bands *c;
-    int64_t t;
-    pthread_t id;
-};
-
-static void *band_main(void *arg) {
-    struct band_thread *m = arg;
-    if (bands_gate(m->c)) blocks_share(m->a, m->c, m->t);
-    return NULL;
-}
+/* blocks_share as run_crew calls it. */
+static void blocks_crew(const void *a, struct crew *c, int64_t t) { blocks_share(a, c, t); }
 
 /* _tv_blocks: the image (H, W) in n_blocks bands of rows [edges[b], edges[b + 1]) (edges (n_blocks
  * + 1,) int64, ascending from 0 to H), each iterated on a copy of its own with `halo` rows around it,
@@ -447,28 +399,14 @@ int lfrig_tv_blocks(const double *f, const uint8_t *mask, const double *weight, 
                             depth, runs, run_x0, run_x1, NULL, NULL};
     a.copies = malloc(sizeof(double) * (size_t)(n_blocks * 4 * depth * W));
     a.div = malloc(sizeof(double) * (size_t)(n_blocks * W));
-    struct band_thread *team = calloc((size_t)T, sizeof(struct band_thread));
     int status = 0;
-    if (!a.copies || !a.div || !team) {
+    if (!a.copies || !a.div) {
         status = -1;
         goto done;
     }
-    struct bands c = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER, T, 0, 0, 0};
-    int64_t started = 0;
-    for (int64_t t = 1; t < T; t++) {
-        team[t] = (struct band_thread){&a, &c, t, 0};
-        if (pthread_create(&team[t].id, NULL, band_main, &team[t]) != 0) {
-            status = -2;
-            break;
-        }
-        started = t;
-    }
-    bands_open(&c, status == 0 ? 1 : -1);
-    if (status == 0) blocks_share(&a, &c, 0);
-    for (int64_t t = 1; t <= started; t++) pthread_join(team[t].id, NULL);
+    status = run_crew(blocks_crew, &a, T);
 done:
     free(a.copies);
     free(a.div);
-    free(team);
     return status;
 }

@@ -122,4 +122,86 @@ static int run_items(item_fn fn, void *ctx, int64_t n, int64_t threads) {
     return status;
 }
 
+/* The threads of one call that work in step (run_crew): a gate they wait at until all are started
+ * (or one could not be, when they leave), and a barrier between the stretches of their work. */
+struct crew {
+    pthread_mutex_t lock;
+    pthread_cond_t cond;
+    int64_t count, waiting, generation;
+    int state; /* 0 until the threads are started, then 1 (go) or -1 (leave) */
+};
+
+static inline int crew_gate(struct crew *c) {
+    pthread_mutex_lock(&c->lock);
+    while (c->state == 0) pthread_cond_wait(&c->cond, &c->lock);
+    const int go = c->state > 0;
+    pthread_mutex_unlock(&c->lock);
+    return go;
+}
+
+static inline void crew_open(struct crew *c, int state) {
+    pthread_mutex_lock(&c->lock);
+    c->state = state;
+    pthread_cond_broadcast(&c->cond);
+    pthread_mutex_unlock(&c->lock);
+}
+
+/* Wait until every thread of the crew is here. */
+static inline void crew_barrier(struct crew *c) {
+    if (c->count <= 1) return;
+    pthread_mutex_lock(&c->lock);
+    const int64_t generation = c->generation;
+    if (++c->waiting == c->count) {
+        c->waiting = 0;
+        c->generation++;
+        pthread_cond_broadcast(&c->cond);
+    } else {
+        while (generation == c->generation) pthread_cond_wait(&c->cond, &c->lock);
+    }
+    pthread_mutex_unlock(&c->lock);
+}
+
+/* What run_crew calls on each thread t of the crew c (c->count threads). */
+typedef void (*crew_fn)(const void *args, struct crew *c, int64_t t);
+
+struct crew_member {
+    crew_fn fn;
+    const void *args;
+    struct crew *c;
+    int64_t t;
+    pthread_t id;
+};
+
+static inline void *crew_member_main(void *arg) {
+    struct crew_member *m = arg;
+    if (crew_gate(m->c)) m->fn(m->args, m->c, m->t);
+    return NULL;
+}
+
+/* fn(args, crew, t) for t = 0 .. threads - 1 at once, each on a thread of its own (this one is t = 0),
+ * started once for the call and joined before it returns; fn may wait at crew_barrier. No fn runs
+ * until every thread is started. Returns 0, -1 for no memory, -2 when a thread could not be started
+ * (then no fn runs). */
+static inline int run_crew(crew_fn fn, const void *args, int64_t threads) {
+    if (threads < 1) threads = 1;
+    struct crew_member *team = calloc((size_t)threads, sizeof(struct crew_member));
+    if (!team) return -1;
+    struct crew c = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER, threads, 0, 0, 0};
+    int status = 0;
+    int64_t started = 0;
+    for (int64_t t = 1; t < threads; t++) {
+        team[t] = (struct crew_member){fn, args, &c, t, 0};
+        if (pthread_create(&team[t].id, NULL, crew_member_main, &team[t]) != 0) {
+            status = -2;
+            break;
+        }
+        started = t;
+    }
+    crew_open(&c, status == 0 ? 1 : -1);
+    if (status == 0) fn(args, &c, 0);
+    for (int64_t t = 1; t <= started; t++) pthread_join(team[t].id, NULL);
+    free(team);
+    return status;
+}
+
 #endif
