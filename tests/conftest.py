@@ -48,6 +48,26 @@ def require_native(name: str) -> None:
     pytest.skip(message)
 
 
+def use_native_build(name: str, monkeypatch, tmp_path: Path, *, flags: tuple[str, ...] = (),
+                     source: Path | None = None) -> None:
+    """Build ``recon/native/NAME.c`` (or ``source``, a file that includes it) with lfrig's flags and
+    ``flags`` (``-mno-avx512f``: as for a CPU without AVX-512) into ``tmp_path``, and make it the
+    loaded library ``name`` for the rest of the test: the kernels' plain paths, tested on this CPU."""
+    import ctypes
+
+    import recon.native as native
+
+    target = tmp_path / f"{name}-variant.so"
+    run = subprocess.run([native.compiler(), *native.CFLAGS, *flags, "-o", str(target),
+                          str(source or native.HERE / f"{name}.c")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lib = ctypes.CDLL(str(target))
+    for function, types in native.SIGNATURES[name].items():
+        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
+        getattr(lib, function).restype = ctypes.c_int
+    monkeypatch.setitem(native._loaded, name, lib)
+
+
 @pytest.fixture
 def hci_scene_dir() -> Path:
     return require_hci_scene()

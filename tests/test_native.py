@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import require_hci_scene, require_native
+from tests.conftest import require_hci_scene, require_native, use_native_build
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -335,22 +335,12 @@ def test_the_nine_view_costs_give_numbas_bits_with_any_view_counts():
 def test_the_first_phases_c_kernels_without_avx512_give_numbas_bits(monkeypatch, tmp_path):
     # initial.c built without AVX-512 (its loops over 256-bit registers or fewer, as on a CPU without
     # it; with it they take 512) gives the same bits
-    import ctypes
-
     import recon.native as native
     from recon.entropy.cost import min_window_costs
     from recon.entropy.matching import subpixel_argmin
 
     require_native("initial")
-    target = tmp_path / "initial-portable.so"
-    run = subprocess.run([native.compiler(), *native.CFLAGS, "-mno-avx512f", "-o", str(target),
-                          str(native.HERE / "initial.c")], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lib = ctypes.CDLL(str(target))
-    for function, types in native.SIGNATURES["initial"].items():
-        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
-        getattr(lib, function).restype = ctypes.c_int
-    monkeypatch.setitem(native._loaded, "initial", lib)
+    use_native_build("initial", monkeypatch, tmp_path, flags=("-mno-avx512f",))
     rng = np.random.default_rng(8)
     for trial in range(8):
         grid = [(9, 9), (5, 5), (3, 4), (7, 7)][trial % 4]

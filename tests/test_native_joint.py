@@ -5,7 +5,6 @@ joint_line_search and on a whole backgammon estimate."""
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import json
 import subprocess
@@ -15,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import require_hci_scene, require_native
+from tests.conftest import require_hci_scene, require_native, use_native_build
 from tests.kernel_inputs import joint_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -281,18 +280,8 @@ print(json.dumps(used))
 
 def test_the_portable_c_loops_give_numbas_bits(tmp_path, monkeypatch):
     # joint.c built without AVX-512 (its plain loops, as on a CPU without it) gives the same bits
-    import recon.native as native
-
     require_native("joint")
-    target = tmp_path / "joint-portable.so"
-    run = subprocess.run([native.compiler(), *native.CFLAGS, "-mno-avx512f", "-o", str(target),
-                          str(native.HERE / "joint.c")], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lib = ctypes.CDLL(str(target))
-    for function, types in native.SIGNATURES["joint"].items():
-        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
-        getattr(lib, function).restype = ctypes.c_int
-    monkeypatch.setitem(native._loaded, "joint", lib)
+    use_native_build("joint", monkeypatch, tmp_path, flags=("-mno-avx512f",))
     rng = np.random.default_rng(41)
     for trial, (H, W) in enumerate(((21, 33), (7, 90), (2, 3))):
         gray, rects, shapes, counts, penalty, occluded = _case(rng, H, W, quantised=trial != 1)

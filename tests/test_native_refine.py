@@ -15,7 +15,7 @@ import pytest
 
 from recon.entropy import refine
 from recon.entropy.refine import centroid_correction, tv_bands, tv_refine, tv_runs
-from tests.conftest import require_hci_scene, require_native
+from tests.conftest import require_hci_scene, require_native, use_native_build
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -385,20 +385,10 @@ print(json.dumps("numba" in sys.modules))
 def test_the_portable_c_loops_give_numbas_bits(tmp_path, monkeypatch):
     # refine.c built without AVX (its plain loops, as on a CPU without it, the dual step's divisions
     # everywhere) gives the same bits
-    import ctypes
-
     import recon.native as native
 
     require_native("refine")
-    target = tmp_path / "refine-portable.so"
-    run = subprocess.run([native.compiler(), *native.CFLAGS, "-mno-avx", "-o", str(target),
-                          str(native.HERE / "refine.c")], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lib = ctypes.CDLL(str(target))
-    for function, types in native.SIGNATURES["refine"].items():
-        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
-        getattr(lib, function).restype = ctypes.c_int
-    monkeypatch.setitem(native._loaded, "refine", lib)
+    use_native_build("refine", monkeypatch, tmp_path, flags=("-mno-avx",))
     rng = np.random.default_rng(13)
     for n, W, top, H in ((2, 2, 0, 2), (17, 9, 5, 40), (25, 33, 0, 25), (70, 45, 0, 70)):
         f, mask, weight = _kernel_inputs(rng, n, W, odd=1)

@@ -15,7 +15,7 @@ import pytest
 from recon.entropy import boundary, regions
 from recon.entropy.boundary import snap_boundaries
 from recon.entropy.regions import occlusion_diffs, occlusion_diffs_reference
-from tests.conftest import require_hci_scene, require_native
+from tests.conftest import require_hci_scene, require_native, use_native_build
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -320,23 +320,13 @@ print(json.dumps(used))
 def test_the_portable_conversion_gives_numbas_bits(tmp_path, monkeypatch):
     # regions.c built as for a CPU other than x86-64 (int() of a float64 by a range test, not
     # cvttsd2si): the same bits, NaN and inf layers and views among the inputs
-    import ctypes
-
     import recon.native as native
 
     require_native("regions")
     source = tmp_path / "regions-portable.c"
     source.write_text("".join(f"#include <{h}.h>\n" for h in ("math", "pthread", "stdint", "stdlib", "string"))
                       + f'#undef __x86_64__\n#include "{native.HERE / "regions.c"}"\n')
-    target = tmp_path / "regions-portable.so"
-    run = subprocess.run([native.compiler(), *native.CFLAGS, "-o", str(target), str(source)], capture_output=True,
-                         text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lib = ctypes.CDLL(str(target))
-    for function, types in native.SIGNATURES["regions"].items():
-        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
-        getattr(lib, function).restype = ctypes.c_int
-    monkeypatch.setitem(native._loaded, "regions", lib)
+    use_native_build("regions", monkeypatch, tmp_path, source=source)
     rng = np.random.default_rng(19)
     for trial in (2, 7, 12, 17):
         _occlusion_both(_layers_case(rng, trial), _grid_offsets(5, 5), 0.25)

@@ -3,8 +3,6 @@
 sparse) and the volume's mask and offsets, on random inputs that reach every rule of the selection
 and on the HCI backgammon scene's own inputs."""
 
-import ctypes
-import subprocess
 
 import numpy as np
 import pytest
@@ -12,7 +10,7 @@ import pytest
 from recon.entropy import entropy
 from recon.entropy.entropy import select_windows
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH, TEXTURE
-from tests.conftest import require_hci_scene, require_native
+from tests.conftest import require_hci_scene, require_native, use_native_build
 
 
 def _same_bits(a, b) -> None:
@@ -131,18 +129,8 @@ def test_the_c_selection_gives_numbas_bits_with_bins_beyond_16_bits():
 
 def test_the_c_selection_without_sse2_gives_numbas_bits(monkeypatch, tmp_path):
     # select.c built with its plain sums (two doubles, as where SSE2 is not there) gives the same bits
-    import recon.native as native
-
     require_native("select")
-    target = tmp_path / "select-plain.so"
-    run = subprocess.run([native.compiler(), *native.CFLAGS, "-U__SSE2__", "-o", str(target),
-                          str(native.HERE / "select.c")], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lib = ctypes.CDLL(str(target))
-    for function, types in native.SIGNATURES["select"].items():
-        getattr(lib, function).argtypes = [native._CTYPES[t] for t in types.split()]
-        getattr(lib, function).restype = ctypes.c_int
-    monkeypatch.setitem(native._loaded, "select", lib)
+    use_native_build("select", monkeypatch, tmp_path, flags=("-U__SSE2__",))
     rng = np.random.default_rng(29)
     for trial in range(14):
         grey, disp, labels, kw = _random_case(rng, trial)
