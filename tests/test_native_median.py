@@ -119,6 +119,8 @@ def test_the_c_median_checks_its_kernel_name():
     require_native("median")
     with pytest.raises(ValueError, match="kernel must be"):
         median_filter_nearest(np.zeros((4, 4)), size=3, kernel="fortran")
+    with pytest.raises(ValueError, match="kernel must be"):  # an image that scipy's filter takes
+        median_filter_nearest(np.full((4, 4), np.nan), size=3, kernel="fortran")
 
 
 def test_the_c_kernel_does_nothing_for_no_rows_or_samples():

@@ -111,7 +111,9 @@ def median_filter_nearest(image: np.ndarray, *, size: int | tuple[int, int] | No
     centred at ``shape // 2`` like scipy's), borders continued by the nearest pixel; the dtype of
     ``image``. The same map as :func:`median_filter_nearest_reference` (see the module docstring).
     Compiled: the C twin of the kernel, ``recon/native/median.c``, where it loads, else numba's
-    (``kernel``: :func:`recon.native.chosen`)."""
+    (``kernel``: :func:`recon.native.chosen`, asked first: a wrong name is refused also where scipy's
+    filter takes the image)."""
+    native = chosen("median", kernel)
     if footprint is None:
         if size is None:
             raise ValueError("median_filter_nearest needs size or footprint, got neither")
@@ -131,7 +133,7 @@ def median_filter_nearest(image: np.ndarray, *, size: int | tuple[int, int] | No
     rank = len(dy) // 2
     image = np.ascontiguousarray(image)
     pairs = selection_network(len(dy), rank)
-    if chosen("median", kernel):  # image float32 or float64 (above), out of its dtype, pairs (M, 2) in 0..n-1
+    if native:  # image float32 or float64 (above), out of its dtype, pairs (M, 2) in 0..n-1
         call("median", "lfrig_median", image, int(image.dtype == np.float64), *image.shape, dy, dx, len(dy), pairs,
              len(pairs), rank, out, thread_count())
     else:
