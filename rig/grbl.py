@@ -792,10 +792,11 @@ class GrblStage:
         self.read_only = read_only
         self._homing = False  # a $H sent and not yet answered
         self.on_line: Callable[[str, str], None] | None = None  # (direction, text) hook for logs
-        self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
-        # the programs that shared the port when it opened: named in later errors even after they
-        # exit (a reader such as `cat` sees end-of-file once pyserial sets the port's VMIN to 0)
+        # the programs that have the port open when lfrig opens it: named in later errors even after
+        # they exit. Looked for before the open: a reader such as `cat` sees end-of-file once pyserial
+        # sets the port's VMIN to 0, and may be gone before a look at /proc after it ends.
         self._opened_with: list[tuple[int, str]] = port_holders(url) if port is None else []
+        self._port = port if port is not None else open_port(url, baudrate=baudrate, poll_s=poll_s)
         note = self._holders_note() if port is None else ""
         if note:  # opened before lfrig, so the exclusive mode does not keep it out
             log.warning("%s: the port is shared%s", self.url, note)
