@@ -163,6 +163,9 @@ _FROZE: list[str] = []  # the first warm-up of this process (it freezes: see bel
 #: Set when the process exits: a warm-up loads no further kernel (:func:`_finish_warm_ups`).
 _EXITING = threading.Event()
 _WARM_UPS: list[threading.Thread] = []
+#: The warm-ups' gates of ``warm_later()`` (:attr:`Warming.later`): the exit opens them, so that a
+#: warm-up still waiting ends.
+_LATER: list[threading.Event] = []
 
 
 def _finish_warm_ups() -> None:
@@ -173,6 +176,8 @@ def _finish_warm_ups() -> None:
     assertions instead of its own exit status, whatever the command had done. Exit then waits for
     at most that one kernel, which its next run then loads from the cache."""
     _EXITING.set()
+    for later in _LATER:
+        later.set()
     for thread in _WARM_UPS:
         thread.join(1.0)
         if thread.is_alive():  # a compile: say why the exit waits
@@ -197,25 +202,38 @@ class Warming:
     thread: threading.Thread
     #: Set when ``warm()`` has ended (or failed): the method's call may start.
     ready: threading.Event
+    #: Set when ``warm_later()`` may begin (:meth:`begin_later`; :meth:`wait` and :meth:`join` set it too).
+    later: threading.Event = field(default_factory=threading.Event)
+
+    def begin_later(self) -> None:
+        """Let ``warm_later()`` begin once ``warm()`` has ended: the caller's own work that needs
+        the interpreter lock is done (the views are read). scipy's import (~0.2 s of Python) took
+        the lock from the decoding threads between their images, which slowed the reading by
+        half again as much as the import itself (backgammon: views read 0.29 -> 0.50 s); beside
+        the first phase, whose C kernels run without the lock, it costs less than that."""
+        self.later.set()
 
     def wait(self, progress: Any = None, *, note_after_s: float = SLOW_WARM_UP_S) -> None:
-        """Block until the method's call may start; ``warm_later()`` may still run. With a
-        ``progress(fraction, message)`` callback, a wait longer than ``note_after_s`` (default
-        :data:`SLOW_WARM_UP_S`) says what it waits for (:data:`SLOW_WARM_UP`): on a warm cache the
-        warm-up is ready within a second of the views being read; past that it is most likely
-        compiling."""
+        """Block until the method's call may start (and let ``warm_later()`` begin; it may still
+        run). With a ``progress(fraction, message)`` callback, a wait longer than ``note_after_s``
+        (default :data:`SLOW_WARM_UP_S`) says what it waits for (:data:`SLOW_WARM_UP`): on a warm
+        cache the warm-up is ready within a second of the views being read; past that it is most
+        likely compiling."""
+        self.later.set()
         if progress is not None and not self.ready.wait(note_after_s):
             progress(0.0, SLOW_WARM_UP)
         self.ready.wait()
 
     def join(self) -> None:
-        """Block until the whole warm-up has ended."""
+        """Block until the whole warm-up has ended (``warm_later()`` too)."""
+        self.later.set()
         self.thread.join()
 
 
 def warm_in_background(name: str) -> Warming | None:
-    """Start method ``name``'s ``warm()``, then its ``warm_later()``, in a daemon thread (``None``
-    for an unknown name or a method without a warm-up).
+    """Start method ``name``'s ``warm()`` in a daemon thread, and its ``warm_later()`` after it once
+    the caller lets it begin (:meth:`Warming.begin_later`, :meth:`Warming.wait`); ``None`` for an
+    unknown name or a method without a warm-up.
 
     numba's start-up (importing it, its first load of a cached kernel: ~0.5 s of Python that holds
     the interpreter lock) then overlaps work that releases the lock, such as decoding the views.
@@ -244,7 +262,8 @@ def warm_in_background(name: str) -> Warming | None:
     if first:
         _FROZE.append(name)
         atexit.register(_finish_warm_ups)
-    ready = threading.Event()
+    ready, later = threading.Event(), threading.Event()
+    _LATER[:] = [*(gate for gate in _LATER if not gate.is_set()), later]
 
     def warm() -> None:
         collecting = gc.isenabled()
@@ -260,6 +279,7 @@ def warm_in_background(name: str) -> Warming | None:
                 if collecting:
                     gc.enable()
             ready.set()
+        later.wait()  # set by the caller, or at the exit (_finish_warm_ups)
         if method.warm_later is not None and not _EXITING.is_set():
             with contextlib.suppress(Exception):  # as above
                 method.warm_later()
@@ -267,7 +287,7 @@ def warm_in_background(name: str) -> Warming | None:
     thread = threading.Thread(target=warm, name=f"lfrig-warm-{name}", daemon=True)
     _WARM_UPS[:] = [*(t for t in _WARM_UPS if t.is_alive()), thread]
     thread.start()
-    return Warming(thread, ready)
+    return Warming(thread, ready, later)
 
 
 def warm_every_method() -> None:

@@ -205,6 +205,8 @@ def reconstruct_to_folder(
         # reads them (what follows here reads the centre view, kept in its colours, and the shapes)
         lf = read_lightfield(lf_dir, verify=verify, grey=estimate is None)
         lf.views_once = estimate is None
+    if warming is not None:  # the rest of the warm-up (scipy's import) now, beside the checks and the first phase
+        warming.begin_later()
     if lf.source is not None:
         check_output_outside(lf.source, out_dir)
     read_s = time.perf_counter() - started

@@ -172,3 +172,22 @@ def test_a_long_wait_for_the_warm_up_says_what_it_waits_for_and_a_short_one_says
         Warming(thread, ready).wait(lambda fraction, message="": said.append((fraction, message)), note_after_s=0.2)
         assert ready.is_set() and said == expected
     Warming(thread, ready).wait()  # no callback: nothing to say
+
+
+def test_the_later_warm_up_begins_only_when_the_caller_lets_it(monkeypatch):
+    # recon.methods.Warming.begin_later: scipy's import waits until the views are read (it would take
+    # the interpreter's lock from the decoding threads); wait() and join() let it begin too.
+    import threading
+
+    import recon.methods as methods
+
+    for opener in ("begin_later", "wait", "join"):
+        began = threading.Event()
+        monkeypatch.setitem(methods.METHODS, "probe", methods.Method(
+            run=None, check=lambda options: None, description="probe", warm=lambda: None, warm_later=began.set))
+        warming = methods.warm_in_background("probe")
+        warming.ready.wait(10)
+        assert not began.wait(0.2), "warm_later began before the caller let it"
+        getattr(warming, opener)()
+        assert began.wait(10), opener
+        warming.join()
