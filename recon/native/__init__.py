@@ -73,6 +73,7 @@ SIGNATURES: dict[str, dict[str, str]] = {
         "lfrig_occlusion": "p i i p i f p i p p p p i",
         "lfrig_snap": "p i i i i p p p i p p p i p i d i d p p p p p i",
     },
+    "filters": {"lfrig_uniform": "p p i i i i i i"},
 }
 _CTYPES = {"p": ctypes.c_void_p, "i": ctypes.c_int64, "d": ctypes.c_double, "f": ctypes.c_float}
 
