@@ -32,11 +32,13 @@ filtered and unfiltered parts join without a seam.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 from recon.entropy.regions import flat_pixels
+from recon.native import call, chosen, thread_count
 
 
 def filter_gain(sigma_px: float) -> float:
@@ -71,16 +73,26 @@ def soften_reach_px(sigma_px: float) -> int:
     return max(int(np.ceil(TRUNCATE * sigma_px)), int(np.ceil(TRUNCATE * MASK_SIGMA_PX)))
 
 
-def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
-                       rows: range | None = None, image_rows: range | None = None,
-                       max_disparity: float | None = None) -> np.ndarray:
-    """``(len(rows), V, len(image_rows), W)`` bool: where the centre-view pixels of ``mask`` land in
-    the views of the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
-    (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel to close the
-    gaps of the forward warp; the image rows ``image_rows`` of each view (default all ``H``: the
-    same bits as those rows of the whole view's mask), from the mask's pixels that can land within
-    a row of them. ``max_disparity``: ``nanmax |disparity|``, for a caller that warps several
-    masks or grid rows with one disparity map (made from the map otherwise: a pass over it)."""
+class Landings(NamedTuple):
+    """A centre-view mask's pixels ``(ys, xs)`` and their disparity ``d`` (float64), to be warped into
+    the views of a ``(U, V)`` grid (:func:`warp_landings`): those that can land within a row of the
+    image rows ``[top, bottom)``, which the one-pixel growth reads as the rows ``[a, b)``."""
+    ys: np.ndarray
+    xs: np.ndarray
+    d: np.ndarray
+    grid_shape: tuple[int, int]
+    a: int
+    b: int
+    top: int
+    bottom: int
+    W: int
+
+
+def mask_landings(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
+                  rows: range | None = None, image_rows: range | None = None,
+                  max_disparity: float | None = None) -> Landings:
+    """The pixels of ``mask`` that :func:`warp_mask_to_views` warps (its parameters), found once
+    for as many of the grid rows ``rows`` as :func:`warp_landings` is asked for."""
     U, V = grid_shape
     rows = range(U) if rows is None else rows
     H, W = mask.shape
@@ -91,21 +103,56 @@ def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tupl
         largest = float(np.nanmax(np.abs(disparity))) if max_disparity is None else max_disparity
         reach = np.ceil(max(abs(u - U // 2) for u in rows) * largest) + 1
         lo, hi = int(max(a - reach, 0)), int(min(b + reach, H))
-    ys, xs = np.nonzero(mask[lo:hi])
+    ys, xs = (np.ascontiguousarray(c) for c in np.nonzero(mask[lo:hi]))  # numpy's are strided views
     ys += lo
     d = np.asarray(disparity, np.float64)[ys, xs]
-    out = np.zeros((len(rows), V, bottom - top, W), bool)
+    return Landings(ys, xs, d, (U, V), a, b, top, bottom, W)
+
+
+def warp_landings(landings: Landings, views: list[tuple[int, int]], *, kernel: str = "auto",
+                  threads: int | None = None) -> np.ndarray:
+    """``(len(views), bottom - top, W)`` bool: where the pixels of ``landings`` land in each view
+    ``(u, v)`` of the grid, grown by one pixel (:func:`warp_mask_to_views`). Compiled: the C twin,
+    ``recon/native/views.c``, where it loads (``threads``: default :func:`recon.native.thread_count`),
+    else numpy and OpenCV's dilation (``kernel``: :func:`recon.native.chosen`, ``"numba"`` the
+    latter)."""
+    ys, xs, d, (U, V), a, b, top, bottom, W = landings
+    out = np.empty((len(views), bottom - top, W), bool)
+    if chosen("views", kernel):
+        du = np.array([u - U // 2 for u, _ in views], np.int64)
+        dv = np.array([v - V // 2 for _, v in views], np.int64)
+        call("views", "lfrig_warp_mask", ys, xs, d, ys.size, du, dv, len(views), a, b, top, bottom, W,
+             out.view(np.uint8), thread_count() if threads is None else threads)
+        return out
     landed = np.empty((b - a, W), bool)
-    for i, u in enumerate(rows):
-        for v in range(V):
-            ly = np.floor(ys - (u - U // 2) * d + 0.5).astype(np.int64)
-            lx = np.floor(xs - (v - V // 2) * d + 0.5).astype(np.int64)
-            ok = (ly >= a) & (ly < b) & (lx >= 0) & (lx < W)
-            landed[...] = False
-            landed[ly[ok] - a, lx[ok]] = True
-            grown = cv2.dilate(landed.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
-            out[i, v] = grown[top - a:bottom - a]
+    for i, (u, v) in enumerate(views):
+        ly = np.floor(ys - (u - U // 2) * d + 0.5).astype(np.int64)
+        lx = np.floor(xs - (v - V // 2) * d + 0.5).astype(np.int64)
+        ok = (ly >= a) & (ly < b) & (lx >= 0) & (lx < W)
+        landed[...] = False
+        landed[ly[ok] - a, lx[ok]] = True
+        grown = cv2.dilate(landed.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+        out[i] = grown[top - a:bottom - a]
     return out
+
+
+def warp_mask_to_views(mask: np.ndarray, disparity: np.ndarray, grid_shape: tuple[int, int], *,
+                       rows: range | None = None, image_rows: range | None = None,
+                       max_disparity: float | None = None, kernel: str = "auto") -> np.ndarray:
+    """``(len(rows), V, len(image_rows), W)`` bool: where the centre-view pixels of ``mask`` land in
+    the views of the rows ``rows`` of the ``(U, V)`` grid (default all ``U``) with ``disparity``
+    (``docs/conventions.md``: ``p - (u - u0, v - v0) d``, rounded), grown by one pixel to close the
+    gaps of the forward warp; the image rows ``image_rows`` of each view (default all ``H``: the
+    same bits as those rows of the whole view's mask), from the mask's pixels that can land within
+    a row of them. ``max_disparity``: ``nanmax |disparity|``, for a caller that warps several
+    masks or grid rows with one disparity map (made from the map otherwise: a pass over it).
+    ``kernel``: :func:`warp_landings`'."""
+    U, V = grid_shape
+    rows = range(U) if rows is None else rows
+    landings = mask_landings(mask, disparity, grid_shape, rows=rows, image_rows=image_rows,
+                             max_disparity=max_disparity)
+    out = warp_landings(landings, [(u, v) for u in rows for v in range(V)], kernel=kernel)
+    return out.reshape(len(rows), V, *out.shape[1:])
 
 
 def _gaussian(image: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -144,28 +191,51 @@ def filter_flat_views(gray: np.ndarray, *, sigma_px: float, noise_sigma: float, 
     U, V = gray.shape[:2]
     for u in range(U):
         for v in range(V):
-            view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
-            if where is not None and not where[u, v].any():
-                out[u, v] = view
-                continue
-            if texture_ratio is None:
-                flat, _ = flat_pixels(view, size=size, tolerance=tolerance, sigma=noise_sigma)
-            else:
-                flat = texture_to_noise(view, noise_sigma=noise_sigma, sigma_px=sigma_px,
-                                        radius_px=radius_px) < texture_ratio
-            if where is not None:
-                flat &= where[u, v]
-            if not flat.any():
-                out[u, v] = view
-                continue
-            out[u, v] = _blend_filtered(view, flat, sigma_px)
+            out[u, v] = filter_flat_view(gray[u, v], sigma_px=sigma_px, noise_sigma=noise_sigma, size=size,
+                                         tolerance=tolerance, where=None if where is None else where[u, v],
+                                         texture_ratio=texture_ratio, radius_px=radius_px)
     return out
 
 
-def _blend_filtered(view: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    # The view Gaussian filtered where mask is set, joined to the rest through a soft mask.
+def filter_flat_view(view: np.ndarray, *, sigma_px: float, noise_sigma: float, size: int, tolerance: float,
+                     where: np.ndarray | None = None, texture_ratio: float | None = None,
+                     radius_px: int = 7) -> np.ndarray:
+    """``(H, W)`` float32: one view of :func:`filter_flat_views` (its parameters, ``where`` the
+    view's ``(H, W)``; ``sigma_px > 0``); the view itself where nothing is filtered."""
+    view = np.ascontiguousarray(view, dtype=np.float32)
+    if where is not None and not where.any():
+        return view
+    if texture_ratio is None:
+        flat, _ = flat_pixels(view, size=size, tolerance=tolerance, sigma=noise_sigma)
+    else:
+        flat = texture_to_noise(view, noise_sigma=noise_sigma, sigma_px=sigma_px,
+                                radius_px=radius_px) < texture_ratio
+    if where is not None:
+        flat &= where
+    if not flat.any():
+        return view
+    return _blend_filtered(view, flat, sigma_px)
+
+
+def _blend_filtered(view: np.ndarray, mask: np.ndarray, sigma_px: float, *, out: np.ndarray | None = None,
+                    rows: slice = slice(None), kernel: str = "auto") -> np.ndarray:
+    # The view Gaussian filtered where mask is set, joined to the rest through a soft mask: the
+    # rows ``rows`` of it, into ``out`` when given (C-contiguous float32, those rows' shape; it may
+    # be ``view`` itself when ``rows`` are all). The join in C (recon/native/views.c) where it
+    # loads, in one pass straight into ``out``; else OpenCV's, the twin.
     weight = _gaussian(mask.view(np.uint8).astype(np.float32), MASK_SIGMA_PX)
-    return cv2.add(view, cv2.multiply(weight, cv2.subtract(_gaussian(view, sigma_px), view)))
+    filtered = _gaussian(view, sigma_px)
+    if chosen("views", kernel):
+        parts = [np.ascontiguousarray(p[rows]) for p in (view, weight, filtered)]
+        if out is None:
+            out = np.empty_like(parts[0])
+        call("views", "lfrig_blend", *parts, parts[0].size, out)
+        return out
+    joined = cv2.add(view, cv2.multiply(weight, cv2.subtract(filtered, view)))[rows]
+    if out is None:
+        return joined
+    out[...] = joined
+    return out
 
 
 def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray,
@@ -192,15 +262,26 @@ def soften_views(gray: np.ndarray, *, sigma_px: float, where: np.ndarray,
 
     def one(k: int) -> None:  # OpenCV releases the GIL: the views run on every core
         u, v = divmod(k, V)
-        view = np.ascontiguousarray(gray[u, v], dtype=np.float32)
-        if where[u, v].any():
-            out[u, v] = _blend_filtered(view, where[u, v], sigma_px)[rows]
-        elif out is not gray:
-            out[u, v] = view[rows]
+        soften_view(gray[u, v], sigma_px=sigma_px, where=where[u, v], out=out[u, v], rows=rows)
 
     with ThreadPoolExecutor(max_workers=max(1, min(U * V, cv2.getNumThreads()))) as pool:
         list(pool.map(one, range(U * V)))
     return out
+
+
+def soften_view(view: np.ndarray, *, sigma_px: float, where: np.ndarray, out: np.ndarray,
+                rows: slice = slice(None)) -> None:
+    """One view of :func:`soften_views` (``sigma_px > 0``) written into ``out``: the rows ``rows``
+    of the ``(H, W)`` view filtered where ``where`` ``(H, W)``, or of the view itself when
+    ``where`` is empty (``out`` may be ``view``)."""
+    view = np.ascontiguousarray(view, dtype=np.float32)
+    if where.any():
+        if out.flags.c_contiguous and out.dtype == np.float32:
+            _blend_filtered(view, where, sigma_px, out=out, rows=rows)
+        else:
+            out[...] = _blend_filtered(view, where, sigma_px, rows=rows)
+    elif not np.may_share_memory(out, view):
+        out[...] = view[rows]
 
 
 def weak_texture_pixels(ratio: np.ndarray, *, texture_ratio: float) -> np.ndarray:

@@ -11,6 +11,8 @@ is the sum over the tile-local steps (:func:`recon.entropy.plan.halo_px`).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from recon.entropy.aperture import informative_strips
@@ -21,8 +23,8 @@ from recon.entropy.initial import (discover_range, initial_disparity, initial_vi
                                   sure_pixels)
 from recon.entropy.labels import OCCLUDED, OCCLUDING, SMOOTH
 from recon.entropy.matching import JOINT_TABLES, cost_ambiguity, disparity_candidates, joint_line_search, line_search
-from recon.entropy.noise import (filter_flat_views, filter_reach_px, noise_limited_windows, soften_reach_px,
-                                 soften_views, texture_reach_px, texture_to_noise, warp_mask_to_views,
+from recon.entropy.noise import (filter_flat_view, filter_reach_px, mask_landings, noise_limited_windows,
+                                 soften_reach_px, soften_view, texture_reach_px, texture_to_noise, warp_landings,
                                  weak_texture_pixels)
 from recon.entropy.options import EntropyOptions
 from recon.entropy.refine import centroid_correction, harmonic_fill, tv_refine, valley_weights
@@ -32,6 +34,7 @@ from recon.entropy.state import Reach, State, Step
 from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.lf.lightfield import view_shift_px
+from recon.native import thread_count
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -211,24 +214,29 @@ def filtered_views(s: State, a: int, b: int) -> np.ndarray:
     top, bottom = max(a - reach, 0), min(b + reach, H)
     rows = range(top, bottom)
     largest = float(np.nanmax(np.abs(s.d0)))  # for every warp of the band
+    # each mask's pixels found once, for every view
+    noise_at, weak_at = (None if m is None else mask_landings(m, s.d0, (U, V), image_rows=rows, max_disparity=largest)
+                         for m in (noise, weak))
     out = np.empty((U, V, b - a, W), np.float32)
-    for u in range(U):
-        views = row = s.raw[u:u + 1, :, top:bottom]
-        if noise is not None:
-            views = filter_flat_views(row, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
-                                      size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                      where=warp_mask_to_views(noise, s.d0, (U, V), rows=range(u, u + 1),
-                                                               image_rows=rows, max_disparity=largest),
-                                      texture_ratio=o.noise_texture_ratio if o.noise_gate == "texture" else None,
-                                      radius_px=o.windows.largest_radius_px)
-        core = slice(a - top, b - top)
-        if weak is not None:  # the band's rows straight into their place
-            soften_views(views, sigma_px=o.weak_texture_filter,
-                         where=warp_mask_to_views(weak, s.d0, (U, V), rows=range(u, u + 1), image_rows=rows,
-                                                  max_disparity=largest),
-                         out=out[u:u + 1], rows=core)
+    core = slice(a - top, b - top)
+
+    def one(k: int) -> None:  # a view at a time, its masks' temporaries a view's: OpenCV and C release the GIL
+        u, v = divmod(k, V)
+        view = s.raw[u, v, top:bottom]
+        if noise_at is not None:
+            view = filter_flat_view(view, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                    size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                    where=warp_landings(noise_at, [(u, v)], threads=1)[0],
+                                    texture_ratio=o.noise_texture_ratio if o.noise_gate == "texture" else None,
+                                    radius_px=o.windows.largest_radius_px)
+        if weak_at is not None:  # the band's rows straight into their place
+            soften_view(view, sigma_px=o.weak_texture_filter, where=warp_landings(weak_at, [(u, v)], threads=1)[0],
+                        out=out[u, v], rows=core)
         else:
-            out[u] = views[0, :, core]
+            out[u, v] = view[core]
+
+    with ThreadPoolExecutor(max_workers=max(1, min(U * V, thread_count()))) as pool:
+        list(pool.map(one, range(U * V)))
     return out
 
 

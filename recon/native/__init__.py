@@ -69,6 +69,7 @@ SIGNATURES: dict[str, dict[str, str]] = {
     "select": {"lfrig_select": "p i p i i p i i p d d d i i p i p p d p p i i p i p p p p p p i p i p p i"},
     "volume": {"lfrig_take": "p i p p p i i i f p i", "lfrig_window_major": "p i p p i i i i f p i"},
     "median": {"lfrig_median": "p i i i p p i p i i p i"},
+    "views": {"lfrig_warp_mask": "p p p i p p i i i i i i p i", "lfrig_blend": "p p p i p"},
     "regions": {
         "lfrig_occlusion": "p i i p i f p i p p p p i",
         "lfrig_snap": "p i i i i p p p i p p p i p i d i d p p p p p i",
