@@ -78,6 +78,8 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.refine._tv_blocks": "refine",
     "recon.entropy.regions._occlusion_kernel": "regions",
     "recon.entropy.boundary._snap_kernel": "regions",
+    "recon.entropy.noise.warp_landings": "views",  # the view filters' steps: numpy and OpenCV twins, no numba
+    "recon.entropy.noise._blend_filtered": "views",
 }
 
 

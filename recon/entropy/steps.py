@@ -34,7 +34,7 @@ from recon.entropy.state import Reach, State, Step
 from recon.entropy.volume import SparseVolume
 from recon.entropy.windows import N_SHAPES, STRIP_SHAPES, curvature_size_cap, window_rect
 from recon.lf.lightfield import view_shift_px
-from recon.native import thread_count
+from recon.native import library, thread_count
 
 
 def _no_reach(options: EntropyOptions, reach: Reach) -> int:
@@ -202,12 +202,15 @@ def filtered_views(s: State, a: int, b: int) -> np.ndarray:
     ``s.d0``): the Gaussian of ``noise_filter`` where the view is noise-limited too
     (:func:`recon.entropy.noise.filter_flat_views`, ``noise_gate="texture"``: the window-scale test,
     else Eq. 12's), then the mild one of ``weak_texture_filter``
-    (:func:`recon.entropy.noise.soften_views`). Each row of views is filtered over the rows ``[a,
-    b)`` and as many around them as the two filters reach (:func:`view_filter_rows`), so that the
-    rows are those of the whole views filtered, bit for bit; the rows of ``s.raw`` themselves (not
-    a copy) when no filter has anything to filter."""
+    (:func:`recon.entropy.noise.soften_views`). Each view is filtered over the rows ``[a, b)`` and
+    as many around them as the two filters reach (:func:`view_filter_rows`), so that the rows are
+    those of the whole views filtered, bit for bit; the rows of ``s.raw`` themselves (not a copy)
+    when no filter has anything to filter. The views go to :func:`recon.native.thread_count`
+    threads, one view a task (OpenCV's filters and the C kernels release the interpreter's lock),
+    each mask's pixels found once for all of them."""
     o, (noise, weak) = s.options, s.view_filters
     if noise is None and weak is None:
+        library("views")  # asked for all the same: every estimate's record names the same C libraries
         return s.raw[:, :, a:b]
     U, V, H, W = s.raw.shape
     reach = view_filter_rows(o)
