@@ -180,35 +180,45 @@ static inline void joint_edge_pixel(int64_t x, int64_t k, int64_t ya, int64_t yb
     }
 }
 
+#ifdef __AVX512F__
+/* joint_run_magic's pixels i .. i + 7 of its run, the lanes m of them. */
+static inline void joint_lanes_magic(const uint64_t *restrict a1, const uint64_t *restrict b1,
+                                     const uint64_t *restrict a0, const uint64_t *restrict b0,
+                                     const float *restrict pn, const int64_t *restrict pv, int every, __m512i wanted,
+                                     __m512d sc, __m512d dn, __m512i kv, double *restrict cb, int64_t *restrict kb,
+                                     int64_t i, __mmask8 m) {
+    const __m512i bits = _mm512_set1_epi64((int64_t)MAGIC_BITS);
+    const __m512d magic = _mm512_set1_pd(MAGIC_FLOAT), inv = _mm512_set1_pd(FIXED_INV);
+    __m512i t = _mm512_sub_epi64(_mm512_maskz_loadu_epi64(m, b1 + i), _mm512_maskz_loadu_epi64(m, a1 + i));
+    t = _mm512_sub_epi64(t, _mm512_maskz_loadu_epi64(m, b0 + i));
+    t = _mm512_add_epi64(_mm512_add_epi64(t, _mm512_maskz_loadu_epi64(m, a0 + i)), bits);
+    const __m512d f = _mm512_sub_pd(_mm512_castsi512_pd(t), magic);
+    const __m256 p = _mm256_maskz_loadu_ps(m, pn + i);
+    const __m512d c = _mm512_add_pd(_mm512_div_pd(_mm512_mul_pd(sc, _mm512_mul_pd(f, inv)), dn), _mm512_cvtps_pd(p));
+    const __mmask8 in = every ? m : _mm512_mask_cmpeq_epi64_mask(m, _mm512_maskz_loadu_epi64(m, pv + i), wanted);
+    /* c < old where the pass applies: elsewhere numba's c is inf, never below old (<= 1e300) */
+    const __mmask8 less = _mm512_mask_cmp_pd_mask(in, c, _mm512_maskz_loadu_pd(m, cb + i), _CMP_LT_OQ);
+    _mm512_mask_storeu_pd(cb + i, less, c);
+    _mm512_mask_storeu_epi64(kb + i, less, kv);
+}
+#endif
+
 /* _joint_row's loop over the pixels lo .. lo + n - 1 of a run, whose windows the image holds (a1, b1,
  * a0, b0: their windows' corners in the table rows ya and yb, from the right and left corners of lo's;
  * pn, pv, cb, kb: the penalty, the pixels' sets as int64 and c_best, k_best from lo), when every window
  * total is below MAGIC_LIMIT: its int64 -> float64 conversion as the bits of t + MAGIC_BITS, less
- * MAGIC_FLOAT. */
+ * MAGIC_FLOAT. With AVX-512: whole vectors of eight pixels under a constant mask, then the last few
+ * under theirs (a mask made for every vector of a run cost a fifth of the loop's instructions). */
 static void joint_run_magic(const uint64_t *restrict a1, const uint64_t *restrict b1, const uint64_t *restrict a0,
                             const uint64_t *restrict b0, const float *restrict pn, const int64_t *restrict pv,
                             int every, int64_t want, double scale, double denom, int64_t k, int64_t n,
                             double *restrict cb, int64_t *restrict kb) {
 #ifdef __AVX512F__
-    const __m512i bits = _mm512_set1_epi64((int64_t)MAGIC_BITS), wanted = _mm512_set1_epi64(want);
-    const __m512i kv = _mm512_set1_epi64(k);
-    const __m512d magic = _mm512_set1_pd(MAGIC_FLOAT), inv = _mm512_set1_pd(FIXED_INV);
+    const __m512i wanted = _mm512_set1_epi64(want), kv = _mm512_set1_epi64(k);
     const __m512d sc = _mm512_set1_pd(scale), dn = _mm512_set1_pd(denom);
-    for (int64_t i = 0; i < n; i += 8) {
-        const __mmask8 m = lanes(i, n);
-        __m512i t = _mm512_sub_epi64(_mm512_maskz_loadu_epi64(m, b1 + i), _mm512_maskz_loadu_epi64(m, a1 + i));
-        t = _mm512_sub_epi64(t, _mm512_maskz_loadu_epi64(m, b0 + i));
-        t = _mm512_add_epi64(_mm512_add_epi64(t, _mm512_maskz_loadu_epi64(m, a0 + i)), bits);
-        const __m512d f = _mm512_sub_pd(_mm512_castsi512_pd(t), magic);
-        const __m512 p = _mm512_maskz_loadu_ps((__mmask16)m, pn + i);
-        const __m512d c = _mm512_add_pd(_mm512_div_pd(_mm512_mul_pd(sc, _mm512_mul_pd(f, inv)), dn),
-                                        _mm512_cvtps_pd(_mm512_castps512_ps256(p)));
-        const __mmask8 in = every ? m : _mm512_mask_cmpeq_epi64_mask(m, _mm512_maskz_loadu_epi64(m, pv + i), wanted);
-        /* c < old where the pass applies: elsewhere numba's c is inf, never below old (<= 1e300) */
-        const __mmask8 less = _mm512_mask_cmp_pd_mask(in, c, _mm512_maskz_loadu_pd(m, cb + i), _CMP_LT_OQ);
-        _mm512_mask_storeu_pd(cb + i, less, c);
-        _mm512_mask_storeu_epi64(kb + i, less, kv);
-    }
+    int64_t i = 0;
+    for (; i + 8 <= n; i += 8) joint_lanes_magic(a1, b1, a0, b0, pn, pv, every, wanted, sc, dn, kv, cb, kb, i, 0xff);
+    if (i < n) joint_lanes_magic(a1, b1, a0, b0, pn, pv, every, wanted, sc, dn, kv, cb, kb, i, lanes(i, n));
 #else
     for (int64_t i = 0; i < n; i++) {
         const uint64_t bits = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS;
