@@ -158,9 +158,11 @@ struct joint_args {
     int64_t rows, up, down, R, per_thread;
     float *out, *best;
     int64_t *best_k;
-    /* the candidates' rings (G, R, S, W + 1) and k_best (2, G, rows, W); per thread, scratch (acc: the
+    /* the candidates' rings (G, R, S, W + 1) and k_best (2, G, rows, W) int32 (a window's index: K < 2^31,
+     * half the bytes of int64 to store and fold); per thread, scratch (acc: the
      * block rows (per_thread, rows, 9, W) of the thread's candidates, a seventh of their rings) */
-    int64_t *tables, *k_best;
+    int64_t *tables;
+    int32_t *k_best;
     float *acc, *rv;
     double *sums, *c_best;
     int64_t *fixed, *ps64;
@@ -169,23 +171,23 @@ struct joint_args {
 /* matching.py _joint_edge_pixel: the window at x clipped by the image's left or right edge. */
 static inline void joint_edge_pixel(int64_t x, int64_t k, int64_t ya, int64_t yb, int64_t ra, int64_t rb, int64_t W,
                                     const int64_t *ta, const int64_t *tb, double cnt, double scale, const float *pen,
-                                    int every, uint8_t want, const uint8_t *ps, double *c_best, int64_t *k_best) {
+                                    int every, uint8_t want, const uint8_t *ps, double *c_best, int32_t *k_best) {
     const int64_t xa = max64(x + ra, 0);
     const int64_t xb = min64(x + rb, W - 1) + 1;
     const double total = (double)window_total(ta, tb, xa, xb) * FIXED_INV;
     const double c = scale * total / ((double)((yb - ya) * (xb - xa)) * cnt) + (double)pen[x];
     if ((every || ps[x] == want) && c < c_best[x]) {
         c_best[x] = c;
-        k_best[x] = k;
+        k_best[x] = (int32_t)k;
     }
 }
 
 #ifdef __AVX512F__
-/* joint_run_magic's pixels i .. i + 7 of its run, the lanes m of them. */
+/* joint_run_magic's pixels i .. i + 7 of its run, the lanes m of them (ps: the pixels' sets as bytes). */
 static inline void joint_lanes_magic(const uint64_t *restrict a1, const uint64_t *restrict b1,
                                      const uint64_t *restrict a0, const uint64_t *restrict b0,
-                                     const float *restrict pn, const int64_t *restrict pv, int every, __m512i wanted,
-                                     __m512d sc, __m512d dn, __m512i kv, double *restrict cb, int64_t *restrict kb,
+                                     const float *restrict pn, const uint8_t *restrict ps, int every, __m128i wanted,
+                                     __m512d sc, __m512d dn, __m256i kv, double *restrict cb, int32_t *restrict kb,
                                      int64_t i, __mmask8 m) {
     const __m512i bits = _mm512_set1_epi64((int64_t)MAGIC_BITS);
     const __m512d magic = _mm512_set1_pd(MAGIC_FLOAT), inv = _mm512_set1_pd(FIXED_INV);
@@ -195,30 +197,32 @@ static inline void joint_lanes_magic(const uint64_t *restrict a1, const uint64_t
     const __m512d f = _mm512_sub_pd(_mm512_castsi512_pd(t), magic);
     const __m256 p = _mm256_maskz_loadu_ps(m, pn + i);
     const __m512d c = _mm512_add_pd(_mm512_div_pd(_mm512_mul_pd(sc, _mm512_mul_pd(f, inv)), dn), _mm512_cvtps_pd(p));
-    const __mmask8 in = every ? m : _mm512_mask_cmpeq_epi64_mask(m, _mm512_maskz_loadu_epi64(m, pv + i), wanted);
+    const __mmask8 in = every ? m : (__mmask8)_mm_mask_cmpeq_epi8_mask(m, _mm_maskz_loadu_epi8(m, ps + i), wanted);
     /* c < old where the pass applies: elsewhere numba's c is inf, never below old (<= 1e300) */
     const __mmask8 less = _mm512_mask_cmp_pd_mask(in, c, _mm512_maskz_loadu_pd(m, cb + i), _CMP_LT_OQ);
     _mm512_mask_storeu_pd(cb + i, less, c);
-    _mm512_mask_storeu_epi64(kb + i, less, kv);
+    _mm256_mask_storeu_epi32(kb + i, less, kv);
 }
 #endif
 
 /* _joint_row's loop over the pixels lo .. lo + n - 1 of a run, whose windows the image holds (a1, b1,
  * a0, b0: their windows' corners in the table rows ya and yb, from the right and left corners of lo's;
- * pn, pv, cb, kb: the penalty, the pixels' sets as int64 and c_best, k_best from lo), when every window
+ * pn, ps, pv, cb, kb: the penalty, the pixels' sets as bytes and as int64 and c_best, k_best from lo), when every window
  * total is below MAGIC_LIMIT: its int64 -> float64 conversion as the bits of t + MAGIC_BITS, less
  * MAGIC_FLOAT. With AVX-512: whole vectors of eight pixels under a constant mask, then the last few
  * under theirs (a mask made for every vector of a run cost a fifth of the loop's instructions). */
 static void joint_run_magic(const uint64_t *restrict a1, const uint64_t *restrict b1, const uint64_t *restrict a0,
-                            const uint64_t *restrict b0, const float *restrict pn, const int64_t *restrict pv,
-                            int every, int64_t want, double scale, double denom, int64_t k, int64_t n,
-                            double *restrict cb, int64_t *restrict kb) {
+                            const uint64_t *restrict b0, const float *restrict pn, const uint8_t *restrict ps,
+                            const int64_t *restrict pv, int every, int64_t want, double scale, double denom,
+                            int64_t k, int64_t n, double *restrict cb, int32_t *restrict kb) {
 #ifdef __AVX512F__
-    const __m512i wanted = _mm512_set1_epi64(want), kv = _mm512_set1_epi64(k);
+    (void)pv;
+    const __m128i wanted = _mm_set1_epi8((char)want);
+    const __m256i kv = _mm256_set1_epi32((int32_t)k);
     const __m512d sc = _mm512_set1_pd(scale), dn = _mm512_set1_pd(denom);
     int64_t i = 0;
-    for (; i + 8 <= n; i += 8) joint_lanes_magic(a1, b1, a0, b0, pn, pv, every, wanted, sc, dn, kv, cb, kb, i, 0xff);
-    if (i < n) joint_lanes_magic(a1, b1, a0, b0, pn, pv, every, wanted, sc, dn, kv, cb, kb, i, lanes(i, n));
+    for (; i + 8 <= n; i += 8) joint_lanes_magic(a1, b1, a0, b0, pn, ps, every, wanted, sc, dn, kv, cb, kb, i, 0xff);
+    if (i < n) joint_lanes_magic(a1, b1, a0, b0, pn, ps, every, wanted, sc, dn, kv, cb, kb, i, lanes(i, n));
 #else
     for (int64_t i = 0; i < n; i++) {
         const uint64_t bits = b1[i] - a1[i] - b0[i] + a0[i] + MAGIC_BITS;
@@ -228,23 +232,24 @@ static void joint_run_magic(const uint64_t *restrict a1, const uint64_t *restric
         double c = scale * (f * FIXED_INV) / denom + (double)pn[i];
         c = (every | (pv[i] == want)) ? c : INFINITY;
         const double old = cb[i];
-        kb[i] = c < old ? k : kb[i];
+        kb[i] = c < old ? (int32_t)k : kb[i];
         cb[i] = c < old ? c : old;
     }
 #endif
 }
 
-/* joint_run_magic where a window total may reach MAGIC_LIMIT: the plain int64 -> float64 conversion. */
+/* joint_run_magic where a window total may reach MAGIC_LIMIT: the plain int64 -> float64 conversion (ps: the
+ * pixels' sets as bytes). */
 static void joint_run(const uint64_t *restrict a1, const uint64_t *restrict b1, const uint64_t *restrict a0,
-                      const uint64_t *restrict b0, const float *restrict pn, const int64_t *restrict pv, int every,
+                      const uint64_t *restrict b0, const float *restrict pn, const uint8_t *restrict ps, int every,
                       int64_t want, double scale, double denom, int64_t k, int64_t n, double *restrict cb,
-                      int64_t *restrict kb) {
+                      int32_t *restrict kb) {
     for (int64_t i = 0; i < n; i++) {
         const double f = (double)(int64_t)(b1[i] - a1[i] - b0[i] + a0[i]);
         double c = scale * (f * FIXED_INV) / denom + (double)pn[i];
-        c = (every | (pv[i] == want)) ? c : INFINITY;
+        c = (every | (ps[i] == want)) ? c : INFINITY;
         const double old = cb[i];
-        kb[i] = c < old ? k : kb[i];
+        kb[i] = c < old ? (int32_t)k : kb[i];
         cb[i] = c < old ? c : old;
     }
 }
@@ -254,10 +259,12 @@ static void joint_run(const uint64_t *restrict a1, const uint64_t *restrict b1, 
  * table rows (R, S, W + 1); magic: every window total of the row is below MAGIC_LIMIT. ps64: (W,)
  * scratch, the row's pixel_set as int64. */
 static void joint_row(const struct joint_args *a, const int64_t *ring, int64_t y, int magic, double *restrict c_best,
-                      int64_t *restrict k_best, int64_t *restrict ps64) {
+                      int32_t *restrict k_best, int64_t *restrict ps64) {
     const int64_t H = a->v.H, W = a->v.W, K = a->K, R = a->R, S = a->p.S, W1 = W + 1;
     const uint8_t *ps = a->pixel_set + y * W;
+#ifndef __AVX512F__ /* (the vector loop compares the bytes) */
     for (int64_t x = 0; x < W; x++) ps64[x] = ps[x];
+#endif
     for (int64_t k = 0; k < K; k++) {
         const int64_t *rk = a->rects + k * 4;
         const int64_t ya = max64(y + rk[0], 0);
@@ -287,10 +294,10 @@ static void joint_row(const struct joint_args *a, const int64_t *ring, int64_t y
                 const uint64_t *a0 = (const uint64_t *)ta + lo + ra;
                 const uint64_t *b0 = (const uint64_t *)tb + lo + ra;
                 if (magic)
-                    joint_run_magic(a1, b1, a0, b0, pen + lo, ps64 + lo, every, pas, a->scale, denom, k, n,
-                                    c_best + lo, k_best + lo);
+                    joint_run_magic(a1, b1, a0, b0, pen + lo, ps + lo, ps64 + lo, every, pas, a->scale, denom, k,
+                                    n, c_best + lo, k_best + lo);
                 else
-                    joint_run(a1, b1, a0, b0, pen + lo, ps64 + lo, every, pas, a->scale, denom, k, n, c_best + lo,
+                    joint_run(a1, b1, a0, b0, pen + lo, ps + lo, every, pas, a->scale, denom, k, n, c_best + lo,
                               k_best + lo);
             }
             for (int64_t x = hi; x < x1; x++)
@@ -317,7 +324,7 @@ static void joint_candidate(const struct joint_args *a, const struct stretch *st
     for (int64_t s = 0; s < S; s++) magic = magic && wrap_sub(bottom[s * W1 + W], top[s * W1 + W]) < MAGIC_LIMIT;
     double *cb = a->c_best + t * W;
     for (int64_t y = st->y0; y < st->y1; y++) {
-        int64_t *kb = a->k_best + ((st->buffer * a->G + g) * a->rows + y - st->y0) * W;
+        int32_t *kb = a->k_best + ((st->buffer * a->G + g) * a->rows + y - st->y0) * W;
         for (int64_t x = 0; x < W; x++) cb[x] = 1e300;
         for (int64_t x = 0; x < W; x++) kb[x] = -1;
         joint_row(a, ring, y, magic, cb, kb, a->ps64 + t * W);
@@ -356,7 +363,7 @@ static void joint_fold(const struct joint_args *a, const struct stretch *st, int
     int64_t *restrict best_k = a->best_k + y * W;
     for (int64_t g = 0; g < a->G; g++) {
         const float *restrict out = a->out + (g * H + y) * W;
-        const int64_t *restrict kb = a->k_best + ((st->buffer * a->G + g) * a->rows + j) * W;
+        const int32_t *restrict kb = a->k_best + ((st->buffer * a->G + g) * a->rows + j) * W;
         for (int64_t x = 0; x < W; x++) {
             const int less = out[x] < best[x];
             best_k[x] = less ? kb[x] : best_k[x];
@@ -402,6 +409,7 @@ int lfrig_joint_group(const float *gray, int64_t U, int64_t V, int64_t H, int64_
                       const int64_t *run_start, const int32_t *runs, double scale, int64_t rows, float *out,
                       float *best, int64_t *best_k, int64_t threads) {
     if (G <= 0 || H <= 0 || W <= 0) return 0;
+    if (K > INT32_MAX) return -1; /* k_best's int32 (a penalty of 2^31 windows a pixel is more memory than there is) */
     if (rows < 1) rows = 1; /* (no value depends on it) */
     int64_t up = 0, down = 0; /* compiled_window_reach */
     for (int64_t k = 0; k < K; k++) {
@@ -417,7 +425,7 @@ int lfrig_joint_group(const float *gray, int64_t U, int64_t V, int64_t H, int64_
     a.best = best;
     a.best_k = best_k;
     a.tables = alloc(sizeof(int64_t) * (size_t)(G * R * S * W1));
-    a.k_best = alloc(sizeof(int64_t) * (size_t)(2 * G * rows * W));
+    a.k_best = alloc(sizeof(int32_t) * (size_t)(2 * G * rows * W));
     a.per_thread = (G + T - 1) / T;
     a.acc = alloc(sizeof(float) * (size_t)(T * a.per_thread * rows * N_BLOCKS * W));
     a.rv = alloc(sizeof(float) * (size_t)(T * 2 * W));
