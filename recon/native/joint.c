@@ -114,12 +114,21 @@ struct sets {
 static void block_rows(const struct views *v, const float *disparities, int64_t step, int64_t m, int64_t y, int64_t n,
                        float *acc, int64_t stride, float *rv) {
     const int64_t W = v->W;
-    for (int64_t i = 0; i < m; i++) memset(acc + i * stride, 0, sizeof(float) * (size_t)(n * N_BLOCKS * W));
+    /* a block's first view puts its differences onto zeros (put_block_view_row), and only the rows of a block
+     * without views are cleared: acc, 2.2 MB a thread on backgammon, is not cleared and read back first */
+    int started[N_BLOCKS] = {0};
+    for (int64_t k = 0; k < v->n; k++) started[v->vblock[k]] = -1;
+    for (int64_t b = 0; b < N_BLOCKS; b++)
+        for (int64_t i = 0; i < m && !started[b]; i++)
+            for (int64_t j = 0; j < n; j++) memset(acc + i * stride + (j * N_BLOCKS + b) * W, 0, sizeof(float) * W);
     for (int64_t k = 0; k < v->n;) { /* _block_rows */
+        const int fresh = started[v->vblock[k]] < 0;
         int64_t next = k;
         for (int64_t i = 0; i < m; i++)
             for (int64_t j = 0; j < n; j++)
-                next = block_view_row(v, disparities[i * step], y + j, acc + i * stride + j * N_BLOCKS * W, rv, k);
+                next = put_block_view_row(v, disparities[i * step], y + j, acc + i * stride + j * N_BLOCKS * W, rv, k,
+                                          fresh);
+        started[v->vblock[k]] = 1;
         k = next;
     }
 }

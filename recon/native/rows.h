@@ -36,41 +36,64 @@ static inline float sample(const float *row, int64_t W, int64_t x, int64_t ox, f
     return (1.0f - fx) * row[i] + fx * row[i + 1];
 }
 
-/* add_shifted_row_diff */
-static inline void add_shifted_row_diff(float *restrict acc, const float *restrict c_row, const float *restrict row,
-                                 int64_t W, int64_t ox, float fx) {
+/* add_shifted_row_diff; with `fresh` onto a row of zeros that acc does not hold (0 + each difference: the same
+ * values as acc cleared first, without its clearing and its reads). */
+static inline void put_shifted_row_diff(float *restrict acc, const float *restrict c_row, const float *restrict row,
+                                        int64_t W, int64_t ox, float fx, int fresh) {
     float g = 1.0f - fx;
     int64_t lo = min64(max64(-ox, 0), W);
     int64_t hi = min64(max64(W - 1 - ox, lo), W);
-    for (int64_t x = 0; x < lo; x++) acc[x] += fabsf(c_row[x] - row[0]);
+    for (int64_t x = 0; x < lo; x++) acc[x] = (fresh ? 0.0f : acc[x]) + fabsf(c_row[x] - row[0]);
     const float *restrict r0 = row + lo + ox;
     const float *restrict r1 = row + lo + ox + 1;
     const float *restrict c = c_row + lo;
     float *restrict s = acc + lo;
-    for (int64_t i = 0; i < hi - lo; i++) s[i] += fabsf(c[i] - (g * r0[i] + fx * r1[i]));
-    for (int64_t x = hi; x < W; x++) acc[x] += fabsf(c_row[x] - row[W - 1]);
+    if (fresh)
+        for (int64_t i = 0; i < hi - lo; i++) s[i] = 0.0f + fabsf(c[i] - (g * r0[i] + fx * r1[i]));
+    else
+        for (int64_t i = 0; i < hi - lo; i++) s[i] += fabsf(c[i] - (g * r0[i] + fx * r1[i]));
+    for (int64_t x = hi; x < W; x++) acc[x] = (fresh ? 0.0f : acc[x]) + fabsf(c_row[x] - row[W - 1]);
 }
 
-/* add_two_shifted_row_diffs */
-static inline void add_two_shifted_row_diffs(float *restrict acc, const float *restrict c_row, int64_t W,
-                                      const float *restrict p, int64_t ox_p, float fx_p,
-                                      const float *restrict q, int64_t ox_q, float fx_q) {
+/* add_shifted_row_diff */
+static inline void add_shifted_row_diff(float *restrict acc, const float *restrict c_row, const float *restrict row,
+                                 int64_t W, int64_t ox, float fx) {
+    put_shifted_row_diff(acc, c_row, row, W, ox, fx, 0);
+}
+
+/* add_two_shifted_row_diffs; with `fresh` onto a row of zeros that acc does not hold (put_shifted_row_diff). */
+static inline void put_two_shifted_row_diffs(float *restrict acc, const float *restrict c_row, int64_t W,
+                                             const float *restrict p, int64_t ox_p, float fx_p,
+                                             const float *restrict q, int64_t ox_q, float fx_q, int fresh) {
     float gp = 1.0f - fx_p;
     float gq = 1.0f - fx_q;
     int64_t lo = min64(max64(max64(-ox_p, -ox_q), 0), W);
     int64_t hi = min64(max64(min64(W - 1 - ox_p, W - 1 - ox_q), lo), W);
     for (int64_t x = 0; x < lo; x++)
-        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
+        acc[x] = ((fresh ? 0.0f : acc[x]) + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) +
+                 fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
     const float *restrict p0 = p + lo + ox_p;
     const float *restrict p1 = p + lo + ox_p + 1;
     const float *restrict q0 = q + lo + ox_q;
     const float *restrict q1 = q + lo + ox_q + 1;
     const float *restrict c = c_row + lo;
     float *restrict s = acc + lo;
-    for (int64_t i = 0; i < hi - lo; i++)
-        s[i] = (s[i] + fabsf(c[i] - (gp * p0[i] + fx_p * p1[i]))) + fabsf(c[i] - (gq * q0[i] + fx_q * q1[i]));
+    if (fresh)
+        for (int64_t i = 0; i < hi - lo; i++)
+            s[i] = (0.0f + fabsf(c[i] - (gp * p0[i] + fx_p * p1[i]))) + fabsf(c[i] - (gq * q0[i] + fx_q * q1[i]));
+    else
+        for (int64_t i = 0; i < hi - lo; i++)
+            s[i] = (s[i] + fabsf(c[i] - (gp * p0[i] + fx_p * p1[i]))) + fabsf(c[i] - (gq * q0[i] + fx_q * q1[i]));
     for (int64_t x = hi; x < W; x++)
-        acc[x] = (acc[x] + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) + fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
+        acc[x] = ((fresh ? 0.0f : acc[x]) + fabsf(c_row[x] - sample(p, W, x, ox_p, fx_p))) +
+                 fabsf(c_row[x] - sample(q, W, x, ox_q, fx_q));
+}
+
+/* add_two_shifted_row_diffs */
+static inline void add_two_shifted_row_diffs(float *restrict acc, const float *restrict c_row, int64_t W,
+                                      const float *restrict p, int64_t ox_p, float fx_p,
+                                      const float *restrict q, int64_t ox_q, float fx_q) {
+    put_two_shifted_row_diffs(acc, c_row, W, p, ox_p, fx_p, q, ox_q, fx_q, 0);
 }
 
 /* What run_items calls for each item: 0, or nonzero when the item failed (its memory). */

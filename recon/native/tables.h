@@ -38,8 +38,10 @@ struct views {
 };
 
 /* _block_view_rows for one row (acc (9, W) float32): view k's row added into its block's, with view
- * k + 1 in the same pass where it is in the same block. Returns the next view's index. */
-static int64_t block_view_row(const struct views *v, float disparity, int64_t y, float *acc, float *rv, int64_t k) {
+ * k + 1 in the same pass where it is in the same block; with `fresh` (k is its block's first view) onto
+ * zeros that the block's row does not hold (put_shifted_row_diff). Returns the next view's index. */
+static int64_t put_block_view_row(const struct views *v, float disparity, int64_t y, float *acc, float *rv, int64_t k,
+                                  int fresh) {
     const int64_t H = v->H, W = v->W, plane = H * W;
     float base_p = -v->vdv[k] * disparity;
     float fl_p = floorf(base_p);
@@ -54,12 +56,18 @@ static int64_t block_view_row(const struct views *v, float disparity, int64_t y,
     if (two) {
         const float *img_q = v->gray + (v->vu[m] * v->V + v->vv[m]) * plane;
         view_row_at(img_q, H, W, (double)y - (double)(v->vdu[m] * disparity), rv + W);
-        add_two_shifted_row_diffs(row, centre, W, rv, (int64_t)fl_p, base_p - fl_p, rv + W, (int64_t)fl_q,
-                                  base_q - fl_q);
+        put_two_shifted_row_diffs(row, centre, W, rv, (int64_t)fl_p, base_p - fl_p, rv + W, (int64_t)fl_q,
+                                  base_q - fl_q, fresh);
     } else {
-        add_shifted_row_diff(row, centre, rv, W, (int64_t)fl_p, base_p - fl_p);
+        put_shifted_row_diff(row, centre, rv, W, (int64_t)fl_p, base_p - fl_p, fresh);
     }
     return m + 1;
+}
+
+/* put_block_view_row onto the block's row as it is. */
+static inline int64_t block_view_row(const struct views *v, float disparity, int64_t y, float *acc, float *rv,
+                                     int64_t k) {
+    return put_block_view_row(v, disparity, y, acc, rv, k, 0);
 }
 
 /* _set_sum: sums[s] = set s's row from the block rows (9, W), continuing set_from[s]'s sum. */
