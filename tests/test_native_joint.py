@@ -140,6 +140,26 @@ def test_the_c_joint_kernel_gives_numbas_bits_with_several_candidates_a_thread()
         _both(*inputs[:1], candidates, *inputs[1:], rows=rows, group=G, threads=threads)
 
 
+def test_the_c_joint_kernel_gives_numbas_bits_with_blocks_without_views():
+    # view masks that leave some of the nine blocks no view (their block rows stay zero: the others' first
+    # views put their differences onto zeros), the centre view alone, one block of several views; runs of
+    # every length about a vector's eight pixels (whole vectors and the last few), 1..4 threads
+    from recon.entropy.cost import set_view_counts
+
+    require_native("joint")
+    rng = np.random.default_rng(47)
+    masks = [[(4, 4), (0, 0), (8, 8), (4, 0)], [(4, 4)], [(4, 4), (3, 3), (3, 4), (4, 3), (5, 5)],
+             [(4, 4), (0, 1), (1, 0), (0, 0)]]
+    for trial, views in enumerate(masks * 2):
+        H, W = [(13, 9), (10, 17), (6, 31), (9, 8)][trial % 4]
+        mask = np.zeros((9, 9), bool)
+        mask[tuple(np.array(views).T)] = True
+        gray, rects, shapes, _, penalty, occluded = _case(rng, H, W, quantised=trial % 2 == 0)
+        counts = set_view_counts((9, 9), mask).astype(np.float64)
+        _both(gray, np.array([-0.9, 0.2, 0.55]), rects, shapes, counts, penalty, occluded, rows=[1, 3, 8][trial % 3],
+              group=3, threads=1 + trial % 4, view_mask=mask)
+
+
 def test_the_c_joint_kernel_keeps_numbas_bits_on_large_and_odd_values():
     # grey values up to 5000 (window totals beyond 2^51 in the lower rows: the plain int64 -> float64
     # conversion there), NaN and inf in views (set values out of range: the scalar rounding, and
