@@ -216,8 +216,8 @@ static inline void joint_lanes_magic(const uint64_t *restrict a1, const uint64_t
 
 /* _joint_row's loop over the pixels lo .. lo + n - 1 of a run, whose windows the image holds (a1, b1,
  * a0, b0: their windows' corners in the table rows ya and yb, from the right and left corners of lo's;
- * pn, ps, pv, cb, kb: the penalty, the pixels' sets as bytes and as int64 and c_best, k_best from lo), when every window
- * total is below MAGIC_LIMIT: its int64 -> float64 conversion as the bits of t + MAGIC_BITS, less
+ * pn, ps, pv, cb, kb: the penalty, the pixels' sets as bytes and as int64 and c_best, k_best from lo), when every
+ * window total is below MAGIC_LIMIT: its int64 -> float64 conversion as the bits of t + MAGIC_BITS, less
  * MAGIC_FLOAT. With AVX-512: whole vectors of eight pixels under a constant mask, then the last few
  * under theirs (a mask made for every vector of a run cost a fifth of the loop's instructions). */
 static void joint_run_magic(const uint64_t *restrict a1, const uint64_t *restrict b1, const uint64_t *restrict a0,
