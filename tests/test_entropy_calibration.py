@@ -185,6 +185,42 @@ def test_confidence_in_bands_is_the_whole_images(monkeypatch):
     assert 0 < np.mean(whole["probability"] >= 0.5) < 1
 
 
+def test_probability_is_the_same_on_any_number_of_threads(monkeypatch):
+    """The probability made by 1 to 5 threads (the heuristic beside the bands' features, their last
+    features and model sums as the bands come), with few or many bands made ahead, in bands of 5
+    or 64 rows or one band, with and without holes and with non-finite pixels, is the one thread's
+    bit for bit; so is the features' model sum of :func:`confidence_features` (no threads)."""
+    from recon.entropy import calibration, confidence
+
+    result = estimate_disparity(make_scene("thin", size=96, seed=3).lf)
+    d = result.disparity.copy()
+    d[np.random.default_rng(2).random(d.shape) < 0.01] = np.nan
+    for holes in (True, False):
+        maps = _probability_inputs(result, refined=d)
+        if not holes:
+            maps["holes"] = None
+        else:
+            assert maps["holes"].any()
+        for rows in (5, 64, d.shape[0]):
+            monkeypatch.setattr(calibration, "BAND_ROWS", rows)
+            monkeypatch.setattr(confidence, "BAND_ROWS", rows)
+            one = calibration.probability_right(**maps, threads=1)
+            heuristic = confidence.confidence_map(refined=d, matched=maps["matched"], ambiguity=maps["ambiguity"],
+                                                  step=maps["step"], disparity_range=maps["disparity_range"],
+                                                  holes=maps["holes"])
+            features = calibration.confidence_features(**maps, heuristic=heuristic)
+            bias, coef = load_coefficients()
+            expected = np.where(calibration.valid_pixels(d, maps["matched"], step=maps["step"],
+                                                         disparity_range=maps["disparity_range"]),
+                                calibration.logistic_in_chunks(features, bias, coef), 0.0).astype(np.float32)
+            np.testing.assert_array_equal(one, expected, err_msg=f"rows {rows}, holes {holes}")
+            for ahead in (0, 6):
+                monkeypatch.setattr(calibration, "BANDS_AHEAD", ahead)
+                for threads in (2, 3, 4, 5):
+                    np.testing.assert_array_equal(calibration.probability_right(**maps, threads=threads), one,
+                                                  err_msg=f"rows {rows}, holes {holes}, {threads} threads, {ahead}")
+
+
 def test_one_median_serves_the_heuristic_and_the_features(monkeypatch):
     """A finite float32 map's 5x5 median made once (``confidence.finite_median5``) gives the
     probability, bit for bit, that each band's own medians give (the heuristic's over float64 with

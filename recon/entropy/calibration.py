@@ -37,6 +37,7 @@ import numpy as np
 from recon.entropy.confidence import confidence_map, finite_median5
 from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
 from recon.entropy.median import median_filter_nearest
+from recon.native import thread_count
 
 #: The model's inputs, in the order of the coefficients.
 FEATURES = ("log_width", "log_change", "log_neighbour", "log_initial", "occluding", "occluded",
@@ -110,6 +111,12 @@ HALO_ROWS = JUMP_REACH_PX + 1
 #: split between threads, so every pixel's sum is taken by the same kernel in the same order
 #: whatever the band, the image size or the number of threads.
 LOGISTIC_CHUNK = 256
+#: The features a band is given last, band after band (:func:`probability_right`): the box spread
+#: carries its running sums down the image, the heuristic is made beside the other features.
+LATE_FEATURES = ("log_spread", "heuristic")
+#: Bands whose features are made while the heuristic is, beyond one per thread: the features of up
+#: to ``threads + BANDS_AHEAD`` bands are held at once (2 threads: 8 bands, 37 MB at 2000 pixels a row).
+BANDS_AHEAD = 6
 
 
 class FeatureInputs:
@@ -125,7 +132,8 @@ class FeatureInputs:
         self.labels, self.window_size, self.cost = np.asarray(labels), np.asarray(window_size), np.asarray(cost)
         self.holes = None if holes is None else np.asarray(holes)
         self.noise_limited = None if noise_limited is None else np.asarray(noise_limited)
-        self.heuristic, self.entropy = np.asarray(heuristic), np.asarray(entropy)
+        self.heuristic = None if heuristic is None else np.asarray(heuristic)  # None: set before the bands
+        self.entropy = np.asarray(entropy)
         self.median = median  # the 5x5 median of d when every value is finite (finite_median5), or None
         self.step = float(step)
         self.noise = max(float(noise_sigma), 0.5 / 255)
@@ -136,14 +144,23 @@ class FeatureInputs:
         refined = np.asarray(self.refined[a:b], np.float64)
         return np.where(np.isfinite(refined), refined, 0.0)
 
-    def band(self, y0: int, y1: int) -> np.ndarray:
+    def band(self, y0: int, y1: int, skip: tuple[str, ...] = ()) -> np.ndarray:
         """``(y1 - y0, W, len(FEATURES))`` float32 features of rows ``[y0, y1)``, the same values
-        as of the whole image (bands taken top to bottom: the box spread carries its running sums)."""
+        as of the whole image (bands taken top to bottom: the box spread carries its running sums).
+        The features named in ``skip`` are left unset (:meth:`finish` sets them)."""
         band = Band(self, y0, y1)
         out = np.empty((y1 - y0, self.shape[1], len(FEATURES)), np.float32)
         for i, name in enumerate(FEATURES):
-            out[..., i] = FEATURE_FUNCTIONS[name](band)
+            if name not in skip:
+                out[..., i] = FEATURE_FUNCTIONS[name](band)
         return out
+
+    def finish(self, features: np.ndarray, y0: int, y1: int, names: tuple[str, ...]) -> np.ndarray:
+        """``features`` of rows ``[y0, y1)`` (:meth:`band`'s) with the features ``names`` set."""
+        band = Band(self, y0, y1)
+        for name in names:
+            features[..., FEATURES.index(name)] = FEATURE_FUNCTIONS[name](band)
+        return features
 
 
 class Band:
@@ -249,21 +266,24 @@ class _BoxSpread:
         e0 = y0 - 1 if carried else y0
         off = y0 - e0
         columns, sums = [], []
+        n = y1 - y0
         for q, values in enumerate(self._extended(e0, y1 + size - 1)):
-            column = np.empty((y1 - y0, self.shape[1]))
             if carried:
                 tmp, first = self.sums[q], 0
             else:
                 tmp = values[0].copy()
                 for k in range(1, size):
                     tmp += values[k]
-                column[0] = tmp / size
                 first = 1
-            for y in range(first, y1 - y0):
-                tmp = tmp + (values[off + y + size - 1] - values[off + y - 1])
-                column[y] = tmp / size
-            columns.append(column)
-            sums.append(tmp)
+            # row y's sum is row y - 1's plus (entering - leaving): a running sum down the columns,
+            # which np.cumsum takes in that order, one addition a row (an accumulation, not pairwise)
+            running = np.empty((n + 1 - first, self.shape[1]))
+            running[0] = tmp
+            np.subtract(values[off + first + size - 1:off + n + size - 1], values[off + first - 1:off + n - 1],
+                        out=running[1:])
+            np.cumsum(running, axis=0, out=running)
+            columns.append(running[1 - first:] / size)
+            sums.append(running[-1].copy())
         self.sums = (sums[0], sums[1])
         self.next_row = y1
         from scipy import ndimage
@@ -336,30 +356,65 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
                       noise_limited: np.ndarray | None, window_size: np.ndarray, cost: np.ndarray,
                       entropy: np.ndarray, noise_sigma: float, step: float,
                       disparity_range: tuple[float, float], hole_support: float = 0.25, hole_ramp: float = 0.1,
-                      valley_px: float = 0.3, coefficients: tuple[float, tuple[float, ...]] | None = None
-                      ) -> np.ndarray:
+                      valley_px: float = 0.3, coefficients: tuple[float, tuple[float, ...]] | None = None,
+                      threads: int | None = None) -> np.ndarray:
     """``(H, W)`` float32: the probability that ``|refined - truth| <= 0.07`` px/view per pixel.
 
     Inputs as :func:`confidence_features`; ``hole_support``, ``hole_ramp``, ``valley_px`` are the
     heuristic's (:func:`recon.entropy.confidence.confidence_map`); ``coefficients`` ``(bias,
     coefficients)``, default the fitted ones (:func:`load_coefficients`). The features are made and
     used a band of :data:`BAND_ROWS` rows at a time: the step's memory is the heuristic's, the
-    output and one band's features, not ``(H, W, F)``."""
+    output and a few bands' features, not ``(H, W, F)``. ``threads``: how many make them (default
+    :func:`recon.native.thread_count`; the values are the same for any number)."""
     median = finite_median5(refined)  # the heuristic's and the features' 5x5 median, made once
-    heuristic = confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=step,
-                               disparity_range=disparity_range, holes=holes, valley_px=valley_px,
-                               hole_support=hole_support, hole_ramp=hole_ramp, median=median)
+
+    def heuristic() -> np.ndarray:
+        return confidence_map(refined=refined, matched=matched, ambiguity=ambiguity, step=step,
+                              disparity_range=disparity_range, holes=holes, valley_px=valley_px,
+                              hole_support=hole_support, hole_ramp=hole_ramp, median=median)
+
     inputs = FeatureInputs(refined=refined, matched=matched, initial=initial, ambiguity=ambiguity, labels=labels,
                            holes=holes, noise_limited=noise_limited, window_size=window_size, cost=cost,
-                           noise_sigma=noise_sigma, step=step, heuristic=heuristic, entropy=entropy, median=median)
+                           noise_sigma=noise_sigma, step=step, heuristic=None, entropy=entropy, median=median)
     bias, coef = coefficients if coefficients is not None else load_coefficients()
     H, W = inputs.shape
     out = np.empty((H, W), np.float32)
-    for y0 in range(0, H, BAND_ROWS):
-        y1 = min(y0 + BAND_ROWS, H)
-        p = logistic_in_chunks(inputs.band(y0, y1), bias, coef)
+    bands = [(y0, min(y0 + BAND_ROWS, H)) for y0 in range(0, H, BAND_ROWS)]
+
+    def finish(features: np.ndarray, y0: int, y1: int) -> None:
+        p = logistic_in_chunks(features, bias, coef)
         ok = valid_pixels(refined[y0:y1], matched[y0:y1], step=step, disparity_range=disparity_range)
         out[y0:y1] = np.where(ok, p, 0.0)
+
+    threads = min(thread_count(), len(bands) + 1) if threads is None else int(threads)
+    if threads <= 1:
+        inputs.heuristic = heuristic()
+        for y0, y1 in bands:
+            finish(inputs.band(y0, y1), y0, y1)
+        return out
+    # the heuristic (its holes' harmonic fill the longest part) beside the box spread (carried from
+    # band to band: one job, top to bottom) and the bands' other features; a band's last features and
+    # its model sums once both are made: every band's values are those of one thread, in one order
+    from concurrent.futures import ThreadPoolExecutor
+
+    def spreads() -> list[np.ndarray]:
+        return [FEATURE_FUNCTIONS["log_spread"](Band(inputs, y0, y1)).astype(np.float32) for y0, y1 in bands]
+
+    ahead = threads + BANDS_AHEAD
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        made, spread = pool.submit(heuristic), pool.submit(spreads)
+        made_bands = [pool.submit(inputs.band, y0, y1, LATE_FEATURES) for y0, y1 in bands[:ahead]]
+        inputs.heuristic, spread_rows = made.result(), spread.result()
+        finished = []
+        for i, (y0, y1) in enumerate(bands):
+            features = made_bands[i].result()
+            made_bands[i] = None  # the job that takes the model's sums holds the band's features until done
+            features[..., FEATURES.index("log_spread")] = spread_rows[i]
+            finished.append(pool.submit(finish, inputs.finish(features, y0, y1, ("heuristic",)), y0, y1))
+            if i + ahead < len(bands):
+                made_bands.append(pool.submit(inputs.band, *bands[i + ahead], LATE_FEATURES))
+        for job in finished:
+            job.result()
     return out
 
 
