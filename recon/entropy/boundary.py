@@ -49,6 +49,7 @@ import math
 from recon.jit import numba
 import numpy as np
 
+from recon.entropy.regions import box_extreme
 from recon.native import call, chosen, thread_count
 
 #: A 5x5 neighbour supports the far value when it lies within this of it (px/view).
@@ -90,10 +91,8 @@ def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(ys, xs, far)`` of the pixels :func:`snap_boundaries` tests: value more than ``jump`` above
     the 3x3 minimum, that minimum supported by ``support`` pixels of the 5x5 neighbourhood."""
-    from scipy import ndimage
-
     m = np.asarray(matched, np.float32)
-    low = ndimage.minimum_filter(m, size=3, mode="nearest")
+    low = box_extreme(m, 3, maximum=False)
     ys, xs = np.nonzero(m - low > jump)
     far = low[ys, xs]
     padded = np.pad(m, 2, mode="edge")
@@ -107,9 +106,7 @@ def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
 
 def occluder_map(matched: np.ndarray) -> np.ndarray:
     """The map the visibility rays march through: ``matched`` grey-eroded by 3x3 (float32)."""
-    from scipy import ndimage
-
-    return ndimage.grey_erosion(np.asarray(matched, np.float32), size=(3, 3), mode="nearest")
+    return box_extreme(np.asarray(matched, np.float32), 3, maximum=False)  # scipy's grey_erosion: the 3x3 minimum
 
 
 def _check(gray: np.ndarray, matched: np.ndarray) -> None:
@@ -415,9 +412,7 @@ def snap_boundaries(gray: np.ndarray, matched: np.ndarray, *, noise_sigma: float
     # the nearest occluder any ray of a pixel can meet: bounds its march (exact: nothing farther
     # on the ray can hide it)
     reach = ray_reach_px(disparity_range, gray.shape[:2])
-    from scipy import ndimage
-
-    top = np.minimum(ndimage.maximum_filter(occ, size=2 * reach + 1, mode="nearest"),
+    top = np.minimum(box_extreme(occ, 2 * reach + 1, maximum=True),
                      np.float32(disparity_range[1]))
     ys64, xs64, far64 = ys.astype(np.int64), xs.astype(np.int64), far.astype(np.float64)
     if native:

@@ -160,6 +160,36 @@ def _occlusion_kernel(layers, offsets, layer_gap, row_shift, band_rows, row_star
 OCCLUSION_BAND_ROWS = 64
 
 
+def box_extreme(image: np.ndarray, size, *, maximum: bool, kernel: str = "auto") -> np.ndarray:
+    """``scipy.ndimage.maximum_filter`` (``maximum``) or ``minimum_filter`` of the ``(H, W)`` map
+    ``image`` over a box of ``size`` (an int or ``(rows, columns)``, any size: an even one reaches
+    one pixel less after the centre than before it) with the border continued by the nearest pixel
+    (``mode="nearest"``), the same bits.
+
+    ``kernel``: ``"scipy"`` (the reference) or ``"auto"``: OpenCV's dilation or erosion (a box of
+    ones, the border replicated) where it gives scipy's bits, scipy's elsewhere. A maximum or
+    minimum is one of the values in the box, so the two differ only where the box holds a NaN
+    (their comparisons meet it in other orders) or zeros of both signs (which of two equal values
+    is kept shows in the sign of a zero): OpenCV takes a float32 or float64 map without NaN and
+    without -0.0 (a few passes over the map to check; infinities are fine). 5-10x faster than
+    scipy's running extremes."""
+    if kernel not in ("auto", "scipy"):
+        raise ValueError(f"kernel must be 'auto' or 'scipy', got {kernel!r}")
+    image = np.asarray(image)
+    rows, columns = (int(size), int(size)) if np.ndim(size) == 0 else (int(size[0]), int(size[1]))
+    if kernel == "auto" and image.ndim == 2 and image.size and image.dtype in (np.float32, np.float64):
+        zeros = image == 0
+        if not np.isnan(image).any() and not (zeros.any() and np.signbit(image[zeros]).any()):
+            import cv2
+
+            box = np.ones((rows, columns), np.uint8)
+            image = np.ascontiguousarray(image)
+            return (cv2.dilate if maximum else cv2.erode)(image, box, borderType=cv2.BORDER_REPLICATE)
+    from scipy import ndimage
+
+    return (ndimage.maximum_filter if maximum else ndimage.minimum_filter)(image, (rows, columns), mode="nearest")
+
+
 def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
                     layer_gap: float, kernel: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Compiled twin of :func:`occlusion_diffs_reference`, in bands of rows run in parallel (the C
@@ -172,8 +202,6 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     occluding, and where it is the top or bottom layer of a spot, no pixel landing there is told
     apart from it either: the test leaves such pixels out (their differences are 0). The rows a
     band reads around it follow from the spread of the layers' shifts, not from their size."""
-    from scipy import ndimage
-
     native = chosen("regions", kernel)
     layers = np.ascontiguousarray(layers, np.float32)
     offsets = np.ascontiguousarray(offsets, np.float64).reshape(-1, 2)
@@ -194,8 +222,8 @@ def occlusion_diffs(layers: np.ndarray, offsets: list[tuple[int, int]], *,
     box = (2 * reach[0] + 1, 2 * reach[1] + 1)
     gap = np.float32(layer_gap)
     # float32 differences, as the kernel's test takes them (a pixel that is not finite lands nowhere)
-    highest = ndimage.maximum_filter(np.where(finite, layers, np.float32(-np.inf)), box, mode="nearest")
-    lowest = ndimage.minimum_filter(np.where(finite, layers, np.float32(np.inf)), box, mode="nearest")
+    highest = box_extreme(np.where(finite, layers, np.float32(-np.inf)), box, maximum=True)
+    lowest = box_extreme(np.where(finite, layers, np.float32(np.inf)), box, maximum=False)
     tested = (highest - layers > gap) | (layers - lowest > gap)
     # the tested pixels as runs along the rows: (x0, x1) in row order, row y's from row_start[y]
     edges = np.diff(np.pad(tested, ((0, 0), (1, 1))).view(np.int8), axis=1)
