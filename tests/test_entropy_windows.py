@@ -67,3 +67,31 @@ def test_visible_set_sees_a_background_pixel_next_to_an_occluder(side):
     visible = visible_view_mask(shape, (U, V))
     assert seen[visible].all()
     assert not seen[~visible].all()
+
+
+def test_curvature_size_cap_is_the_same_on_any_number_of_threads():
+    """The cap made with a size's box filters to a thread (2 to 5 threads) is the one thread's, bit
+    for bit: with and without unmeasured pixels and the noise tolerance, on a map with creases and
+    noise, a tiny one and one size alone."""
+    from recon.entropy.windows import curvature_size_cap
+
+    rng = np.random.default_rng(4)
+    y, x = np.mgrid[:70, :90]
+    layers = (np.abs(x - 45) * 0.03 + np.where(y > 30, 0.4, 0.0) + rng.normal(scale=0.02, size=x.shape))
+    layers = layers.astype(np.float32)
+    measured = rng.random(layers.shape) > 0.2
+    measured[10:30, 20:50] = False
+    initial = layers + rng.normal(scale=0.05, size=layers.shape).astype(np.float32)
+    cases = [dict(), dict(measured=measured), dict(measured=measured, initial=initial, noise_factor=2.0)]
+    for sizes in ((3, 5, 7, 9, 11, 13, 15), (5,), (3, 9)):
+        for image in (layers, layers[:4, :3]):
+            for case in cases:
+                case = {k: (v[:image.shape[0], :image.shape[1]] if isinstance(v, np.ndarray) else v)
+                        for k, v in case.items()}
+                one = curvature_size_cap(image, sizes, tolerance=0.01, threads=1, **case)
+                assert one.dtype == np.int64 and set(np.unique(one)) <= set(sizes)
+                if len(sizes) > 2 and image is layers:
+                    assert len(np.unique(one)) > 1
+                for threads in (2, 3, 5):
+                    np.testing.assert_array_equal(curvature_size_cap(image, sizes, tolerance=0.01, threads=threads,
+                                                                     **case), one)

@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon.native import thread_count
+
 #: Number of shapes: the full square (0), the paper's W1..W8 (1..8) and two strips (9, 10).
 N_SHAPES = 11
 #: The paper's shapes W1..W8.
@@ -116,7 +118,7 @@ SET_BLOCKS = _set_blocks()
 
 def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance: float,
                        measured: np.ndarray | None = None, initial: np.ndarray | None = None,
-                       noise_factor: float = 0.0) -> np.ndarray:
+                       noise_factor: float = 0.0, threads: int | None = None) -> np.ndarray:
     """``(H, W)`` int64: the largest of ``sizes`` up to which every square window centred on the
     pixel sees a mean layer value within ``tolerance`` (px/view) of the smallest square's mean.
 
@@ -135,31 +137,62 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
     ``|d0 - median3(d0)|`` over the largest window (every third pixel: 25 samples; a median, so that
     edges and creases do not count as noise). Where ``d0`` is noisy (render noise on a realistic
     surface) its layer means wander without a crease, and capping there only makes the windows, and
-    the matching, noisier."""
+    the matching, noisier.
+
+    ``threads``: how many run the box filters, a size each (default
+    :func:`recon.native.thread_count`; the cap is the same for any number)."""
     from scipy import ndimage
 
     from recon.entropy.median import median_filter_nearest
 
     sizes = tuple(sorted(int(s) for s in sizes))
     m = np.asarray(layers, np.float64)
-    ref = ndimage.uniform_filter(m, sizes[0], mode="nearest")
     # None: every pixel measured, no square blind (the filters of a map of zeros would give zeros)
     unmeasured = (None if measured is None or np.all(measured)
                   else (~np.asarray(measured, bool)).astype(np.float64))
-    tol = np.full(m.shape, float(tolerance))
-    if noise_factor > 0 and initial is not None:
-        d0 = np.asarray(initial, np.float32)
-        wander = np.abs(d0 - median_filter_nearest(d0, size=3))
-        footprint = np.zeros((sizes[-1], sizes[-1]), bool)
-        footprint[::3, ::3] = True
-        local = 1.4826 * median_filter_nearest(wander, footprint=footprint)
-        tol = np.maximum(tol, noise_factor * local)
-    cap = np.full(m.shape, sizes[0], np.int64)
-    allowed = np.ones(m.shape, bool)
-    for size in sizes[1:]:
+
+    def tolerance_map() -> np.ndarray:
+        tol = np.full(m.shape, float(tolerance))
+        if noise_factor > 0 and initial is not None:
+            d0 = np.asarray(initial, np.float32)
+            wander = np.abs(d0 - median_filter_nearest(d0, size=3))
+            footprint = np.zeros((sizes[-1], sizes[-1]), bool)
+            footprint[::3, ::3] = True
+            local = 1.4826 * median_filter_nearest(wander, footprint=footprint)
+            tol = np.maximum(tol, noise_factor * local)
+        return tol
+
+    def reference() -> np.ndarray:
+        return ndimage.uniform_filter(m, sizes[0], mode="nearest")
+
+    def within(size: int, ref, tol) -> np.ndarray:
+        """Where the ``size`` square's mean is within the tolerance of the smallest's, or blind."""
         ok = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref) <= tol
         if unmeasured is not None:
             ok |= ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25  # blind
+        return ok
+
+    threads = min(thread_count(), len(sizes)) if threads is None else int(threads)
+    if threads <= 1:
+        ref, tol = reference(), tolerance_map()
+        oks = (within(size, ref, tol) for size in sizes[1:])
+        return _cap_of(oks, sizes, m.shape)
+    # the filters (scipy's and the C medians let the interpreter's lock go) a size to a thread; each
+    # size's test is one map whatever the thread that makes it
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        ref, tol = pool.submit(reference), pool.submit(tolerance_map)
+        ref, tol = ref.result(), tol.result()
+        oks = [pool.submit(within, size, ref, tol) for size in sizes[1:]]
+        return _cap_of((ok.result() for ok in oks), sizes, m.shape)
+
+
+def _cap_of(oks, sizes: tuple[int, ...], shape: tuple[int, int]) -> np.ndarray:
+    """The cap of :func:`curvature_size_cap` from the tests of ``sizes[1:]`` (``oks``, in order)."""
+    cap = np.full(shape, sizes[0], np.int64)
+    allowed = np.ones(shape, bool)
+    for size, ok in zip(sizes[1:], oks):
         allowed &= ok
         cap[allowed] = size
     return cap
