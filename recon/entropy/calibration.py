@@ -37,7 +37,7 @@ import numpy as np
 from recon.entropy.confidence import confidence_map, finite_median5
 from recon.entropy.labels import OCCLUDED, OCCLUDING, TEXTURE
 from recon.entropy.median import median_filter_nearest
-from recon.native import thread_count
+from recon.native import call, chosen, thread_count
 
 #: The model's inputs, in the order of the coefficients.
 FEATURES = ("log_width", "log_change", "log_neighbour", "log_initial", "occluding", "occluded",
@@ -75,9 +75,27 @@ def neighbour_agreement(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return nearest, agreeing
 
 
-def jump_distance(d: np.ndarray) -> np.ndarray:
+def jump_distance(d: np.ndarray, *, rows: tuple[int, int] | None = None, kernel: str = "auto") -> np.ndarray:
     """``(H, W)`` float64 distance (pixels, Euclidean, at most :data:`JUMP_REACH_PX`) to the nearest
-    pixel on either side of a step over :data:`JUMP_PX` between 4-neighbours of ``d``."""
+    pixel on either side of a step over :data:`JUMP_PX` between 4-neighbours of ``d``; ``rows``
+    ``(r0, r1)``: only those rows of it (``(r1 - r0, W)``).
+
+    ``kernel``: ``"auto"`` the C kernel (``recon/native/confidence.c``, the same bits) where it
+    loads, ``"native"`` that one or ``RuntimeError``, ``"numba"`` the reference: scipy's Euclidean
+    distance transform (:func:`recon.native.chosen`; this kernel has no numba twin)."""
+    d = np.asarray(d, np.float64)
+    r0, r1 = (0, d.shape[0]) if rows is None else (int(rows[0]), int(rows[1]))
+    if chosen("confidence", kernel) and d.ndim == 2:
+        d = np.ascontiguousarray(d)
+        H, W = d.shape
+        out = np.empty((max(r1 - r0, 0), W))
+        call("confidence", "lfrig_jump_distance", d, H, W, float(JUMP_PX), int(JUMP_REACH_PX), r0, r1, out)
+        return out
+    return jump_distance_reference(d)[r0:r1]
+
+
+def jump_distance_reference(d: np.ndarray) -> np.ndarray:
+    """:func:`jump_distance` of the whole map by scipy's Euclidean distance transform (its readable twin)."""
     jump = np.zeros(d.shape, bool)
     for axis in (0, 1):
         step = np.abs(np.diff(d, axis=axis)) > JUMP_PX
@@ -228,7 +246,7 @@ FEATURE_FUNCTIONS = {
     "heuristic": lambda b: b.rows("heuristic"),
     "log_nearest_neighbour": lambda b: np.log(b.neighbours()[0] + _EPS),
     "neighbours_agreeing": lambda b: b.neighbours()[1] / 8.0,
-    "log_jump_distance": lambda b: np.log(jump_distance(b.d_halo)[b.core] + 1.0),
+    "log_jump_distance": lambda b: np.log(jump_distance(b.d_halo, rows=(b.core.start, b.core.stop)) + 1.0),
     "log_spread": lambda b: np.log(b.inputs.spread.rows(b.y0, b.y1) + _EPS),
     "entropy": lambda b: np.maximum(np.nan_to_num(b.rows("entropy")), ENTROPY_FLOOR),
 }

@@ -80,6 +80,7 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.boundary._snap_kernel": "regions",
     "recon.entropy.noise.warp_landings": "views",  # the view filters' steps: numpy and OpenCV twins, no numba
     "recon.entropy.noise._blend_filtered": "views",
+    "recon.entropy.calibration.jump_distance_reference": "confidence",  # its twin is scipy's, not numba's
 }
 
 
