@@ -74,3 +74,53 @@ def test_jump_distance_portable_build_gives_the_same_bits(monkeypatch, tmp_path,
     for i, d in enumerate(_maps(rng)):
         if i % 3 == 0:
             assert jump_distance(d, kernel="native").tobytes() == jump_distance_reference(d).tobytes(), i
+    from recon.entropy.calibration import neighbours_and_slope
+
+    for i, d in enumerate(_finite_maps(rng)):
+        if i % 3 == 0:
+            got, expected = (neighbours_and_slope(d, (0, d.shape[0]), kernel=k) for k in ("native", "numba"))
+            assert all(g.tobytes() == e.tobytes() for g, e in zip(got, expected)), i
+
+
+def _finite_maps(rng):
+    """Finite maps of 1x1 to 50x60 pixels: noise, steps of exactly TOLERANCE_PX (0 and 0.07), large
+    and tiny values, a flat one."""
+    from recon.entropy.calibration import TOLERANCE_PX
+
+    for trial in range(300):
+        H, W = int(rng.integers(1, 51)), int(rng.integers(1, 61))
+        if trial % 9 == 0:
+            H, W = (1, W) if trial % 2 else (H, 1)
+        kind = trial % 4
+        if kind == 0:
+            d = rng.normal(size=(H, W))
+        elif kind == 1:
+            d = rng.choice([0.0, TOLERANCE_PX, -TOLERANCE_PX, 2 * TOLERANCE_PX], size=(H, W))
+        elif kind == 2:
+            d = rng.normal(size=(H, W)) * 10.0 ** rng.integers(-300, 300, size=(H, W)).astype(np.float64)
+        else:
+            d = np.full((H, W), 0.3)
+        yield d
+
+
+def test_neighbours_and_slope_c_gives_numpys_bits():
+    """The C neighbours and slope of any rows of a finite map equal numpy's (neighbour_agreement,
+    np.gradient, np.hypot) byte for byte; a map with a NaN or an infinity takes numpy's."""
+    from recon.entropy.calibration import neighbours_and_slope
+
+    rng = np.random.default_rng(13)
+    for i, d in enumerate(_finite_maps(rng)):
+        H = d.shape[0]
+        r0 = int(rng.integers(0, H))
+        r1 = int(rng.integers(r0, H + 1)) if i % 3 else H
+        r0 = 0 if i % 3 == 0 else r0
+        got = neighbours_and_slope(d, (r0, r1), kernel="native")
+        expected = neighbours_and_slope(d, (r0, r1), kernel="numba")
+        for name, g, e in zip(("nearest", "agreeing", "slope"), got, expected):
+            assert g.dtype == e.dtype and g.shape == e.shape, (i, name)
+            assert g.tobytes() == e.tobytes(), (i, name, d.shape, r0, r1)
+    d = rng.normal(size=(9, 11))
+    for bad in (np.nan, np.inf):
+        d[4, 5] = bad
+        got, expected = neighbours_and_slope(d, (2, 8)), neighbours_and_slope(d, (2, 8), kernel="numba")
+        assert all(g.tobytes() == e.tobytes() for g, e in zip(got, expected))

@@ -75,6 +75,26 @@ def neighbour_agreement(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return nearest, agreeing
 
 
+def neighbours_and_slope(d: np.ndarray, rows: tuple[int, int], *, kernel: str = "auto"
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``[r0, r1)`` of :func:`neighbour_agreement`'s ``(nearest, agreeing)`` of ``d`` and of its
+    slope (``np.hypot`` of ``np.gradient`` along each axis of more than one pixel, else 0), float64,
+    int64 and float64: the C kernel (``recon/native/confidence.c``, the same bits) where it loads and
+    ``d`` is finite, else numpy (``kernel`` as :func:`jump_distance`'s)."""
+    d = np.asarray(d, np.float64)
+    r0, r1 = int(rows[0]), int(rows[1])
+    if d.ndim == 2 and chosen("confidence", kernel) and np.isfinite(d).all():
+        d = np.ascontiguousarray(d)
+        H, W = d.shape
+        nearest, slope = np.empty((max(r1 - r0, 0), W)), np.empty((max(r1 - r0, 0), W))
+        agreeing = np.empty((max(r1 - r0, 0), W), np.int64)
+        call("confidence", "lfrig_neighbours", d, H, W, r0, r1, float(TOLERANCE_PX), nearest, agreeing, slope)
+        return nearest, agreeing, slope
+    nearest, agreeing = neighbour_agreement(d)
+    gy, gx = (np.gradient(d, axis=a) if d.shape[a] > 1 else np.zeros_like(d) for a in (0, 1))
+    return nearest[r0:r1], agreeing[r0:r1], np.hypot(gy, gx)[r0:r1]
+
+
 def jump_distance(d: np.ndarray, *, rows: tuple[int, int] | None = None, kernel: str = "auto") -> np.ndarray:
     """``(H, W)`` float64 distance (pixels, Euclidean, at most :data:`JUMP_REACH_PX`) to the nearest
     pixel on either side of a step over :data:`JUMP_PX` between 4-neighbours of ``d``; ``rows``
@@ -210,15 +230,14 @@ class Band:
         return self.shared("median", lambda: median_filter_nearest(
             self.d_halo.astype(np.float32), size=5).astype(np.float64)[self.core])
 
+    def _neighbours_and_slope(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.shared("neighbours", lambda: neighbours_and_slope(self.d_halo, (self.core.start, self.core.stop)))
+
     def slope(self) -> np.ndarray:
-        def make():
-            d = self.d_halo
-            gy, gx = (np.gradient(d, axis=a) if d.shape[a] > 1 else np.zeros_like(d) for a in (0, 1))
-            return np.hypot(gy, gx)[self.core]
-        return self.shared("slope", make)
+        return self._neighbours_and_slope()[2]
 
     def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.shared("neighbours", lambda: tuple(m[self.core] for m in neighbour_agreement(self.d_halo)))
+        return self._neighbours_and_slope()[:2]
 
 
 def _flag(name: str):

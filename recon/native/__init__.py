@@ -75,7 +75,7 @@ SIGNATURES: dict[str, dict[str, str]] = {
         "lfrig_snap": "p i i i i p p p i p p p i p i d i d p p p p p i",
     },
     "filters": {"lfrig_uniform": "p p i i i i i i"},
-    "confidence": {"lfrig_jump_distance": "p i i d i i i p"},
+    "confidence": {"lfrig_jump_distance": "p i i d i i i p", "lfrig_neighbours": "p i i i i d p p p"},
 }
 _CTYPES = {"p": ctypes.c_void_p, "i": ctypes.c_int64, "d": ctypes.c_double, "f": ctypes.c_float}
 

@@ -97,3 +97,47 @@ int lfrig_jump_distance(const double *d, int64_t H, int64_t W, double jump, int6
     free(best);
     return 0;
 }
+
+/* - lfrig_neighbours: rows [r0, r1) of the (H, W) float64 map d (finite: the caller checks) as
+ *   recon.entropy.calibration's Band takes them from numpy: `nearest`, the least |d - d_n| over the 8
+ *   neighbours (np.minimum from +inf, in the order of neighbour_agreement's loops; the border
+ *   continued by the nearest pixel), `agreeing`, how many of them have |d - d_n| <= tolerance, and
+ *   `slope`, np.hypot of np.gradient's two derivatives (central differences halved inside, one-sided
+ *   at the map's first and last row or column, 0 along an axis of one pixel). hypot is the C
+ *   library's, which numpy's np.hypot calls too. */
+static inline double at(const double *d, int64_t H, int64_t W, int64_t y, int64_t x) {
+    y = y < 0 ? 0 : (y >= H ? H - 1 : y);
+    x = x < 0 ? 0 : (x >= W ? W - 1 : x);
+    return d[y * W + x];
+}
+
+static inline double derivative(const double *d, int64_t n, int64_t i, int64_t stride) {
+    if (n < 2) return 0.0;
+    if (i == 0) return (d[stride] - d[0]) / 1.0;
+    if (i == n - 1) return (d[i * stride] - d[(i - 1) * stride]) / 1.0;
+    return (d[(i + 1) * stride] - d[(i - 1) * stride]) / 2.0;
+}
+
+int lfrig_neighbours(const double *d, int64_t H, int64_t W, int64_t r0, int64_t r1, double tolerance,
+                     double *nearest, int64_t *agreeing, double *slope) {
+    for (int64_t y = r0; y < r1; y++) {
+        const int64_t i = (y - r0) * W;
+        for (int64_t x = 0; x < W; x++) {
+            const double v = d[y * W + x];
+            double least = INFINITY;
+            int64_t count = 0;
+            for (int64_t dy = -1; dy <= 1; dy++) {
+                for (int64_t dx = -1; dx <= 1; dx++) {
+                    if (dy == 0 && dx == 0) continue;
+                    const double diff = fabs(v - at(d, H, W, y + dy, x + dx));
+                    least = least < diff ? least : diff;  /* np.minimum(least, diff) of numbers */
+                    count += diff <= tolerance;
+                }
+            }
+            nearest[i + x] = least;
+            agreeing[i + x] = count;
+            slope[i + x] = hypot(derivative(d + x, H, y, W), derivative(d + y * W, W, x, 1));
+        }
+    }
+    return 0;
+}
