@@ -238,3 +238,26 @@ def test_one_median_serves_the_heuristic_and_the_features(monkeypatch):
     d[3, 4] = np.nan
     assert confidence.finite_median5(d) is None
     assert confidence.finite_median5(result.disparity.astype(np.float64)) is None
+
+
+def test_logistic_in_blocks_of_chunks_is_chunk_by_chunk():
+    """The model's sums taken a block of chunks at a time (one float64 copy, one stacked product)
+    equal those taken a chunk at a time (a float64 copy and a product each), bit for bit, for any
+    number of pixels (less than a chunk, whole blocks, a partial last chunk) and any view."""
+    from recon.entropy import calibration
+    from recon.entropy.calibration import LOGISTIC_BLOCK, LOGISTIC_CHUNK, _squash, logistic_in_chunks
+
+    rng = np.random.default_rng(8)
+    bias, coef = load_coefficients()
+    c = np.asarray(coef, np.float64)
+    block = LOGISTIC_CHUNK * LOGISTIC_BLOCK
+    for n in (1, 255, 256, 257, block - 1, block, block + 1, 3 * block + 100, int(rng.integers(1, 20000))):
+        f = (rng.normal(size=(n + 3, len(FEATURES))) * 10.0 ** rng.integers(-3, 4, size=(n + 3, len(FEATURES))))
+        f = f.astype(np.float32)[3:]  # a view that does not start the buffer
+        z = np.empty(n)
+        for i in range(0, n, LOGISTIC_CHUNK):
+            z[i:i + LOGISTIC_CHUNK] = np.asarray(f[i:i + LOGISTIC_CHUNK], np.float64) @ c
+        expected = _squash(bias + z)
+        assert logistic_in_chunks(f, bias, coef).tobytes() == expected.tobytes(), n
+        assert logistic_in_chunks(f.reshape(1, n, -1), bias, coef).tobytes() == expected.tobytes(), n
+    assert calibration.LOGISTIC_CHUNK % 4 == 0

@@ -149,6 +149,8 @@ HALO_ROWS = JUMP_REACH_PX + 1
 #: split between threads, so every pixel's sum is taken by the same kernel in the same order
 #: whatever the band, the image size or the number of threads.
 LOGISTIC_CHUNK = 256
+#: Chunks whose features are copied to float64 and summed at once (a copy of 590 kB).
+LOGISTIC_BLOCK = 16
 #: The features a band is given last, band after band (:func:`probability_right`): the box spread
 #: carries its running sums down the image, the heuristic is made beside the other features.
 LATE_FEATURES = ("log_spread", "heuristic")
@@ -457,13 +459,23 @@ def probability_right(*, refined: np.ndarray, matched: np.ndarray, initial: np.n
 
 def logistic_in_chunks(features: np.ndarray, bias: float, coefficients) -> np.ndarray:
     """:func:`logistic` of ``(..., F)`` features, the sums ``f . c`` taken :data:`LOGISTIC_CHUNK`
-    pixels at a time (float64 copies of a chunk only; each pixel's sum taken by the same BLAS kernel
-    whatever the band), the rest over all pixels at once."""
+    pixels at a time (each pixel's sum taken by the same BLAS kernel whatever the band), the rest
+    over all pixels at once. The chunks go :data:`LOGISTIC_BLOCK` at a time through one float64 copy
+    and one stacked product (numpy's matmul calls the same matrix-vector kernel on each chunk)."""
     flat = features.reshape(-1, features.shape[-1])
     c = np.asarray(coefficients, np.float64)
-    z = np.empty(flat.shape[0])
-    for i in range(0, flat.shape[0], LOGISTIC_CHUNK):
-        z[i:i + LOGISTIC_CHUNK] = np.asarray(flat[i:i + LOGISTIC_CHUNK], np.float64) @ c
+    n = flat.shape[0]
+    z = np.empty(n)
+    step = LOGISTIC_CHUNK * LOGISTIC_BLOCK
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        whole = i + (j - i) // LOGISTIC_CHUNK * LOGISTIC_CHUNK
+        block = np.asarray(flat[i:j], np.float64)
+        if whole > i:
+            np.matmul(block[:whole - i].reshape(-1, LOGISTIC_CHUNK, block.shape[1]), c,
+                      out=z[i:whole].reshape(-1, LOGISTIC_CHUNK))
+        if j > whole:
+            z[whole:j] = block[whole - i:] @ c
     return _squash(bias + z).reshape(features.shape[:-1])
 
 
