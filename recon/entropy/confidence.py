@@ -77,7 +77,9 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
     if not 0 <= hole_support <= 1 or not 0 <= hole_confidence <= 1:
         raise ValueError(f"hole_confidence and hole_support must be in [0, 1], got {hole_confidence}, {hole_support}")
     refined, matched = np.asarray(refined), np.asarray(matched)
-    fill = np.nanmedian(np.asarray(refined, np.float64)) if np.isfinite(refined).any() else 0.0
+    # what a band's own median puts in place of a value that is not finite (unused with ``median``)
+    fill = (None if median is not None else
+            np.nanmedian(np.asarray(refined, np.float64)) if np.isfinite(refined).any() else 0.0)
     H = refined.shape[0]
     bands = [(y0, min(y0 + BAND_ROWS, H)) for y0 in range(0, H, BAND_ROWS)]
     parts = dict(refined=refined, matched=matched, ambiguity=ambiguity, step=step, disparity_range=disparity_range,
