@@ -105,8 +105,10 @@ def _finite_maps(rng):
 
 def test_neighbours_and_slope_c_gives_numpys_bits():
     """The C neighbours and slope of any rows of a finite map equal numpy's (neighbour_agreement,
-    np.gradient, np.hypot) byte for byte; a map with a NaN or an infinity takes numpy's."""
+    np.gradient, np.hypot) byte for byte, and so does the slope alone (the heuristic's
+    ``slope_rows``); a map with a NaN or an infinity takes numpy's."""
     from recon.entropy.calibration import neighbours_and_slope
+    from recon.entropy.confidence import slope_rows
 
     rng = np.random.default_rng(13)
     for i, d in enumerate(_finite_maps(rng)):
@@ -119,6 +121,8 @@ def test_neighbours_and_slope_c_gives_numpys_bits():
         for name, g, e in zip(("nearest", "agreeing", "slope"), got, expected):
             assert g.dtype == e.dtype and g.shape == e.shape, (i, name)
             assert g.tobytes() == e.tobytes(), (i, name, d.shape, r0, r1)
+        slope = slope_rows(d, r0, r1, kernel="native")  # the heuristic's: the slope alone
+        assert slope.tobytes() == expected[2].tobytes() == slope_rows(d, r0, r1, kernel="numba").tobytes(), i
     d = rng.normal(size=(9, 11))
     for bad in (np.nan, np.inf):
         d[4, 5] = bad

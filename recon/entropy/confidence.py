@@ -38,6 +38,7 @@ import numpy as np
 
 from recon.entropy.median import median_filter_nearest
 from recon.entropy.refine import harmonic_fill
+from recon.native import call, chosen
 
 
 def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.ndarray, step: float,
@@ -108,12 +109,25 @@ def confidence_map(*, refined: np.ndarray, matched: np.ndarray, ambiguity: np.nd
             a, b = max(y0 - 1, 0), min(y1 + 1, H)
             halo = np.asarray(refined[a:b], np.float64)
             filled = np.where(np.isfinite(halo), halo, 0.0)
-            gy, gx = (np.gradient(filled, axis=k) if filled.shape[k] > 1 else np.zeros_like(filled)
-                      for k in (0, 1))
-            factor = factor * np.exp(-np.hypot(gy, gx)[y0 - a:y1 - a][h] / hole_ramp)
+            factor = factor * np.exp(-slope_rows(filled, y0 - a, y1 - a)[h] / hole_ramp)
         r = refined[y0:y1][h]
         out[y0:y1][h] = np.where(_inside(r, np.isfinite(r), disparity_range), np.nan_to_num(factor), 0.0)
     return out
+
+
+def slope_rows(d: np.ndarray, r0: int, r1: int, *, kernel: str = "auto") -> np.ndarray:
+    """Rows ``[r0, r1)`` of ``np.hypot`` of ``np.gradient`` of the finite ``(H, W)`` float64 map ``d``
+    along each axis of more than one pixel (0 along one of a pixel): the C kernel
+    (``recon/native/confidence.c``, the same bits) where it loads, else numpy (``kernel`` as
+    :func:`recon.native.chosen`'s, ``"numba"`` numpy's)."""
+    if chosen("confidence", kernel) and d.ndim == 2:
+        d = np.ascontiguousarray(d, np.float64)
+        H, W = d.shape
+        slope = np.empty((max(r1 - r0, 0), W))
+        call("confidence", "lfrig_neighbours", d, H, W, r0, r1, 0.0, None, None, slope)
+        return slope
+    gy, gx = (np.gradient(d, axis=k) if d.shape[k] > 1 else np.zeros_like(d) for k in (0, 1))
+    return np.hypot(gy, gx)[r0:r1]
 
 
 def finite_median5(refined: np.ndarray) -> np.ndarray | None:

@@ -104,7 +104,7 @@ int lfrig_jump_distance(const double *d, int64_t H, int64_t W, double jump, int6
  *   continued by the nearest pixel), `agreeing`, how many of them have |d - d_n| <= tolerance, and
  *   `slope`, np.hypot of np.gradient's two derivatives (central differences halved inside, one-sided
  *   at the map's first and last row or column, 0 along an axis of one pixel). hypot is the C
- *   library's, which numpy's np.hypot calls too. */
+ *   library's, which numpy's np.hypot calls too. With `nearest` NULL only the slope (`agreeing` unused). */
 static inline double at(const double *d, int64_t H, int64_t W, int64_t y, int64_t x) {
     y = y < 0 ? 0 : (y >= H ? H - 1 : y);
     x = x < 0 ? 0 : (x >= W ? W - 1 : x);
@@ -123,19 +123,21 @@ int lfrig_neighbours(const double *d, int64_t H, int64_t W, int64_t r0, int64_t 
     for (int64_t y = r0; y < r1; y++) {
         const int64_t i = (y - r0) * W;
         for (int64_t x = 0; x < W; x++) {
-            const double v = d[y * W + x];
-            double least = INFINITY;
-            int64_t count = 0;
-            for (int64_t dy = -1; dy <= 1; dy++) {
-                for (int64_t dx = -1; dx <= 1; dx++) {
-                    if (dy == 0 && dx == 0) continue;
-                    const double diff = fabs(v - at(d, H, W, y + dy, x + dx));
-                    least = least < diff ? least : diff;  /* np.minimum(least, diff) of numbers */
-                    count += diff <= tolerance;
+            if (nearest) {
+                const double v = d[y * W + x];
+                double least = INFINITY;
+                int64_t count = 0;
+                for (int64_t dy = -1; dy <= 1; dy++) {
+                    for (int64_t dx = -1; dx <= 1; dx++) {
+                        if (dy == 0 && dx == 0) continue;
+                        const double diff = fabs(v - at(d, H, W, y + dy, x + dx));
+                        least = least < diff ? least : diff;  /* np.minimum(least, diff) of numbers */
+                        count += diff <= tolerance;
+                    }
                 }
+                nearest[i + x] = least;
+                agreeing[i + x] = count;
             }
-            nearest[i + x] = least;
-            agreeing[i + x] = count;
             slope[i + x] = hypot(derivative(d + x, H, y, W), derivative(d + y * W, W, x, 1));
         }
     }
