@@ -189,11 +189,13 @@ class FeatureInputs:
         as of the whole image (bands taken top to bottom: the box spread carries its running sums).
         The features named in ``skip`` are left unset (:meth:`finish` sets them)."""
         band = Band(self, y0, y1)
-        out = np.empty((y1 - y0, self.shape[1], len(FEATURES)), np.float32)
+        # a feature a plane (contiguous stores), then the planes interleaved at once: 16 stores with
+        # a stride of F values took twice as long
+        planes = np.empty((len(FEATURES), y1 - y0, self.shape[1]), np.float32)
         for i, name in enumerate(FEATURES):
             if name not in skip:
-                out[..., i] = FEATURE_FUNCTIONS[name](band)
-        return out
+                planes[i] = FEATURE_FUNCTIONS[name](band)
+        return np.ascontiguousarray(planes.transpose(1, 2, 0))
 
     def finish(self, features: np.ndarray, y0: int, y1: int, names: tuple[str, ...]) -> np.ndarray:
         """``features`` of rows ``[y0, y1)`` (:meth:`band`'s) with the features ``names`` set."""
