@@ -15,6 +15,9 @@
  * dy^2 + dx^2 of the nearest marked pixel; sqrt(reach^2) is reach. Integer sums: any order.
  * Arrays are C-contiguous; one thread (the confidence step runs bands in threads of its own).
  */
+#ifdef __AVX__
+#include <immintrin.h>
+#endif
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -118,28 +121,69 @@ static inline double derivative(const double *d, int64_t n, int64_t i, int64_t s
     return (d[(i + 1) * stride] - d[(i - 1) * stride]) / 2.0;
 }
 
-int lfrig_neighbours(const double *d, int64_t H, int64_t W, int64_t r0, int64_t r1, double tolerance,
-                     double *nearest, int64_t *agreeing, double *slope) {
-    for (int64_t y = r0; y < r1; y++) {
-        const int64_t i = (y - r0) * W;
-        for (int64_t x = 0; x < W; x++) {
-            if (nearest) {
-                const double v = d[y * W + x];
-                double least = INFINITY;
-                int64_t count = 0;
-                for (int64_t dy = -1; dy <= 1; dy++) {
-                    for (int64_t dx = -1; dx <= 1; dx++) {
-                        if (dy == 0 && dx == 0) continue;
-                        const double diff = fabs(v - at(d, H, W, y + dy, x + dx));
-                        least = least < diff ? least : diff;  /* np.minimum(least, diff) of numbers */
-                        count += diff <= tolerance;
-                    }
-                }
-                nearest[i + x] = least;
-                agreeing[i + x] = count;
-            }
-            slope[i + x] = hypot(derivative(d + x, H, y, W), derivative(d + y * W, W, x, 1));
+/* The 8 neighbours of columns [x0, x1) of a row (its rows above and below clamped by the caller;
+ * x0 >= 1 and x1 <= W - 1 there, so that no column is clamped): np.minimum from +inf and the
+ * count, in neighbour_agreement's order (the row above left to right, the row's left and right, the
+ * row below). `least < diff ? least : diff` is np.minimum of numbers, and vectorises. */
+static void neighbours_run(const double *up, const double *mid, const double *down, int64_t x0, int64_t x1,
+                           double tolerance, double *nearest, int64_t *agreeing) {
+    for (int64_t x = x0; x < x1; x++) {
+        const double v = mid[x];
+        const double n[8] = {up[x - 1], up[x], up[x + 1], mid[x - 1], mid[x + 1], down[x - 1], down[x], down[x + 1]};
+        double least = INFINITY;
+        int64_t count = 0;
+        for (int k = 0; k < 8; k++) {
+            const double diff = fabs(v - n[k]);
+            least = least < diff ? least : diff;
+            count += diff <= tolerance;
+        }
+        nearest[x] = least;
+        agreeing[x] = count;
+    }
+}
+
+/* The same at a column that may be clamped (the first and the last). */
+static void neighbours_at(const double *d, int64_t H, int64_t W, int64_t y, int64_t x, double tolerance,
+                          double *nearest, int64_t *agreeing) {
+    const double v = d[y * W + x];
+    double least = INFINITY;
+    int64_t count = 0;
+    for (int64_t dy = -1; dy <= 1; dy++) {
+        for (int64_t dx = -1; dx <= 1; dx++) {
+            if (dy == 0 && dx == 0) continue;
+            const double diff = fabs(v - at(d, H, W, y + dy, x + dx));
+            least = least < diff ? least : diff;  /* np.minimum(least, diff) of numbers */
+            count += diff <= tolerance;
         }
     }
+    nearest[x] = least;
+    agreeing[x] = count;
+}
+
+int lfrig_neighbours(const double *d, int64_t H, int64_t W, int64_t r0, int64_t r1, double tolerance,
+                     double *nearest, int64_t *agreeing, double *slope) {
+    double *gy = malloc(sizeof(double) * (size_t)(2 * W)), *gx = gy + W;
+    if (!gy) return -1;
+    for (int64_t y = r0; y < r1; y++) {
+        const int64_t i = (y - r0) * W;
+        if (nearest) {
+            const double *mid = d + y * W;
+            const double *up = d + (y > 0 ? y - 1 : 0) * W, *down = d + (y + 1 < H ? y + 1 : H - 1) * W;
+            neighbours_at(d, H, W, y, 0, tolerance, nearest + i, agreeing + i);
+            if (W > 2) neighbours_run(up, mid, down, 1, W - 1, tolerance, nearest + i, agreeing + i);
+            if (W > 1) neighbours_at(d, H, W, y, W - 1, tolerance, nearest + i, agreeing + i);
+        }
+        for (int64_t x = 0; x < W; x++) {
+            gy[x] = derivative(d + x, H, y, W);
+            gx[x] = derivative(d + y * W, W, x, 1);
+        }
+#ifdef __AVX__
+        /* the loops above may leave the vector registers' upper halves in use, and the C library's
+         * hypot (SSE code) then runs several times slower on some CPUs */
+        _mm256_zeroupper();
+#endif
+        for (int64_t x = 0; x < W; x++) slope[i + x] = hypot(gy[x], gx[x]);
+    }
+    free(gy);
     return 0;
 }
