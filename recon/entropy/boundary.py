@@ -96,10 +96,12 @@ def boundary_candidates(matched: np.ndarray, *, jump: float, support: int
     ys, xs = np.nonzero(m - low > jump)
     far = low[ys, xs]
     padded = np.pad(m, 2, mode="edge")
+    row = padded.shape[1]
+    flat, at = padded.ravel(), (ys + 2) * row + (xs + 2)  # each neighbour by its offset: one take, not a 2-D index
     count = np.zeros(ys.size, np.int64)
     for dy in range(-2, 3):
         for dx in range(-2, 3):
-            count += np.abs(padded[ys + 2 + dy, xs + 2 + dx] - far) <= SUPPORT_TOLERANCE
+            count += np.abs(flat[at + (dy * row + dx)] - far) <= SUPPORT_TOLERANCE
     keep = count >= support
     return ys[keep], xs[keep], far[keep]
 
