@@ -99,13 +99,16 @@ def _warm_entropy() -> None:
 
 def _warm_entropy_later() -> None:
     # (with the first phase's C kernels, numba's start-up comes with the first numba kernel loaded here)
-    import scipy.sparse.linalg  # noqa: F401  the hole fill's solver, the first step after the first phase
-
+    from recon.entropy.laplace import solver_loads
     from recon.entropy.preload import FIRST_PHASE_KERNELS, KERNELS, load_kernels, without_c_twins
+    from recon.native import library
 
+    if not solver_loads():
+        import scipy.sparse.linalg  # noqa: F401  the hole fill's solver, the first step after the first phase
     load_kernels(without_c_twins(KERNELS[FIRST_PHASE_KERNELS:]), stop=_EXITING)  # the later steps' kernels
-    if not _EXITING.is_set():
-        import scipy.ndimage  # noqa: F401  first used by the region types (the matching phase)
+    # scipy's filters, where their C twins (recon.entropy.filters) do not load: first used by the windows
+    if library("filters") is None and not _EXITING.is_set():
+        import scipy.ndimage  # noqa: F401
 
 
 def _check_baseline(options: dict[str, Any]) -> None:

@@ -79,18 +79,20 @@ PHASES_PROBE = ("import json, sys\n"
                 "scipy = sorted(m for m in ('scipy.ndimage', 'scipy.sparse', 'scipy.linalg') if m in sys.modules)\n"
                 "first = load_kernels(KERNELS[:FIRST_PHASE_KERNELS])\n"
                 "METHODS['entropy'].warm_later()\n"
-                "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules]))")
+                "print(json.dumps([scipy, first, load_kernels(), 'scipy.ndimage' in sys.modules,"
+                " 'scipy.sparse' in sys.modules]))")
 
 
 def test_the_warm_up_before_the_estimate_loads_the_first_phase_without_scipy():
     # What the estimate waits for (Method.warm) loads numba, the estimator's modules and the first
-    # phase's kernels, not scipy; scipy and the later kernels load beside the estimate (warm_later).
-    # Here without the C kernels (LFRIG_NATIVE=0), whose first phase is numba's.
+    # phase's kernels, not scipy; the later kernels load beside the estimate (warm_later), and
+    # scipy.ndimage with them, which the estimate calls where the C filters do not load. Here
+    # without the C kernels (LFRIG_NATIVE=0), whose first phase is numba's. SuperLU loads alone.
     import os
 
     out = subprocess.run([sys.executable, "-c", PHASES_PROBE], cwd=ROOT, capture_output=True, text=True, check=True,
                          env={**os.environ, "LFRIG_NATIVE": "0"})
-    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 0, 0, True]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 0, 0, True, False]
 
 
 def test_with_the_first_phases_c_kernels_the_warm_up_before_the_estimate_loads_no_numba_kernel():
@@ -103,10 +105,10 @@ def test_with_the_first_phases_c_kernels_the_warm_up_before_the_estimate_loads_n
 
     require_native("initial")
     out = subprocess.run([sys.executable, "-c", PHASES_PROBE], cwd=ROOT, capture_output=True, text=True, check=True)
-    # the later kernels with a C twin are not loaded either (the estimate calls the C ones)
+    # the later kernels with a C twin are not loaded either (the estimate calls the C ones), nor scipy
     later_twins = len(KERNELS) - FIRST_PHASE_KERNELS - len(without_c_twins(KERNELS[FIRST_PHASE_KERNELS:]))
     assert later_twins >= 2
-    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 4, later_twins, True]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [[], 4, later_twins, False, False]
 
 
 # Kernels that take a while to "compile" and log when they start and end (the probe's LOG).

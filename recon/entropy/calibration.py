@@ -328,9 +328,9 @@ class _BoxSpread:
             sums.append(running[-1].copy())
         self.sums = (sums[0], sums[1])
         self.next_row = y1
-        from scipy import ndimage
+        from recon.entropy.filters import uniform_filter1d
 
-        mean, mean2 = (ndimage.uniform_filter1d(c, size, axis=1) for c in columns)
+        mean, mean2 = (uniform_filter1d(c, size, axis=1) for c in columns)
         return np.sqrt(np.maximum(mean2 - mean * mean, 0.0))
 
 

@@ -1,18 +1,13 @@
-"""The few ``scipy.ndimage`` filters the estimator calls, without importing ``scipy.ndimage`` (~0.1 s
-of Python, with scipy's array-API layer ~0.2 s, which in ``lfrig reconstruct`` is CPU the
-estimate's threads lose), each giving ``scipy.ndimage``'s bits:
+"""The ``scipy.ndimage`` filters the estimator calls that :mod:`recon.entropy.regions`
+(``box_extreme``: the minimum and maximum filters) and ``recon/native/confidence.c`` (the distance
+to the nearest jump) do not cover, without importing ``scipy.ndimage`` (~0.1 s of Python, with
+scipy's array-API layer ~0.2 s, which in ``lfrig reconstruct`` is CPU the estimate's threads lose),
+each giving ``scipy.ndimage``'s bits:
 
 - :func:`uniform_filter`, :func:`uniform_filter1d`: the C kernel of ``recon/native/filters.c``,
   scipy's own arithmetic (a float64 running sum) in its order, for images of finite values;
-- :func:`minimum_filter`, :func:`maximum_filter` (and ``grey_erosion`` without a structure, which is
-  the minimum filter): OpenCV's erosion and dilation with a rectangle, for ``mode="nearest"``. Where
-  the values hold neither NaN nor -0.0, the smallest (largest) value of a window is one number with
-  one bit pattern, whichever algorithm finds it; otherwise scipy's own filter, whose choice among
-  NaN and equal zeros its algorithm decides;
-- :func:`chessboard_distance` (``distance_transform_cdt(..., metric="chessboard")``) and
-  :func:`euclidean_distance` (``distance_transform_edt``): OpenCV's distance transforms, exact for
-  these metrics (the chessboard one an integer, the Euclidean one the square root of an integer,
-  taken here in float64 as scipy takes it).
+- :func:`chessboard_distance` (``distance_transform_cdt(..., metric="chessboard")``): OpenCV's
+  distance transform, exact for this metric (an integer).
 
 Every function takes ``kernel``: ``"auto"`` (the way above where it can be had, scipy otherwise),
 ``"native"`` (the same, but ``RuntimeError`` where the C library of the uniform filters is not
@@ -93,44 +88,6 @@ def uniform_filter(image: np.ndarray, size: int | tuple[int, int], *, mode: str 
     return out
 
 
-def _exact_extreme(image: np.ndarray) -> bool:
-    """Whether every window's smallest and largest value is one bit pattern: no NaN and no -0.0
-    (float), or an integer or boolean image."""
-    if image.dtype.kind in "biu":
-        return True
-    if image.dtype not in (np.float32, np.float64):
-        return False
-    return not (np.isnan(image).any() or (np.signbit(image) & (image == 0)).any())
-
-
-def _extreme(image: np.ndarray, size, mode: str, kernel: str, minimum: bool) -> np.ndarray:
-    _check_kernel(kernel)
-    image = np.asarray(image)
-    sizes = (size, size) if np.ndim(size) == 0 else tuple(size)
-    usable = (kernel != "scipy" and image.ndim == 2 and len(sizes) == 2 and min(sizes) >= 1 and mode == "nearest"
-              and image.size > 0 and image.dtype in (np.float32, np.float64, np.uint8) and _exact_extreme(image))
-    if not usable:
-        from scipy import ndimage
-
-        return (ndimage.minimum_filter if minimum else ndimage.maximum_filter)(image, size=size, mode=mode)
-    sy, sx = (int(s) for s in sizes)
-    box = np.ones((sy, sx), np.uint8)  # anchored at (sy // 2, sx // 2), as scipy's window
-    filtered = cv2.erode if minimum else cv2.dilate
-    return filtered(np.ascontiguousarray(image), box, anchor=(sx // 2, sy // 2), borderType=cv2.BORDER_REPLICATE)
-
-
-def minimum_filter(image: np.ndarray, size, *, mode: str = "nearest", kernel: str = "auto") -> np.ndarray:
-    """``scipy.ndimage.minimum_filter(image, size=size, mode=mode)`` (so also ``grey_erosion(image,
-    size=size, mode=mode)``): the smallest value of the ``size`` box (one size, or one per axis)."""
-    return _extreme(image, size, mode, kernel, minimum=True)
-
-
-def maximum_filter(image: np.ndarray, size, *, mode: str = "nearest", kernel: str = "auto") -> np.ndarray:
-    """``scipy.ndimage.maximum_filter(image, size=size, mode=mode)``: the largest value of the
-    ``size`` box."""
-    return _extreme(image, size, mode, kernel, minimum=False)
-
-
 def chessboard_distance(mask: np.ndarray, *, kernel: str = "auto") -> np.ndarray:
     """``scipy.ndimage.distance_transform_cdt(mask, metric="chessboard")`` of a 2-D mask with at least
     one ``False`` pixel: int32, each ``True`` pixel's chessboard distance to the nearest ``False``
@@ -143,25 +100,3 @@ def chessboard_distance(mask: np.ndarray, *, kernel: str = "auto") -> np.ndarray
         return ndimage.distance_transform_cdt(mask, metric="chessboard")
     distance = cv2.distanceTransform(mask.view(np.uint8), cv2.DIST_C, 3)
     return distance.astype(np.int32)
-
-
-def euclidean_distance(mask: np.ndarray, *, kernel: str = "auto") -> np.ndarray:
-    """``scipy.ndimage.distance_transform_edt(mask)`` of a 2-D mask with at least one ``False``
-    pixel: float64, each ``True`` pixel's Euclidean distance to the nearest ``False`` one within the
-    image, the square root of an integer (OpenCV's exact transform gives that root in float32, from
-    which the integer is recovered for distances below :data:`EXACT_ROOT_BELOW`: beyond, scipy)."""
-    _check_kernel(kernel)
-    mask = np.asarray(mask, bool)
-    root = None
-    if kernel != "scipy" and mask.ndim == 2 and not mask.all():
-        root = cv2.distanceTransform(mask.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    if root is None or root.max() >= EXACT_ROOT_BELOW:
-        from scipy import ndimage
-
-        return ndimage.distance_transform_edt(mask)
-    return np.sqrt(np.rint(np.square(root, dtype=np.float64)))
-
-
-#: :func:`euclidean_distance` recovers the squared distance ``n`` from OpenCV's float32 root while
-#: ``n < 2^22``: the root's rounding (a relative 2^-24) moves its square by less than half of 1 there.
-EXACT_ROOT_BELOW = 2047.0

@@ -93,6 +93,11 @@ def solve(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarr
     return x.ravel()
 
 
+def solver_loads() -> bool:
+    """Whether :func:`solve` calls SuperLU without importing ``scipy.sparse`` here."""
+    return _gssv() is not None
+
+
 @functools.cache
 def _gssv() -> Any | None:
     """SuperLU's ``gssv`` from scipy's extension module ``scipy.sparse.linalg._dsolve._superlu``,

@@ -81,6 +81,8 @@ C_TWINS: dict[str, str] = {
     "recon.entropy.noise.warp_landings": "views",  # the view filters' steps: numpy and OpenCV twins, no numba
     "recon.entropy.noise._blend_filtered": "views",
     "recon.entropy.calibration.jump_distance_reference": "confidence",  # its twin is scipy's, not numba's
+    "recon.entropy.filters.uniform_filter": "filters",  # scipy's too
+    "recon.entropy.filters.uniform_filter1d": "filters",
 }
 
 

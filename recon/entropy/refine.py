@@ -23,7 +23,7 @@ from recon.jit import numba
 from recon.native import call, chosen, thread_count
 import numpy as np
 
-if TYPE_CHECKING:  # scipy loads at the first solve: the estimate's first phase does without it
+if TYPE_CHECKING:  # scipy loads at the first multigrid solve (holes of over LU_MAX_PIXELS)
     import scipy.sparse
 
 
@@ -43,8 +43,8 @@ def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto"
     are reproduced where the hole keeps off the image's edges (to rounding by the LU, to the
     tolerance by multigrid). ``(H, W)`` float32; returned unchanged when nothing is known.
 
-    ``solver``: ``"lu"`` (scipy's sparse LU, exact to rounding; its memory grows faster than the
-    hole), ``"multigrid"`` (conjugate gradients preconditioned with a multigrid V-cycle to a
+    ``solver``: ``"lu"`` (SuperLU, scipy's sparse LU, exact to rounding, called without importing
+    ``scipy.sparse``: :mod:`recon.entropy.laplace`; its memory grows faster than the hole), ``"multigrid"`` (conjugate gradients preconditioned with a multigrid V-cycle to a
     relative residual of :data:`MULTIGRID_RTOL`; memory in proportion to the hole; ``ValueError``
     when a known neighbour is not finite, where the LU gives NaN) or ``"auto"`` (the LU up to
     :data:`LU_MAX_PIXELS` hole pixels, else multigrid)."""
@@ -54,13 +54,14 @@ def harmonic_fill(values: np.ndarray, holes: np.ndarray, *, solver: str = "auto"
     out = np.array(values, np.float64)
     if not holes.any() or holes.all():
         return out.astype(np.float32)
-    import scipy.sparse.linalg
-
     ys, xs = np.nonzero(holes)
-    A, rhs = _laplace_system(out, holes, ys, xs)
     if solver == "lu" or (solver == "auto" and len(ys) <= LU_MAX_PIXELS):
-        out[ys, xs] = scipy.sparse.linalg.spsolve(A.tocsc(), rhs)
-    elif not np.isfinite(rhs).all():
+        from recon.entropy.laplace import laplace_system, solve
+
+        out[ys, xs] = solve(*laplace_system(out, holes, ys, xs))
+        return out.astype(np.float32)
+    A, rhs = _laplace_system(out, holes, ys, xs)
+    if not np.isfinite(rhs).all():
         raise ValueError(f"harmonic_fill: {np.count_nonzero(~np.isfinite(rhs))} hole pixels have a non-finite known "
                          "neighbour; pass finite values around the holes (or mark those pixels as holes too)")
     else:

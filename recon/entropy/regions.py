@@ -257,11 +257,11 @@ def layer_jumps(layers: np.ndarray, *, layer_gap: float) -> np.ndarray:
 
 def jump_distance(jumps: np.ndarray) -> np.ndarray:
     """``(H, W)`` int64 chessboard distance to the nearest ``jumps`` pixel (0 on it; large if none)."""
-    from scipy import ndimage
+    from recon.entropy.filters import chessboard_distance
 
     if not jumps.any():
         return np.full(jumps.shape, 1 << 30, np.int64)
-    return ndimage.distance_transform_cdt(~jumps, metric="chessboard").astype(np.int64)
+    return chessboard_distance(~jumps).astype(np.int64)
 
 
 #: Immerkaer's noise operator: the difference of two Laplacians, blind to a linear ramp.

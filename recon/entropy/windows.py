@@ -141,8 +141,7 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
 
     ``threads``: how many run the box filters, a size each (default
     :func:`recon.native.thread_count`; the cap is the same for any number)."""
-    from scipy import ndimage
-
+    from recon.entropy.filters import uniform_filter
     from recon.entropy.median import median_filter_nearest
 
     sizes = tuple(sorted(int(s) for s in sizes))
@@ -163,13 +162,13 @@ def curvature_size_cap(layers: np.ndarray, sizes: tuple[int, ...], *, tolerance:
         return tol
 
     def reference() -> np.ndarray:
-        return ndimage.uniform_filter(m, sizes[0], mode="nearest")
+        return uniform_filter(m, sizes[0], mode="nearest")
 
     def within(size: int, ref, tol) -> np.ndarray:
         """Where the ``size`` square's mean is within the tolerance of the smallest's, or blind."""
-        ok = np.abs(ndimage.uniform_filter(m, size, mode="nearest") - ref) <= tol
+        ok = np.abs(uniform_filter(m, size, mode="nearest") - ref) <= tol
         if unmeasured is not None:
-            ok |= ndimage.uniform_filter(unmeasured, size, mode="nearest") > 0.25  # blind
+            ok |= uniform_filter(unmeasured, size, mode="nearest") > 0.25  # blind
         return ok
 
     threads = min(thread_count(), len(sizes)) if threads is None else int(threads)
