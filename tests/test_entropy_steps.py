@@ -146,35 +146,49 @@ def test_bar_strips_in_place_is_the_gate_with_its_fallback():
     np.testing.assert_array_equal(got, expected.transpose(0, 2, 1))
 
 
-def test_filtered_views_of_a_band_are_those_rows_of_the_whole_views_filtered():
-    # On a noisy scene both filters act: the rows of any band the line search matches must be those
-    # of the filters over the whole views, bit for bit, and the views as read must stay unwritten.
+def noisy_wall(shape: tuple[int, int], seed: int, textured: tuple[slice, slice], faint: tuple[slice, slice],
+               texture_seeds: tuple[int, int]):
+    """``(lf, s, expected)``: a plain wall under noise with a ``textured`` and a ``faint`` patch (both
+    view filters act), the state after the first two phases, and the views filtered whole by the
+    numpy/OpenCV twins: the reference every band of :func:`recon.entropy.steps.filtered_views` is
+    cut from."""
     from recon.entropy import steps
     from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
     from recon.entropy.options import make_options
     from recon.entropy.plan import PLAN, run_phase, start
+    from recon.native import preferring
     from recon.synthetic import Layer, noise_texture, render
-    rng = np.random.default_rng(5)
-    wall = np.full((64, 64), 0.5, np.float32)  # a plain wall under noise, a textured and a faint patch
-    wall[8:30, 8:40] = noise_texture((22, 32), seed=2)
-    wall[36:60, 30:60] += 0.02 * noise_texture((24, 30), seed=3)
+    rng = np.random.default_rng(seed)
+    wall = np.full(shape, 0.5, np.float32)
+    wall[textured] = noise_texture(wall[textured].shape, seed=texture_seeds[0])
+    wall[faint] += 0.02 * noise_texture(wall[faint].shape, seed=texture_seeds[1])
     lf, _ = render([Layer(wall, 0.4)])
     lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
-    given = lf.views.copy()
     o = make_options()
     s = start(lf, o)
     for phase in PLAN[:2]:
         run_phase(s, phase)
-    U, V, H, W = s.raw.shape
-    expected = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
-                                 size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                 where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
-                                 texture_ratio=o.noise_texture_ratio, radius_px=o.windows.largest_radius_px)
-    weak = weak_texture_pixels(steps._texture_ratio(s.centre, s.noise_sigma, o),
-                               texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
-    expected = soften_views(expected, sigma_px=o.weak_texture_filter, out=expected,
-                            where=warp_mask_to_views(weak, s.d0, (U, V)))
+    U, V = s.raw.shape[:2]
+    with preferring("numba"):
+        expected = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
+                                     size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
+                                     where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
+                                     texture_ratio=o.noise_texture_ratio, radius_px=o.windows.largest_radius_px)
+        weak = weak_texture_pixels(steps._texture_ratio(s.centre, s.noise_sigma, o),
+                                   texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
+        expected = soften_views(expected, sigma_px=o.weak_texture_filter, out=expected,
+                                where=warp_mask_to_views(weak, s.d0, (U, V)))
     assert s.noise_limited.any() and weak.any()
+    return lf, s, expected
+
+
+def test_filtered_views_of_a_band_are_those_rows_of_the_whole_views_filtered():
+    # On a noisy scene both filters act: the rows of any band the line search matches must be those
+    # of the filters over the whole views, bit for bit, and the views as read must stay unwritten.
+    from recon.entropy import steps
+    lf, s, expected = noisy_wall((64, 64), 5, np.s_[8:30, 8:40], np.s_[36:60, 30:60], (2, 3))
+    given = lf.views.copy()
+    H = s.raw.shape[2]
     steps.view_filters_step(s)
     for a, b in [(0, H), (0, 9), (20, 41), (50, H), (31, 32)]:
         got = steps.filtered_views(s, a, b)

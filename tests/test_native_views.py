@@ -141,34 +141,11 @@ def test_filtered_views_give_the_twins_bits_on_every_thread_count(threads, monke
     # both filters acting on a noisy scene: every band's rows, with the C kernels on 1-4 threads,
     # are those of the numpy/OpenCV twins over the whole views
     from recon.entropy import steps
-    from recon.entropy.noise import filter_flat_views, soften_views, warp_mask_to_views, weak_texture_pixels
-    from recon.entropy.options import make_options
-    from recon.entropy.plan import PLAN, run_phase, start
-    from recon.native import preferring
-    from recon.synthetic import Layer, noise_texture, render
+    from tests.test_entropy_steps import noisy_wall
 
     require_native("views")
-    rng = np.random.default_rng(15)
-    wall = np.full((48, 52), 0.5, np.float32)
-    wall[6:24, 6:30] = noise_texture((18, 24), seed=4)
-    wall[28:46, 24:50] += 0.02 * noise_texture((18, 26), seed=5)
-    lf, _ = render([Layer(wall, 0.4)])
-    lf.views += rng.normal(0, 0.01, lf.views.shape).astype(np.float32)
-    o = make_options()
-    s = start(lf, o)
-    for phase in PLAN[:2]:
-        run_phase(s, phase)
-    U, V, H, W = s.raw.shape
-    with preferring("numba"):
-        expected = filter_flat_views(s.raw, sigma_px=o.noise_filter, noise_sigma=s.noise_sigma,
-                                     size=o.smooth_neighbourhood, tolerance=o.smooth_tolerance,
-                                     where=warp_mask_to_views(s.noise_limited, s.d0, (U, V)),
-                                     texture_ratio=o.noise_texture_ratio, radius_px=o.windows.largest_radius_px)
-        weak = weak_texture_pixels(steps._texture_ratio(s.centre, s.noise_sigma, o),
-                                   texture_ratio=o.weak_texture_ratio) & ~s.noise_limited
-        expected = soften_views(expected, sigma_px=o.weak_texture_filter, out=expected,
-                                where=warp_mask_to_views(weak, s.d0, (U, V)))
-    assert s.noise_limited.any() and weak.any()
+    _, s, expected = noisy_wall((48, 52), 15, np.s_[6:24, 6:30], np.s_[28:46, 24:50], (4, 5))
+    H = s.raw.shape[2]
     steps.view_filters_step(s)
     monkeypatch.setattr(steps, "thread_count", lambda: threads)
     for a, b in [(0, H), (0, 5), (17, 30), (H - 1, H)]:
