@@ -111,7 +111,9 @@ def test_every_kernel_of_a_default_estimate_has_a_c_twin():
 def test_the_entropy_command_imports_no_numba(tmp_path, scene):
     # lfrig reconstruct (the entropy method) as a user runs it, with its warm-up: on a lab capture
     # (the range found by the coarse search) and on the benchmark scene (its range given), every
-    # kernel runs its C twin (recon.entropy.preload.C_TWINS), and numba never enters the process.
+    # kernel runs its C twin (recon.entropy.preload.C_TWINS), and neither numba nor scipy (whose
+    # filters and sparse solve recon.entropy.filters, regions.box_extreme and laplace stand in
+    # for) ever enters the process.
     from recon.entropy.preload import C_TWINS
     from tests.conftest import require_hci_scene, require_native
 
@@ -125,7 +127,7 @@ def test_the_entropy_command_imports_no_numba(tmp_path, scene):
         from recon.methods import _WARM_UPS
         for thread in _WARM_UPS:
             thread.join()
-        print(json.dumps([code, sorted(m for m in ("numba", "llvmlite") if m in sys.modules)]))
+        print(json.dumps([code, sorted(m for m in ("numba", "llvmlite", "scipy") if m in sys.modules)]))
         """)
     assert loaded == [0, []]
     result = json.loads((tmp_path / "out" / "result.json").read_text())
